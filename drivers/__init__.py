@@ -1,0 +1,1 @@
+"""Device drivers (Modbus turntable, serial compass) and their simulators. Arrives with issue 3."""

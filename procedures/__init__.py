@@ -1,0 +1,1 @@
+"""Scripted procedures (what to do) and, later, the engine that runs them."""

@@ -1,0 +1,1 @@
+"""The edge: command line now; FastAPI service, database and web pages later."""

@@ -1,0 +1,238 @@
+"""The physics core against PHYSICS.md: conventions, the reference unit, the fits and their uncertainties."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from physics import errorsep as es
+from physics.calibration import Calibration, attitude_grid, staged_truth_errors, truth_errors, truth_summary
+from physics.fit import fit, pose_means
+from physics.frames import rot_x, rot_y, rot_z, yaw_pitch_roll
+from physics.heading import magnetic_heading, pitch_roll
+from physics.recording import Recording, RecordingError
+from physics.sensor import LinearSensor, Unit, angles_to_Mo, random_unit, reference_unit
+from physics.simulate import Pose, World, plan_cost, simulate_recording
+from physics.table import Motion, TableGeometry, move_seconds, platform_attitude
+from procedures.calibrate import CalibrateParams, calibration_poses
+
+angle = st.floats(-180.0, 180.0, allow_nan=False)
+tilt = st.floats(-80.0, 80.0, allow_nan=False)
+
+
+def recording(unit: Unit, world: World = World(), samples: int = 20, seed: int = 0, **params: float) -> Recording:
+    poses = calibration_poses(CalibrateParams(samples=samples, **params))  # type: ignore[arg-type]
+    return simulate_recording(unit, poses, world, rng=np.random.default_rng(seed))
+
+
+# --- conventions ---------------------------------------------------------------------------------
+
+@given(angle, st.floats(-89.0, 89.0), angle)
+def test_ideal_table_encoder_angles_are_the_zyx_euler_angles(psi: float, theta: float, phi: float) -> None:
+    C = platform_attitude(psi, theta, phi)[0]
+    assert np.allclose(C, rot_z(psi) @ rot_y(theta) @ rot_x(phi))
+    yaw, pitch, roll = yaw_pitch_roll(C)
+    assert np.isclose((yaw[0] - psi + 180) % 360 - 180, 0, atol=1e-7)
+    assert np.isclose(pitch[0], theta, atol=1e-7) and np.isclose(roll[0], phi, atol=1e-7)
+
+
+def test_rotations_are_active_and_right_handed() -> None:
+    assert np.allclose(rot_z(90) @ [1, 0, 0], [0, 1, 0])
+    assert np.allclose(rot_x(90) @ [0, 1, 0], [0, 0, 1])
+    assert np.allclose(rot_y(90) @ [0, 0, 1], [1, 0, 0])
+
+
+@settings(max_examples=60)
+@given(angle, tilt, tilt, st.floats(-80, 80), st.floats(0, 360))
+def test_perfect_sensor_has_zero_heading_error_at_every_attitude(psi: float, theta: float, phi: float,
+                                                                  inc: float, dec: float) -> None:
+    world = World(inc, dec)
+    perfect = Unit("P", LinearSensor.ideal(3000.0), LinearSensor.ideal(16384.0))
+    cal = Calibration("perfect", LinearSensor.ideal(3000.0), LinearSensor.ideal(16384.0))
+    err = truth_errors(cal, perfect, world, np.array([[psi, theta, phi]]))
+    assert abs(err[0]) < 1e-7
+
+
+def test_pitch_roll_and_heading_follow_physics_md() -> None:
+    C = platform_attitude(30.0, 20.0, -10.0)
+    f_b = C[0].T @ [0, 0, -1]
+    pitch, roll = pitch_roll(f_b)
+    assert np.isclose(pitch[0], 20.0) and np.isclose(roll[0], -10.0)
+    world = World(60.0, 10.0)
+    h_b = C[0].T @ world.field_L
+    assert np.isclose(magnetic_heading(h_b, f_b)[0], 30.0 - 10.0)
+
+
+def test_reference_unit_reproduces_the_staged_errors_of_physics_md() -> None:
+    unit = reference_unit()
+    truth = Calibration("truth", unit.mag, unit.acc)
+    staged = staged_truth_errors(truth, unit, World(50.0, 0.0))
+    assert staged["raw"] == pytest.approx(20.2, abs=0.1)
+    assert staged["bias"] == pytest.approx(3.2, abs=0.1)
+    assert staged["sensitivity"] == pytest.approx(2.6, abs=0.1)
+    assert staged["full"] < 1e-9
+
+
+def test_sensor_split_and_angles_round_trip() -> None:
+    unit = reference_unit()
+    again = LinearSensor.from_matrix(unit.mag.M, unit.mag.bias)
+    assert np.allclose(again.M_o, unit.mag.M_o) and np.allclose(again.k, unit.mag.k)
+    assert np.allclose(angles_to_Mo(unit.mag.angles_deg), unit.mag.M_o)
+    raw = unit.mag.measure(np.array([[0.3, -0.2, 0.9]]))
+    assert np.allclose(unit.mag.correct(raw), [[0.3, -0.2, 0.9]])
+
+
+def test_trapezoidal_move_times() -> None:
+    m = Motion(max_speed_dps=30, max_accel_dps2=60)
+    assert move_seconds([90.0], m) == pytest.approx(90 / 30 + 30 / 60)  # cruise phase reached
+    assert move_seconds([5.0], m) == pytest.approx(2 * np.sqrt(5 / 60))  # triangle
+    assert move_seconds([10.0, 90.0, 0.0], m) == move_seconds([90.0], m)  # axes move together
+
+
+def test_default_calibration_fits_in_two_minutes_of_table_time() -> None:
+    cost = plan_cost(calibration_poses())
+    assert cost.total_s <= 120.0
+    assert cost.positions == 18
+
+
+# --- error separation ------------------------------------------------------------------------------
+
+def test_sweeps_are_found_from_table_angles_not_labels() -> None:
+    rec = recording(reference_unit(), samples=5)
+    rec.step[:] = "anything"
+    sweeps = es.find_sweeps(es.table_angles(rec))
+    assert sorted(sw.axis for sw in sweeps) == [0, 1, 2]
+    z = next(sw for sw in sweeps if sw.axis == 2)
+    assert z.positions == 8 and z.coverage_deg == pytest.approx(315.0)
+
+
+def test_error_separation_recovers_the_reference_unit_noise_free() -> None:
+    unit = reference_unit()
+    world = World(50.0, 37.0, TableGeometry(base_tilt_deg=(0.08, -0.05)))
+    rec = recording(unit, world, samples=3)
+    cal = fit(rec, "error-separation", bootstrap=0)
+    assert np.allclose(cal.mag.angles_deg, unit.mag.angles_deg, atol=1e-6)
+    assert np.allclose(cal.mag.k, unit.mag.k, rtol=1e-8) and np.allclose(cal.mag.bias, unit.mag.bias, atol=1e-5)
+    assert cal.inclination_deg == pytest.approx(50.0, abs=1e-6)
+    assert cal.declination_deg == pytest.approx(37.0, abs=1e-6)
+    assert np.allclose(cal.base_tilt_deg, (0.08, -0.05), atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["error-separation", "joint"])
+def test_reference_unit_with_noise_meets_the_accuracy_target(method: str) -> None:
+    unit = reference_unit(3.0, 4.0)
+    world = World(55.0, 23.0, TableGeometry(base_tilt_deg=(0.05, -0.03)))
+    cal = fit(recording(unit, world, samples=CalibrateParams.samples, seed=3), method, bootstrap=5)
+    s = truth_summary(cal, unit, world)
+    assert s["level_max"] <= 0.02 and s["tilted_max"] <= 0.05
+
+
+def test_peak_picking_as_published_is_worse_than_fitting_the_sinusoid() -> None:
+    unit = reference_unit(3.0, 4.0)
+    rec = recording(unit, samples=10, z_step_deg=10.0, tilt_step_deg=10.0)
+    picked = truth_summary(fit(rec, "peak-picking", bootstrap=0), unit, World())
+    fitted = truth_summary(fit(rec, "error-separation", bootstrap=0), unit, World())
+    assert picked["level_max"] > 0.2 > 10 * fitted["level_max"]
+
+
+def test_joint_sigmas_are_honest_over_random_units() -> None:
+    """Every parameter within 4 sigma of the truth; normalised errors spread near 1."""
+    rng = np.random.default_rng(11)
+    z = []
+    for _ in range(12):
+        unit = random_unit(rng)
+        world = World(rng.uniform(40, 70), rng.uniform(0, 360), TableGeometry(base_tilt_deg=tuple(rng.uniform(-0.1, 0.1, 2))))
+        cal = fit(simulate_recording(unit, calibration_poses(CalibrateParams(samples=15)), world, rng=rng), "joint")
+        s = cal.sigma
+        z.append(np.r_[
+            ((cal.mag.angles_deg - unit.mag.angles_deg) / s["angles_deg"]).ravel(),
+            (cal.mag.k - unit.mag.k) / s["k"], (cal.mag.bias - unit.mag.bias) / s["bias"],
+            (cal.inclination_deg - world.inclination_deg) / s["inclination_deg"],
+            ((cal.declination_deg - world.declination_deg + 180) % 360 - 180) / s["declination_deg"],
+            (np.array(cal.base_tilt_deg) - world.geometry.base_tilt_deg) / s["base_tilt_deg"],
+        ])
+    z = np.array(z)
+    assert np.abs(z).max() < 4.0
+    assert 0.8 < z.std() < 1.25
+
+
+def test_bootstrap_sigmas_of_the_stepwise_method_are_plausible() -> None:
+    unit = reference_unit(3.0, 4.0)
+    cal = fit(recording(unit, samples=20, seed=5), "error-separation", bootstrap=20)
+    z = (cal.mag.k - unit.mag.k) / cal.sigma["k"]
+    assert np.all(np.abs(z) < 4.5)
+    assert np.all(cal.sigma["k"] > 0.05) and np.all(cal.sigma["k"] < 5.0)
+
+
+def test_tilt_by_reversal() -> None:
+    unit = random_unit(np.random.default_rng(2), acc_noise_lsb=0.0)
+    world = World(geometry=TableGeometry(base_tilt_deg=(0.07, -0.04)))
+    poses = [Pose("level", psi, 0, 0, 1) for psi in (0, 90, 180, 270)]
+    rec = simulate_recording(unit, poses, world, rng=np.random.default_rng(0))
+    tilt = es.tilt_by_reversal(rec.psi_t, rec.acc)
+    # the unit's own accelerometer misalignment (<= 1 deg) turns the tilt direction slightly
+    assert np.allclose(tilt, (0.07, -0.04), atol=0.004)
+
+
+def test_six_position_accelerometer() -> None:
+    unit = random_unit(np.random.default_rng(4), acc_noise_lsb=0.0)
+    poses = [Pose("accel6", 0, th, ph, 1) for th, ph in ((0, 0), (0, 180), (90, 0), (-90, 0), (0, 90), (0, -90))]
+    rec = simulate_recording(unit, poses, World(), rng=np.random.default_rng(0))
+    six = es.six_position(es.table_angles(rec), rec.acc)
+    assert six is not None
+    assert np.allclose(six.M, unit.acc.M, atol=1.0) and np.allclose(six.bias, unit.acc.bias, atol=1.0)
+
+
+# --- refusals --------------------------------------------------------------------------------------
+
+def test_level_turn_only_is_refused_naming_what_is_missing() -> None:
+    rec = recording(reference_unit(3.0), samples=5)
+    level = rec.select(rec.step == "rotate_z")
+    with pytest.raises(es.InsufficientData) as e:
+        fit(level, "error-separation")
+    assert "no sweep about the table's y axis" in str(e.value) and "k_z, bias_z" in str(e.value)
+    with pytest.raises(es.InsufficientData) as e:
+        fit(level, "joint")
+    assert "M[xm,zb]" in str(e.value) and "sweeps about the table's x and y axes" in str(e.value)
+
+
+def test_angles_in_radians_are_refused() -> None:
+    rec = recording(reference_unit(), samples=2)
+    rad = Recording.from_arrays(rec.t, rec.step, np.radians(rec.psi_t), np.radians(rec.theta_t),
+                                np.radians(rec.phi_t), rec.mag, rec.acc)
+    with pytest.raises(RecordingError, match="psi_t.*radians"):
+        fit(rad)
+
+
+def test_readings_that_the_model_cannot_explain_are_refused() -> None:
+    rec = recording(reference_unit(), samples=2)
+    bent = rec.mag.copy()
+    bent[:, 1] = np.abs(bent[:, 1])  # a broken channel: output no longer linear in the field
+    with pytest.raises(RecordingError, match="field magnitude varies"):
+        fit(Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, bent, rec.acc))
+
+
+def test_calibration_json_round_trip_and_required_keys() -> None:
+    cal = fit(recording(reference_unit(3.0, 4.0), samples=10), "joint")
+    d = cal.to_json()
+    for key in ("format", "serial", "method", "magnetometer", "accelerometer", "field", "base_tilt_deg", "quality"):
+        assert key in d
+    assert set(d["magnetometer"]["sigma"]) == {"angles_deg", "k", "bias"}
+    assert set(d["quality"]["heading_error_deg"]) >= {"raw", "bias", "sensitivity", "full"}
+    back = Calibration.from_json(d)
+    assert np.allclose(back.mag.M, cal.mag.M) and back.acc is not None and np.allclose(back.acc.M, cal.acc.M)
+    assert back.declination_deg == pytest.approx(cal.declination_deg)
+
+
+def test_pose_means_average_each_hold() -> None:
+    rec = recording(reference_unit(3.0), samples=7)
+    mean = pose_means(rec)
+    assert len(mean) == 18
+    assert np.allclose(mean.mag[0], rec.mag[:7].mean(axis=0))
+
+
+def test_attitude_grid_covers_pitch_and_roll_to_60() -> None:
+    g = attitude_grid()
+    assert g[:, 1].min() == -60 and g[:, 2].max() == 60 and len(np.unique(g[:, 0])) == 24

@@ -65,7 +65,8 @@ def table_angles(rec: Recording) -> np.ndarray:
     return np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t])
 
 
-def _coverage(angles_deg: np.ndarray) -> float:
+def coverage_deg(angles_deg: np.ndarray) -> float:
+    """How much of the circle a set of angles covers: 360 minus the largest gap between neighbours."""
     a = np.sort(np.unique(np.round(angles_deg % 360.0, 2)))
     if a.size < 2:
         return 0.0
@@ -88,7 +89,7 @@ def find_sweeps(angles: np.ndarray, min_positions: int = 3, min_coverage_deg: fl
             idx = np.flatnonzero(inverse.ravel() == g)
             turning = angles[idx, col]
             positions = np.unique(np.round(turning % 360.0, 2)).size
-            cov = _coverage(turning)
+            cov = coverage_deg(turning)
             if positions >= min_positions and cov >= min_coverage_deg:
                 fixed = np.median(angles[idx], axis=0)
                 fixed[col] = 0.0
@@ -136,9 +137,12 @@ def phases_by_sinusoid(mag: np.ndarray, sweeps: list[Sweep]) -> list[PeakPhase]:
     out = []
     for sw in sweeps:
         coef, rms = fit_sinusoid(sw.angle_deg, mag[sw.index])
+        amps = np.hypot(coef[1], coef[2])
         for i in range(3):
-            amp = float(np.hypot(coef[1, i], coef[2, i]))
-            noise = max(float(rms[i]), 1e-6 * amp)  # noise-free data would give infinite weights
+            amp = float(amps[i])
+            # noise-free data would give infinite weights; the floor scales with the sweep's largest
+            # signal so that an axis almost along the turning axis keeps a weak, not exact, phase
+            noise = max(float(rms[i]), 1e-6 * float(amps.max()))
             sigma = noise / (amp * np.sqrt(len(sw.index) / 2.0))
             out.append(PeakPhase(sw, i, float(np.arctan2(coef[2, i], coef[1, i])), sigma, amp))
     return out
@@ -523,6 +527,20 @@ def rotations(rec: Recording) -> np.ndarray:
     return platform_attitude(a[:, 0], a[:, 1], a[:, 2])
 
 
+def specific_force(rec: Recording, sensor: LinearSensor | None) -> np.ndarray:
+    """f_b (g) per sample: from the calibrated accelerometer when there is one, else the table's nominal f_b.
+
+    Rows whose accelerometer cells are empty (NaN) fall back to the nominal value too.
+    """
+    nominal = np.einsum("nji,j->ni", rotations(rec), np.array([0.0, 0.0, -1.0]))
+    if sensor is None or rec.acc is None:
+        return nominal
+    f = sensor.correct(rec.acc)
+    bad = ~np.all(np.isfinite(f), axis=1)
+    f[bad] = nominal[bad]
+    return f
+
+
 def accelerometer(rec: Recording) -> Accel:
     """Accelerometer and base tilt from the same attitudes as the magnetometer (joint fit with reversal).
 
@@ -539,7 +557,7 @@ def accelerometer(rec: Recording) -> Accel:
         angles = table_angles(rec)[ok]
         level = (np.abs(angles[:, 1]) < 0.01) & (np.abs(angles[:, 2]) < 0.01)
         tilt = np.zeros(2)
-        if _coverage(angles[level, 0]) >= 180.0:
+        if coverage_deg(angles[level, 0]) >= 180.0:
             tilt = tilt_by_reversal(angles[level, 0], acc[level])
         six = six_position(angles, acc)
         if six is None:

@@ -15,7 +15,7 @@ from physics import errorsep as es
 from physics import methods as comparison
 from physics.calibration import STAGES, Calibration
 from physics.frames import field_direction
-from physics.heading import heading_error, levelled_field, wrap180
+from physics.heading import circular_mean_deg, heading_error, levelled_field, wrap180
 from physics.recording import Recording, RecordingError
 from physics.sensor import LinearSensor
 from physics.table import base_rotation
@@ -132,17 +132,6 @@ def check_angles(rec: Recording) -> None:
                                  "these look like radians")
 
 
-def _specific_force(rec: Recording, cal: Calibration) -> np.ndarray:
-    """The specific force the compass uses: its calibrated accelerometer, else the nominal one from the table."""
-    nominal = np.einsum("nji,j->ni", es.rotations(rec), np.array([0.0, 0.0, -1.0]))
-    if cal.acc is None or rec.acc is None:
-        return nominal
-    f = cal.specific_force(np.nan_to_num(rec.acc))
-    bad = ~np.all(np.isfinite(rec.acc), axis=1)
-    f[bad] = nominal[bad]
-    return f
-
-
 def _level(rec: Recording) -> np.ndarray:
     return (np.abs(rec.theta_t) < 0.01) & (np.abs(rec.phi_t) < 0.01)
 
@@ -155,7 +144,7 @@ def _fill_field(rec: Recording, cal: Calibration, f_b: np.ndarray) -> None:
     use = lev if lev.any() else np.ones(len(rec), bool)
     psi = cal.heading(rec.mag[use], f_b[use])
     if not np.isfinite(cal.declination_deg):
-        cal.declination_deg = float(np.degrees(np.angle(np.mean(np.exp(1j * np.radians(rec.psi_t[use] - psi))))) % 360.0)
+        cal.declination_deg = circular_mean_deg(rec.psi_t[use] - psi)
     if not np.isfinite(cal.inclination_deg):
         h = levelled_field(cal.body_field(rec.mag[use], f_b[use]), f_b[use])
         cal.inclination_deg = float(np.degrees(np.median(np.arctan2(h[:, 2], np.hypot(h[:, 0], h[:, 1])))))
@@ -168,7 +157,7 @@ def quality(rec: Recording, cal: Calibration) -> dict[str, object]:
     tilt predicts. Heading errors: max over the level samples at each stage of the paper's Fig. 5,
     and over the tilted samples (pitch and roll within 60 deg), against ``psi_t - D``.
     """
-    f_b = _specific_force(rec, cal)
+    f_b = es.specific_force(rec, cal.acc)
     _fill_field(rec, cal, f_b)
     v_base = base_rotation(cal.base_tilt_deg).T @ field_direction(cal.inclination_deg, cal.declination_deg)
     pred = cal.mag.measure(np.einsum("nji,j->ni", es.rotations(rec), v_base))
@@ -177,7 +166,7 @@ def quality(rec: Recording, cal: Calibration) -> dict[str, object]:
         rms[2] = None  # the two-axis compass does not use z_m
     # the paper averages the readings at each position (eq. 5): score per-pose means, not single samples
     mean = pose_means(rec)
-    mag, f_b = mean.mag, _specific_force(mean, cal)
+    mag, f_b = mean.mag, es.specific_force(mean, cal.acc)
     ref = mean.psi_t - cal.declination_deg
     lev = _level(mean)
     staged: dict[str, float | None] = {}
@@ -218,5 +207,5 @@ def field_spread(rec: Recording, cal: Calibration) -> float:
     lev = _level(rec)
     if cal.heading_model is not None or lev.sum() < 3:
         return 0.0  # heading-only models do not claim a calibrated vector
-    norm = np.linalg.norm(cal.body_field(rec.mag[lev], _specific_force(rec, cal)[lev]), axis=1)
+    norm = np.linalg.norm(cal.body_field(rec.mag[lev], es.specific_force(rec, cal.acc)[lev]), axis=1)
     return float((norm.max() - norm.min()) / np.median(norm))

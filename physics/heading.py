@@ -49,3 +49,9 @@ def error_summary(err_deg: ArrayLike) -> dict[str, float]:
     """Max absolute and RMS heading error, the two figures PHYSICS.md asks to report."""
     e = np.asarray(err_deg, dtype=float)
     return {"max": float(np.max(np.abs(e))), "rms": float(np.sqrt(np.mean(e * e)))}
+
+
+def circular_mean_deg(angles_deg: ArrayLike) -> float:
+    """Mean direction (deg, in [0, 360)) of a set of angles."""
+    a = np.radians(np.asarray(angles_deg, dtype=float))
+    return float(np.degrees(np.arctan2(np.sin(a).mean(), np.cos(a).mean())) % 360.0)

@@ -20,9 +20,9 @@ from __future__ import annotations
 import numpy as np
 
 from physics.calibration import Calibration
-from physics.errorsep import Accel, InsufficientData, rotations, table_angles
-from physics.frames import SPECIFIC_FORCE_L, rot_x, rot_y
-from physics.heading import magnetic_heading, pitch_roll, reference_heading, wrap180
+from physics.errorsep import Accel, InsufficientData, coverage_deg, specific_force, table_angles
+from physics.frames import rot_x, rot_y
+from physics.heading import circular_mean_deg, magnetic_heading, pitch_roll, reference_heading, wrap180
 from physics.recording import Recording
 from physics.sensor import LinearSensor
 from physics.table import platform_attitude
@@ -57,20 +57,6 @@ MAXMIN_TOL_DEG = 10.0
 # Shared helpers
 # --------------------------------------------------------------------------------------------------
 
-def _specific_force(rec: Recording, acc: Accel) -> np.ndarray:
-    """f_b (g) per sample: the calibrated accelerometer when there is one, else the table's nominal f_b.
-
-    Rows whose accelerometer cells are empty (NaN) fall back to the nominal value too.
-    """
-    nominal = np.einsum("nji,j->ni", rotations(rec), SPECIFIC_FORCE_L)
-    if acc.sensor is None or rec.acc is None:
-        return nominal
-    f = acc.sensor.correct(rec.acc)
-    bad = ~np.all(np.isfinite(f), axis=1)
-    f[bad] = nominal[bad]
-    return f
-
-
 def _poses(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distinct poses (table angles rounded as find_sweeps does) and each sample's pose index."""
     keys, inverse = np.unique(np.round(angles, POSE_DECIMALS), axis=0, return_inverse=True)
@@ -84,21 +70,6 @@ def _pose_means(inverse: np.ndarray, values: np.ndarray) -> np.ndarray:
     np.add.at(sums, inverse, values)
     counts = np.bincount(inverse, minlength=n).reshape((n,) + (1,) * (values.ndim - 1))
     return sums / counts
-
-
-def _coverage_deg(angles_deg: np.ndarray) -> float:
-    """How much of the circle a set of angles covers: 360 minus the largest gap between neighbours."""
-    a = np.unique(np.round(np.asarray(angles_deg) % 360.0, POSE_DECIMALS))
-    if a.size < 2:
-        return 0.0
-    gaps = np.diff(np.concatenate([a, a[:1] + 360.0]))
-    return float(360.0 - gaps.max())
-
-
-def _circular_mean_deg(angles_deg: np.ndarray) -> float:
-    """Mean direction (deg, in [0, 360)) of a set of angles."""
-    a = np.radians(np.asarray(angles_deg, dtype=float))
-    return float(np.degrees(np.arctan2(np.sin(a).mean(), np.cos(a).mean())) % 360.0)
 
 
 def _level_poses(rec: Recording) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -223,7 +194,7 @@ def deviation5(rec: Recording, acc: Accel) -> Calibration:
                      "(bias 0, k 1, M_o I), which is only meaningful at level")
 
     idx, headings, inverse = _level_poses(rec)
-    cover = _coverage_deg(headings)
+    cover = coverage_deg(headings)
     if headings.size < DEV5_MIN_HEADINGS or cover < DEV5_MIN_COVERAGE_DEG:
         raise InsufficientData(
             f"deviation5: needs level poses (theta_t = phi_t = 0 within {LEVEL_TOL_DEG} deg) at "
@@ -232,11 +203,11 @@ def deviation5(rec: Recording, acc: Accel) -> Calibration:
             "deviation coefficients A..E and the declination D are undetermined. Add a level turn about z "
             "(the paper uses 24 headings 15 deg apart).")
 
-    f_b = _specific_force(rec, acc)
+    f_b = specific_force(rec, acc.sensor)
     mag_mean = _pose_means(inverse, rec.mag[idx])
     f_mean = _pose_means(inverse, f_b[idx])
     psi = magnetic_heading(mag.correct(mag_mean), f_mean)
-    D = _circular_mean_deg(headings - psi)
+    D = circular_mean_deg(headings - psi)
     dpsi = wrap180(psi - (headings - D))
     p = np.radians(psi)
     X = np.column_stack([np.ones_like(p), np.sin(p), np.cos(p), np.sin(2 * p), np.cos(2 * p)])
@@ -280,7 +251,7 @@ def two_axis(rec: Recording, acc: Accel) -> Calibration:
     """
     ang = table_angles(rec)
     idx, headings, inverse = _level_poses(rec)
-    cover = _coverage_deg(headings)
+    cover = coverage_deg(headings)
     if headings.size < TWO_AXIS_MIN_HEADINGS or cover < TWO_AXIS_MIN_COVERAGE_DEG:
         raise InsufficientData(
             f"two_axis: needs a level turn (theta_t = phi_t = 0 within {LEVEL_TOL_DEG} deg) with "
@@ -297,10 +268,10 @@ def two_axis(rec: Recording, acc: Accel) -> Calibration:
                                "undetermined")
     norm = (level_mag - bias_xy) / sf
     psi_meas = np.degrees(np.arctan2(-norm[:, 1], norm[:, 0])) % 360.0
-    D = _circular_mean_deg(psi_t - psi_meas)
+    D = circular_mean_deg(psi_t - psi_meas)
 
     # Tilted poses with known heading: Theorem 3 as a linear least squares in t = tan(lambda).
-    f_b = _specific_force(rec, acc)
+    f_b = specific_force(rec, acc.sensor)
     all_keys, all_inv = _poses(ang)
     f_mean = _pose_means(all_inv, f_b)
     m_mean = _pose_means(all_inv, rec.mag)

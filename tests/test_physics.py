@@ -236,3 +236,16 @@ def test_pose_means_average_each_hold() -> None:
 def test_attitude_grid_covers_pitch_and_roll_to_60() -> None:
     g = attitude_grid()
     assert g[:, 1].min() == -60 and g[:, 2].max() == 60 and len(np.unique(g[:, 0])) == 24
+
+
+def test_error_separation_is_exact_on_noise_free_random_units() -> None:
+    """Regression: axes almost along a sweep's turning axis once pulled the phase solution into a wrong basin."""
+    rng = np.random.default_rng(5)
+    for _ in range(8):
+        unit = random_unit(rng, mag_noise_lsb=0.0, acc_noise_lsb=0.0)
+        unit = Unit(unit.serial, LinearSensor(unit.mag.M_o, unit.mag.k, unit.mag.bias),
+                    LinearSensor(unit.acc.M_o, unit.acc.k, unit.acc.bias))
+        world = World(rng.uniform(40, 70), rng.uniform(0, 360))
+        cal = fit(recording(unit, world, samples=2), "error-separation", bootstrap=0)
+        assert np.allclose(cal.mag.angles_deg, unit.mag.angles_deg, atol=1e-5)
+        assert truth_summary(cal, unit, world)["tilted_max"] < 1e-5

@@ -1,0 +1,49 @@
+"""The command line end to end: simulate, fit, and the errors a user sees."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from service.cli import app
+
+runner = CliRunner()
+
+
+def test_simulate_then_fit_writes_the_calibration_json(tmp_path: Path) -> None:
+    rec = tmp_path / "rec.csv"
+    r = runner.invoke(app, ["simulate", "--unit", "reference", "--seed", "2", "--samples", "15", "-o", str(rec)])
+    assert r.exit_code == 0, r.output
+    assert rec.read_text().startswith("# compasscal-recording: 1")
+    cal_path, png = tmp_path / "cal.json", tmp_path / "fig.png"
+    r = runner.invoke(app, ["fit", str(rec), "-o", str(cal_path), "--plot", str(png),
+                            "--truth", str(tmp_path / "rec.truth.json")])
+    assert r.exit_code == 0, r.output
+    assert "Table 1" in r.output and "Table 2" in r.output and "against the true unit" in r.output
+    cal = json.loads(cal_path.read_text())
+    assert cal["format"] == "compasscal-calibration/1" and cal["method"] == "joint"
+    assert abs(cal["magnetometer"]["angles_deg"][0][0] - 1.3020) < 0.02
+    assert cal["quality"]["heading_error_deg"]["full"] < 0.05
+    assert png.stat().st_size > 10_000
+
+
+def test_fit_reports_malformed_rows_with_line_numbers(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.csv"
+    bad.write_text("# compasscal-recording: 1\nt,step,psi_t,theta_t,phi_t,mx,my,mz\n0,a,0,0,0,1,2,3\n0.1,a,0,0,0,x,2,3\n")
+    r = runner.invoke(app, ["fit", str(bad)])
+    assert r.exit_code == 2
+    assert "line 4" in r.output and "mx" in r.output
+
+
+def test_fit_refuses_a_recording_without_tilt_sweeps(tmp_path: Path) -> None:
+    rec = tmp_path / "rec.csv"
+    runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", str(rec)])
+    lines = rec.read_text().splitlines()
+    level = [ln for ln in lines if not ln.split(",")[1:2] or ln.split(",")[1] not in ("sweep_x", "sweep_y")]
+    rec.write_text("\n".join(level) + "\n")
+    r = runner.invoke(app, ["fit", str(rec), "--method", "error-separation"])
+    assert r.exit_code == 2
+    said = " ".join(r.output.split())  # rich wraps long lines
+    assert "no sweep about the table's x axis" in said and "no sweep about the table's y axis" in said

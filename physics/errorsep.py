@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import least_squares
 
-from physics.frames import field_angles, rot_x, rot_y, rot_z
+from physics.frames import SPECIFIC_FORCE_L, field_angles, rot_x, rot_y, rot_z
 from physics.heading import pitch_roll, wrap180
 from physics.recording import Recording
 from physics.sensor import LinearSensor, Mo_to_angles, split_matrix
@@ -532,7 +532,7 @@ def specific_force(rec: Recording, sensor: LinearSensor | None) -> np.ndarray:
 
     Rows whose accelerometer cells are empty (NaN) fall back to the nominal value too.
     """
-    nominal = np.einsum("nji,j->ni", rotations(rec), np.array([0.0, 0.0, -1.0]))
+    nominal = np.einsum("nji,j->ni", rotations(rec), SPECIFIC_FORCE_L)
     if sensor is None or rec.acc is None:
         return nominal
     f = sensor.correct(rec.acc)

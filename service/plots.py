@@ -22,8 +22,7 @@ STAGE_LABELS = {"raw": "raw", "bias": "bias removed", "sensitivity": "+ sensitiv
 
 def calibration_figure(rec: Recording, cal: Calibration, path: Path) -> None:
     """Staged heading error against heading on the level turn (Fig. 5) and residuals per sample by step."""
-    nominal = np.einsum("nji,j->ni", es.rotations(rec), np.array([0.0, 0.0, -1.0]))
-    f_b = cal.specific_force(rec.acc) if cal.acc is not None and rec.acc is not None else nominal
+    f_b = es.specific_force(rec, cal.acc)
     level = (np.abs(rec.theta_t) < 0.01) & (np.abs(rec.phi_t) < 0.01)
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
     ref = rec.psi_t - cal.declination_deg

@@ -5,12 +5,13 @@ a unit would produce on it. Pure: randomness comes from the caller's generator.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from physics.frames import SPECIFIC_FORCE_L, field_direction, to_body
 from physics.recording import Recording
-from physics.sensor import Unit
+from physics.sensor import LinearSensor, Unit
 from physics.table import IDEAL_TABLE, Motion, TableGeometry, move_seconds, platform_attitude
 
 #: Encoder resolution of the table (PHYSICS.md).
@@ -125,3 +126,34 @@ def simulate_recording(
         psi_t=ang[:, 0], theta_t=ang[:, 1], phi_t=ang[:, 2],
         mag=mag, acc=acc, temp_c=np.full(len(ang), world.temperature_c), meta=header,
     )
+
+
+def truth_json(unit: Unit, world: World) -> dict[str, object]:
+    """The true parameters of a simulated unit and its world (the ``.truth.json`` format), to score a
+    calibration against."""
+    def sensor(s: LinearSensor | None) -> dict[str, object] | None:
+        if s is None:
+            return None
+        return {"M_o": s.M_o.tolist(), "k": s.k.tolist(), "bias": s.bias.tolist(),
+                "angles_deg": s.angles_deg.tolist(), "noise_lsb": s.noise_lsb}
+    g = world.geometry
+    return {"serial": unit.serial, "model": unit.model, "magnetometer": sensor(unit.mag),
+            "accelerometer": sensor(unit.acc),
+            "field": {"inclination_deg": world.inclination_deg, "declination_deg": world.declination_deg},
+            "base_tilt_deg": list(g.base_tilt_deg), "nonperp_deg": list(g.nonperp_deg),
+            "encoder_zero_deg": list(g.encoder_zero_deg)}
+
+
+def truth_from_json(d: dict[str, Any]) -> tuple[Unit, World]:
+    """Inverse of :func:`truth_json` (files written before the table terms existed read as ideal tables)."""
+    def sensor(s: dict[str, Any] | None) -> LinearSensor | None:
+        if s is None:
+            return None
+        return LinearSensor(np.array(s["M_o"]), np.array(s["k"]), np.array(s["bias"]), noise_lsb=float(s.get("noise_lsb", 0.0)))
+    mag = sensor(d["magnetometer"])
+    assert mag is not None, "truth without a magnetometer"
+    geometry = TableGeometry(base_tilt_deg=tuple(d.get("base_tilt_deg", (0.0, 0.0))),  # type: ignore[arg-type]
+                             nonperp_deg=tuple(d.get("nonperp_deg", (0.0, 0.0))),  # type: ignore[arg-type]
+                             encoder_zero_deg=tuple(d.get("encoder_zero_deg", (0.0, 0.0, 0.0))))  # type: ignore[arg-type]
+    world = World(d["field"]["inclination_deg"], d["field"]["declination_deg"], geometry)
+    return Unit(str(d.get("serial")), mag, sensor(d.get("accelerometer")), model=str(d.get("model", "simulated"))), world

@@ -1,0 +1,1 @@
+"""Simulators that speak the real wire protocols, fed by one simulated world (physics/)."""

@@ -1,0 +1,244 @@
+"""The simulated station's configuration (TOML): the world, the table, the mounted units, the faults.
+
+Anything the file does not set is ideal (zero imperfection, zero noise), so a config says exactly what
+is simulated. Unknown keys are refused, so a typo cannot silently simulate an ideal world.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from physics.sensor import ACC_LSB_PER_G, LinearSensor, Unit, angles_to_Mo, random_unit, reference_unit
+from physics.simulate import World
+from physics.table import TableGeometry
+
+Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
+
+#: Expected form of each key, quoted in error messages.
+FORMS: dict[str, str] = {
+    "inclination_deg": "a number of degrees, e.g. 55.0",
+    "declination_deg": "a number of degrees, e.g. 23.0",
+    "base_tilt_deg": "[about x, about y] in degrees, e.g. [0.05, -0.03]",
+    "nonperp_deg": "[z-y pair, y-x pair] departures from 90 deg, degrees",
+    "encoder_zero_deg": "[z, y, x] true angle when the encoder reads 0, degrees",
+    "time_scale": "a number > 0 (20 runs 20 times faster than real time)",
+    "serial": 'a string, e.g. "SN-0001"',
+    "mag_M_o": "a 3x3 direction-cosine matrix, rows = sensor axes, e.g. [[1,0,0],[0,1,0],[0,0,1]]",
+    "mag_angles_deg": "a 3x3 matrix of angles between sensor and body axes (the paper's Table 1)",
+    "mag_k": "3 sensitivities, LSB per lab field, e.g. [3268.0, 3163.4, 3201.5]",
+    "mag_bias": "3 biases in LSB, e.g. [423.2, -480.5, 301.2]",
+    "acc_M_o": "a 3x3 direction-cosine matrix",
+    "acc_angles_deg": "a 3x3 matrix of angles, degrees",
+    "acc_k": "3 sensitivities, LSB per g, e.g. [16384.0, 16384.0, 16384.0]",
+    "acc_bias": "3 biases in LSB",
+    "kind": "one of " + ", ".join(
+        ["axis_alarm", "axis_silent", "stuck_encoder", "estop", "compass_silent", "garbage",
+         "fused_line", "truncated_line", "compass_reset", "port_vanish"]),
+}
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class WorldConfig(_Strict):
+    """The lab and the table's geometry."""
+
+    inclination_deg: float = Field(55.0, ge=-90, le=90)
+    declination_deg: float = 23.0
+    base_tilt_deg: Vec2 = [0.0, 0.0]
+    nonperp_deg: Vec2 = [0.0, 0.0]
+    encoder_zero_deg: Vec3 = [0.0, 0.0, 0.0]
+    temperature_c: float = 23.0
+    time_scale: float = Field(1.0, gt=0)
+    seed: int | None = None
+
+    def world(self) -> World:
+        """The physics world this describes."""
+        geometry = TableGeometry(tuple(self.base_tilt_deg), tuple(self.nonperp_deg), tuple(self.encoder_zero_deg))  # type: ignore[arg-type]
+        return World(self.inclination_deg, self.declination_deg, geometry, self.temperature_c)
+
+
+class TableConfig(_Strict):
+    """The turntable's controllers."""
+
+    units: dict[Literal["z", "y", "x"], int] = {"z": 1, "y": 2, "x": 3}
+    framer: Literal["tcp", "rtu"] = "tcp"
+    homed: bool = False
+    enabled: bool = False
+    start_deg: Vec3 = [0.0, 0.0, 0.0]
+    hard_limits_deg: dict[Literal["z", "y", "x"], Vec2] = {}
+
+
+class UnitConfig(_Strict):
+    """One compass in the fixture, with its true parameters."""
+
+    serial: str = Field(min_length=1)
+    model: str = "XDC-3"
+    firmware: str = "1.2.0"
+    transport: Literal["pty", "tcp"] = "pty"
+    mag_M_o: Mat3 | None = None
+    mag_angles_deg: Mat3 | None = None
+    mag_k: Vec3
+    mag_bias: Vec3 = [0.0, 0.0, 0.0]
+    mag_noise_lsb: float = Field(0.0, ge=0)
+    acc_M_o: Mat3 | None = None
+    acc_angles_deg: Mat3 | None = None
+    acc_k: Vec3 = [ACC_LSB_PER_G] * 3
+    acc_bias: Vec3 = [0.0, 0.0, 0.0]
+    acc_noise_lsb: float = Field(0.0, ge=0)
+
+    @model_validator(mode="after")
+    def _one_orientation(self) -> "UnitConfig":
+        for s in ("mag", "acc"):
+            if getattr(self, f"{s}_M_o") is not None and getattr(self, f"{s}_angles_deg") is not None:
+                raise ValueError(f"give {s}_M_o or {s}_angles_deg, not both")
+            M_o = getattr(self, f"{s}_M_o")
+            if M_o is not None and not np.allclose(np.linalg.norm(np.array(M_o), axis=1), 1.0, atol=1e-3):
+                raise ValueError(f"{s}_M_o: each row must be a unit vector (direction cosines); "
+                                 f"put the scale in {s}_k")
+        return self
+
+    def unit(self) -> Unit:
+        """The physics unit this describes (raw outputs quantised to 1 LSB, as on the wire)."""
+        def orientation(M_o: list[list[float]] | None, angles: list[list[float]] | None) -> np.ndarray:
+            if angles is not None:
+                return angles_to_Mo(np.array(angles))
+            return np.eye(3) if M_o is None else np.array(M_o, dtype=float)
+        mag = LinearSensor(orientation(self.mag_M_o, self.mag_angles_deg), np.array(self.mag_k), np.array(self.mag_bias),
+                           noise_lsb=self.mag_noise_lsb, quantized=True)
+        acc = LinearSensor(orientation(self.acc_M_o, self.acc_angles_deg), np.array(self.acc_k), np.array(self.acc_bias),
+                           noise_lsb=self.acc_noise_lsb, quantized=True)
+        return Unit(self.serial, mag, acc, model=self.model, firmware=self.firmware)
+
+
+FaultKind = Literal["axis_alarm", "axis_silent", "stuck_encoder", "estop", "compass_silent", "garbage",
+                    "fused_line", "truncated_line", "compass_reset", "port_vanish"]
+AXIS_FAULTS = {"axis_alarm", "axis_silent", "stuck_encoder"}
+
+
+class FaultConfig(_Strict):
+    """A fault to inject through the side channel: now, at a simulated time, or (axis faults) at an angle."""
+
+    kind: FaultKind
+    axis: Literal["z", "y", "x"] | None = None
+    slot: int | None = Field(None, ge=0)
+    at_s: float | None = Field(None, ge=0)
+    at_angle_deg: float | None = None
+    code: int = Field(0x20, ge=1, le=0xFFFF)
+    nbytes: int = Field(40, ge=1)
+
+    @model_validator(mode="after")
+    def _target(self) -> "FaultConfig":
+        if self.kind in AXIS_FAULTS and self.axis is None:
+            raise ValueError(f"fault {self.kind} needs axis = \"z\", \"y\" or \"x\"")
+        if self.kind not in AXIS_FAULTS and self.kind != "estop" and self.slot is None:
+            raise ValueError(f"fault {self.kind} needs slot = <the compass's slot number>")
+        if self.at_angle_deg is not None and self.kind != "axis_alarm":
+            raise ValueError("at_angle_deg applies to axis_alarm only; use at_s")
+        return self
+
+
+class StationConfig(_Strict):
+    """A whole simulated station."""
+
+    world: WorldConfig = WorldConfig()
+    table: TableConfig = TableConfig()
+    unit: list[UnitConfig] = Field(default_factory=list)
+    fault: list[FaultConfig] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _slots(self) -> "StationConfig":
+        serials = [u.serial for u in self.unit]
+        dup = {s for s in serials if serials.count(s) > 1}
+        if dup:
+            raise ValueError(f"duplicate unit serial(s): {', '.join(sorted(dup))}")
+        for f in self.fault:
+            if f.slot is not None and f.slot >= max(1, len(self.unit)):
+                raise ValueError(f"fault {f.kind}: slot {f.slot} does not exist (the fixture has {len(self.unit)} unit(s))")
+        return self
+
+
+class ConfigError(ValueError):
+    """A station config that cannot be simulated; the message names the key and the expected form."""
+
+
+def default_config(seed: int | None = None, time_scale: float = 1.0) -> StationConfig:
+    """No config file: one random production unit (its own noise) on an ideal table and base."""
+    rng = np.random.default_rng(seed)
+    u = random_unit(rng)
+    unit = UnitConfig(serial=u.serial, mag_M_o=u.mag.M_o.tolist(), mag_k=u.mag.k.tolist(), mag_bias=u.mag.bias.tolist(),
+                      mag_noise_lsb=u.mag.noise_lsb, acc_M_o=u.acc.M_o.tolist() if u.acc else None,
+                      acc_k=u.acc.k.tolist() if u.acc else [ACC_LSB_PER_G] * 3,
+                      acc_bias=u.acc.bias.tolist() if u.acc else [0.0] * 3,
+                      acc_noise_lsb=u.acc.noise_lsb if u.acc else 0.0)
+    return StationConfig(world=WorldConfig(time_scale=time_scale, seed=seed), unit=[unit])
+
+
+def reference_config(seed: int | None = 1, time_scale: float = 1.0) -> StationConfig:
+    """The paper's reference unit (3 LSB magnetometer noise, 4 LSB accelerometer noise) on a table whose
+    base is tilted by 0.05 and -0.03 deg: the demonstration station."""
+    u = reference_unit(3.0, 4.0)
+    unit = UnitConfig(serial=u.serial, mag_M_o=u.mag.M_o.tolist(), mag_k=u.mag.k.tolist(), mag_bias=u.mag.bias.tolist(),
+                      mag_noise_lsb=3.0, acc_noise_lsb=4.0)
+    return StationConfig(world=WorldConfig(base_tilt_deg=[0.05, -0.03], time_scale=time_scale, seed=seed), unit=[unit])
+
+
+def parse_config(data: dict[str, object], source: str = "config") -> StationConfig:
+    """Validate a config mapping; errors name every bad key and its expected form."""
+    try:
+        cfg = StationConfig.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(f"{source}: " + "; ".join(_describe(err) for err in e.errors())) from None
+    if not cfg.unit:
+        raise ConfigError(f"{source}: no [[unit]] table: a station needs at least one unit "
+                          "([[unit]] with serial and mag_k at least)")
+    return cfg
+
+
+def parse_fault(data: object) -> FaultConfig:
+    """Validate one fault (the keys of a ``[[fault]]`` table), e.g. from the control port."""
+    try:
+        return FaultConfig.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError("fault: " + "; ".join(_describe(err) for err in e.errors())) from None
+
+
+def load_config(path: Path) -> StationConfig:
+    """Read and validate a station TOML file."""
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    return parse_config(data, str(path))
+
+
+def _describe(err: dict[str, object]) -> str:
+    """One pydantic error as `unit[0].mag_k: <problem> (expected <form>)`."""
+    loc = err.get("loc", ())
+    parts: list[str] = []
+    for p in loc:  # type: ignore[union-attr]
+        if isinstance(p, int):
+            parts[-1:] = [f"{parts[-1]}[{p}]"] if parts else [f"[{p}]"]
+        elif p in ("list[float]", "none", "function-after[_one_orientation(), UnitConfig]"):
+            continue
+        else:
+            parts.append(str(p))
+    key = next((p for p in reversed(parts) if p.split("[")[0] in FORMS), None)
+    name = ".".join(parts) or "(top level)"
+    msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")
+    if err.get("type") == "extra_forbidden":
+        msg = "unknown key (check its spelling)"
+    elif err.get("type") == "missing":
+        msg = "missing"
+    form = f" (expected {FORMS[key.split('[')[0]]})" if key else ""
+    return f"{name}: {msg}{form}"

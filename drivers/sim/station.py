@@ -1,0 +1,150 @@
+"""A whole simulated station: one world, one Modbus table server, one serial device per compass slot,
+a clock with a time scale, and the fault side channel (scheduled from the config or sent over the
+control port; never through the device protocols).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.sim.clock import SimClock
+from drivers.sim.compass import CompassSim
+from drivers.sim.config import FaultConfig, StationConfig, parse_fault
+from drivers.sim.turntable import TableSim
+from drivers.sim.world import Effect, SimWorld
+from physics.simulate import truth_json
+
+
+@dataclass
+class SimStation:
+    """Run with ``async with SimStation(cfg) as st:``; ``st.describe()`` says where to connect."""
+
+    config: StationConfig
+    modbus_port: int = 0
+    compass_tcp_port: int | None = None
+    control_port: int | None = 0
+    effects: list[Effect] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        w = self.config.world
+        self.clock = SimClock(w.time_scale)
+        self.physics_world = w.world()
+        self.units = [u.unit() for u in self.config.unit]
+        t = self.config.table
+        self.table = TableSim(self.clock, tuple(t.start_deg), units=dict(t.units), homed=t.homed,  # type: ignore[arg-type]
+                              enabled=t.enabled, hard_limits={k: (v[0], v[1]) for k, v in t.hard_limits_deg.items()})
+        self.world = SimWorld(self.physics_world, self.units, self.table.true_angles,
+                              rng=np.random.default_rng(w.seed), effects=self.effects)
+        self.compasses = [
+            CompassSim(serial=u.serial, model=u.model, firmware=u.firmware, read=self.world.reader(slot), clock=self.clock)
+            for slot, u in enumerate(self.config.unit)
+        ]
+        self.urls: list[str] = []
+        self.port = 0
+        self._tasks: list[asyncio.Task[None]] = []
+        self._control: asyncio.base_events.Server | None = None
+
+    async def start(self) -> dict[str, Any]:
+        """Start every device; returns :meth:`describe`."""
+        self.port = await self.table.start(self.modbus_port, framer=self.config.table.framer)
+        for slot, (sim, u) in enumerate(zip(self.compasses, self.config.unit)):
+            if self.compass_tcp_port is not None or u.transport == "tcp":
+                port = 0 if not self.compass_tcp_port else self.compass_tcp_port + slot
+                self.urls.append(await sim.start(transport="tcp", port=port))
+            else:
+                self.urls.append(await sim.start(transport="pty"))
+        for f in self.config.fault:
+            self.inject(f)
+        if self.control_port is not None:
+            self._control = await asyncio.start_server(self._serve_control, "127.0.0.1", self.control_port)
+        return self.describe()
+
+    async def stop(self) -> None:
+        """Stop every device and scheduled fault."""
+        for task in self._tasks:
+            task.cancel()
+        if self._control is not None:
+            self._control.close()
+        for sim in self.compasses:
+            await sim.stop()
+        await self.table.stop()
+
+    async def __aenter__(self) -> "SimStation":
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    def describe(self) -> dict[str, Any]:
+        """Where to connect: the `compasscal sim` JSON line."""
+        scheme = "rtu+tcp" if self.config.table.framer == "rtu" else "tcp"
+        d: dict[str, Any] = {
+            "modbus": f"{scheme}://127.0.0.1:{self.port}",
+            "units": sorted(self.config.table.units.values()),
+            "compasses": [{"slot": i, "url": url, "serial": u.serial} for i, (url, u) in enumerate(zip(self.urls, self.config.unit))],
+            "time_scale": self.clock.time_scale,
+        }
+        if self._control is not None:
+            d["control"] = f"tcp://127.0.0.1:{self._control.sockets[0].getsockname()[1]}"
+        return d
+
+    def truth(self) -> list[dict[str, object]]:
+        """True parameters of every mounted unit (the ``.truth.json`` format of physics), slot order."""
+        return [truth_json(u, self.physics_world) for u in self.units]
+
+    # ----------------------------------------------------------------------------------- faults
+    def inject(self, fault: FaultConfig) -> None:
+        """Apply a fault now, or at ``at_s`` simulated seconds (an axis alarm also when the axis passes
+        ``at_angle_deg``)."""
+        if fault.kind == "axis_alarm":
+            # The table model watches times and angles itself, to its simulation step.
+            self.table.alarm(fault.axis, fault.code, at_time=fault.at_s, at_angle=fault.at_angle_deg)
+        elif fault.at_s is not None and fault.at_s > self.clock.now():
+            self._tasks.append(asyncio.get_running_loop().create_task(self._later(fault)))
+        else:
+            self._apply(fault)
+
+    async def _later(self, fault: FaultConfig) -> None:
+        await self.clock.sleep_until(fault.at_s or 0.0)
+        self._apply(fault)
+
+    def _apply(self, f: FaultConfig) -> None:
+        if f.kind == "axis_alarm":
+            self.table.alarm(f.axis, f.code)
+        elif f.kind == "axis_silent":
+            self.table.silence(f.axis, True)
+        elif f.kind == "stuck_encoder":
+            self.table.stick_encoder(f.axis, True)
+        elif f.kind == "estop":
+            self.table.estop(True)
+        else:
+            sim = self.compasses[f.slot or 0]
+            {"compass_silent": lambda: sim.go_silent(True),
+             "garbage": lambda: sim.garbage(f.nbytes),
+             "fused_line": sim.fuse_next,
+             "truncated_line": sim.truncate_next,
+             "compass_reset": sim.reset,
+             "port_vanish": sim.vanish}[f.kind]()
+
+    async def _serve_control(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """The side channel: one JSON object per line. ``{"fault": {...}}`` injects a fault (the
+        ``[[fault]]`` keys), ``{"time": null}`` asks for the simulated time. Replies one JSON line each."""
+        try:
+            while line := await reader.readline():
+                try:
+                    msg = json.loads(line)
+                    if "fault" in msg:
+                        self.inject(parse_fault(msg["fault"]))
+                    reply: dict[str, Any] = {"ok": True, "sim_time": self.clock.now()}
+                except Exception as e:  # a bad request must not take the station down
+                    reply = {"ok": False, "error": str(e)}
+                writer.write((json.dumps(reply) + "\n").encode())
+                await writer.drain()
+        finally:
+            writer.close()

@@ -11,18 +11,18 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@
 
-# Until the simulated station exists: simulate the paper's reference unit on an ideal table,
-# calibrate it from that recording and print the tables.
+# The main job: a simulated station (Modbus table + serial compass, time scale 20) calibrates the
+# paper's reference unit over the real protocols, checks it on the table and against the truth.
 run: $(VENV)/.installed
-	mkdir -p $(OUT)
-	$(VENV)/bin/compasscal simulate --unit reference --seed 1 --noise 3 -o $(OUT)/reference.csv
-	$(VENV)/bin/compasscal fit $(OUT)/reference.csv -o $(OUT)/reference.cal.json --plot $(OUT)/reference.png
+	$(VENV)/bin/compasscal demo -o $(OUT)/demo
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q
 
 bench: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py
+	$(PY) benchmarks/drivers.py
+	$(PY) benchmarks/procedure.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis

@@ -23,6 +23,7 @@ import collections
 import itertools
 import logging
 import re
+import select
 import socket
 import threading
 import time
@@ -540,7 +541,10 @@ class Compass:
 
     def _open_port(self) -> serial.SerialBase:
         # Short read timeout: the thread polls its stop flag between reads.
-        return serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.05, write_timeout=0.5)
+        # Non-blocking reads: the reader thread waits in select() and then takes everything that is
+        # there in one read. (A blocking read of in_waiting bytes reads socket:// one byte at a time,
+        # since its in_waiting is only 0 or 1, and falls behind a fast stream.)
+        return serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0, write_timeout=0.5)
 
     async def open(self) -> None:
         """Open the port (raise `CompassDisconnected` if it cannot) and apply RATE/AVG if given."""
@@ -623,7 +627,8 @@ class Compass:
                     self._ser = ser
                     self._post(self._on_reconnected)
                 try:
-                    data = ser.read(ser.in_waiting or 1)
+                    ready, _, _ = select.select([ser.fileno()], [], [], 0.05)
+                    data = ser.read(65536) if ready else b""
                 except (serial.SerialException, OSError, TypeError, AttributeError) as e:
                     # pty: EIO or "readiness to read but returned no data"; socket: "socket disconnected".
                     # (TypeError/AttributeError: the port object was closed under us.)
@@ -905,7 +910,7 @@ class Compass:
         return 2.0 * n / rate + 1.0
 
     async def read(self, n: int, timeout: float | None = None) -> list[CompassSample]:
-        """The next ``n`` samples received after the call.
+        """The next ``n`` samples received after the call (by the host clock, not by delivery).
 
         Raises `CompassTimeout` (stale stream or deadline) or `CompassDisconnected`; the exception's
         ``samples`` holds the samples that did arrive. Default timeout: twice the time ``n`` samples
@@ -913,8 +918,15 @@ class Compass:
         """
         start, now = self._n, time.monotonic()
         deadline = now + (self._default_timeout(n) if timeout is None else timeout)
-        await self._wait_until(start, n, deadline, now)
-        return self._slice(start, start + n)
+        while True:
+            await self._wait_until(start, n, deadline, now)
+            got = self._slice(start, start + n)
+            # Lines the reader thread received before the call but a busy event loop delivered after
+            # it are older than the caller asked for (e.g. from while the table was still moving).
+            early = sum(1 for s in got if s.t_host < now)
+            if not early:
+                return got
+            start += early
 
     async def samples(self, timeout: float = 1.0) -> AsyncIterator[CompassSample]:
         """Iterate samples as they arrive (from the call on). Every sample received is yielded before

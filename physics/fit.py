@@ -15,10 +15,10 @@ from physics import errorsep as es
 from physics import methods as comparison
 from physics.calibration import STAGES, Calibration
 from physics.frames import field_direction
-from physics.heading import circular_mean_deg, heading_error, levelled_field, wrap180
+from physics.heading import circular_mean_deg, error_summary, heading_error, levelled_field, reference_heading, wrap180
 from physics.recording import Recording, RecordingError
 from physics.sensor import LinearSensor
-from physics.table import base_rotation
+from physics.table import TableGeometry, base_rotation, platform_attitude
 
 #: Methods by name; the first is the default.
 METHODS = ("joint", "error-separation", "peak-picking", "ellipsoid", "deviation5", "two-axis", "maxmin")
@@ -183,11 +183,17 @@ def quality(rec: Recording, cal: Calibration) -> dict[str, object]:
     return {"residual_rms_lsb": rms, "heading_error_deg": staged, "samples": len(rec), "poses": len(mean)}
 
 
+def _pose_groups(rec: Recording) -> np.ndarray:
+    """Pose index of each sample: a pose is a run of consecutive samples with one step and encoder angles."""
+    key = np.round(es.table_angles(rec), 3)
+    change = np.r_[True, np.any(key[1:] != key[:-1], axis=1) | (rec.step[1:] != rec.step[:-1])]
+    return np.cumsum(change) - 1
+
+
 def pose_means(rec: Recording) -> Recording:
     """One row per pose (a run of consecutive samples with the same step and encoder angles), averaged."""
-    key = np.column_stack([np.round(es.table_angles(rec), 3)])
-    change = np.r_[True, np.any(key[1:] != key[:-1], axis=1) | (rec.step[1:] != rec.step[:-1])]
-    group = np.cumsum(change) - 1
+    group = _pose_groups(rec)
+    change = np.r_[True, group[1:] != group[:-1]]
     n = np.bincount(group)
 
     def avg(x: np.ndarray) -> np.ndarray:
@@ -209,3 +215,34 @@ def field_spread(rec: Recording, cal: Calibration) -> float:
         return 0.0  # heading-only models do not claim a calibrated vector
     norm = np.linalg.norm(cal.body_field(rec.mag[lev], es.specific_force(rec, cal.acc)[lev]), axis=1)
     return float((norm.max() - norm.min()) / np.median(norm))
+
+
+def evaluate(rec: Recording, cal: Calibration, max_tilt_deg: float = 60.0) -> dict[str, object]:
+    """Heading error of ``cal`` on a recording made for checking it (the ``evaluate`` procedure).
+
+    Per pose (readings averaged), the compass heading from the calibrated magnetometer and
+    accelerometer against the platform's true magnetic heading from the encoder angles, the
+    calibration's base tilt and its D. Returns the per-pose errors with each pose's own noise (the
+    standard error of its mean heading) and max/RMS level and tilted; ``*_noise_deg`` is the typical
+    pose noise, below which an error cannot be resolved by this recording.
+    """
+    mean = pose_means(rec)
+    f_b = es.specific_force(mean, cal.acc)
+    geometry = TableGeometry(base_tilt_deg=tuple(cal.base_tilt_deg))  # type: ignore[arg-type]
+    C = platform_attitude(mean.psi_t, mean.theta_t, mean.phi_t, geometry)
+    err = heading_error(cal.heading(mean.mag, f_b), reference_heading(C, cal.declination_deg))
+    # each sample's heading about its pose's mean, for the pose's standard error
+    group = _pose_groups(rec)
+    h = cal.heading(rec.mag, es.specific_force(rec, cal.acc))
+    dev = wrap180(h - cal.heading(mean.mag, f_b)[group])
+    n = np.bincount(group)
+    sigma = np.sqrt(np.bincount(group, dev * dev) / np.maximum(n - 1, 1) / n)
+    lev = _level(mean)
+    tilted = ~lev & (np.abs(wrap180(mean.theta_t)) <= max_tilt_deg) & (np.abs(wrap180(mean.phi_t)) <= max_tilt_deg)
+    out: dict[str, object] = {"poses": np.column_stack([mean.psi_t, mean.theta_t, mean.phi_t]).tolist(),
+                              "error_deg": err.tolist(), "sigma_deg": sigma.tolist()}
+    for name, mask in (("level", lev), ("tilted", tilted)):
+        s = error_summary(err[mask]) if mask.any() else {"max": None, "rms": None}
+        out[f"{name}_max_deg"], out[f"{name}_rms_deg"] = s["max"], s["rms"]
+        out[f"{name}_noise_deg"] = float(np.median(sigma[mask])) if mask.any() else None
+    return out

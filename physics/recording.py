@@ -309,3 +309,27 @@ def format_recording(rec: Recording) -> str:
     ]
     writer.writerows(zip(*columns))
     return out.getvalue()
+
+
+def concat(recs: list[Recording]) -> Recording:
+    """One recording of several in order (metadata of the first; accelerometer or temperature columns
+    missing in any part become NaN there)."""
+    if not recs:
+        raise RecordingError("nothing to concatenate")
+    n = [len(r) for r in recs]
+
+    def column(name: str, width: int | None) -> np.ndarray | None:
+        parts = [getattr(r, name) for r in recs]
+        if all(p is None for p in parts):
+            return None
+        shape = lambda k: (k,) if width is None else (k, width)  # noqa: E731
+        return np.concatenate([np.full(shape(k), np.nan) if p is None else p for p, k in zip(parts, n)])
+
+    keys = sorted({k for r in recs for k in r.extra})
+    return Recording(
+        t=np.concatenate([r.t for r in recs]), step=np.concatenate([r.step for r in recs]),
+        psi_t=np.concatenate([r.psi_t for r in recs]), theta_t=np.concatenate([r.theta_t for r in recs]),
+        phi_t=np.concatenate([r.phi_t for r in recs]), mag=np.concatenate([r.mag for r in recs]),
+        acc=column("acc", 3), temp_c=column("temp_c", None), meta=dict(recs[0].meta),
+        extra={k: [x for r, m in zip(recs, n) for x in r.extra.get(k, [""] * m)] for k in keys},
+    )

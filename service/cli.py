@@ -16,14 +16,15 @@ from physics.calibration import Calibration, staged_truth_errors, truth_summary
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, fit as fit_recording
 from physics.recording import RecordingError, format_recording, parse_recording
-from physics.sensor import Unit, random_unit, reference_unit
-from physics.simulate import World, plan_cost, simulate_recording
+from physics.sensor import random_unit, reference_unit
+from physics.simulate import World, plan_cost, simulate_recording, truth_from_json, truth_json
 from physics.table import TableGeometry
 from procedures.calibrate import CalibrateParams, calibration_poses
 
 app = typer.Typer(help="Electronic-compass calibration station.", no_args_is_help=True, add_completion=False,
                   pretty_exceptions_show_locals=False)
 console = Console()
+err_console = Console(stderr=True)  # errors never mix with a command's stdout (e.g. `sim`'s JSON line)
 
 
 class UnitKind(str, Enum):
@@ -35,20 +36,8 @@ Method = Enum("Method", {m.replace("-", "_"): m for m in METHODS}, type=str)  # 
 
 
 def _fail(message: str) -> None:
-    console.print(f"[bold red]error:[/] {message}")
+    err_console.print(f"[bold red]error:[/] {message}")
     raise typer.Exit(code=2)
-
-
-def unit_json(unit: Unit, world: World) -> dict[str, object]:
-    """The true parameters of a simulated unit and world, to compare a calibration with."""
-    def sensor(s: object) -> dict[str, object] | None:
-        if s is None:
-            return None
-        return {"M_o": s.M_o.tolist(), "k": s.k.tolist(), "bias": s.bias.tolist(),  # type: ignore[attr-defined]
-                "angles_deg": s.angles_deg.tolist(), "noise_lsb": s.noise_lsb}  # type: ignore[attr-defined]
-    return {"serial": unit.serial, "magnetometer": sensor(unit.mag), "accelerometer": sensor(unit.acc),
-            "field": {"inclination_deg": world.inclination_deg, "declination_deg": world.declination_deg},
-            "base_tilt_deg": list(world.geometry.base_tilt_deg)}
 
 
 @app.command()
@@ -60,7 +49,7 @@ def simulate(
     inclination: float = typer.Option(55.0, help="Field inclination I, deg."),
     declination: float = typer.Option(23.0, help="Field declination D from the table's zero mark, deg."),
     base_tilt: tuple[float, float] = typer.Option((0.0, 0.0), help="Base tilt about x and about y, deg."),
-    samples: int = typer.Option(CalibrateParams.samples, help="Samples per pose."),
+    samples: int = typer.Option(CalibrateParams().samples, help="Samples per pose."),
 ) -> None:
     """Simulate a unit on an ideal table running the calibration poses; writes the recording and its truth."""
     rng = np.random.default_rng(seed)
@@ -74,7 +63,7 @@ def simulate(
     output.parent.mkdir(parents=True, exist_ok=True)
     output.write_text(format_recording(rec))
     truth = output.with_suffix(".truth.json")
-    truth.write_text(json.dumps(unit_json(u, world), indent=2))
+    truth.write_text(json.dumps(truth_json(u, world), indent=2))
     cost = plan_cost(poses)
     console.print(f"wrote {output} ({len(rec)} samples, {cost.positions} poses, {cost.total_s:.1f} s of table time) "
                   f"and the true parameters to {truth}")
@@ -156,19 +145,181 @@ def print_calibration(cal: Calibration) -> None:
 
 def print_truth(cal: Calibration, truth: dict[str, object]) -> None:
     """Score the calibration against the true unit of a simulation."""
-    mag = truth["magnetometer"]  # type: ignore[index]
-    from physics.sensor import LinearSensor
-    true_mag = LinearSensor(np.array(mag["M_o"]), np.array(mag["k"]), np.array(mag["bias"]))  # type: ignore[index]
-    acc = truth.get("accelerometer")
-    true_acc = None if acc is None else LinearSensor(np.array(acc["M_o"]), np.array(acc["k"]), np.array(acc["bias"]))  # type: ignore[index]
-    fld = truth["field"]  # type: ignore[index]
-    world = World(fld["inclination_deg"], fld["declination_deg"], TableGeometry(base_tilt_deg=tuple(truth["base_tilt_deg"])))  # type: ignore[index, arg-type]
-    unit = Unit(str(truth.get("serial")), true_mag, true_acc)
+    unit, world = truth_from_json(truth)
     s = truth_summary(cal, unit, world)
     st = staged_truth_errors(cal, unit, world)
     console.print("against the true unit: heading error max {level_max:.4f} deg level, {tilted_max:.4f} deg at pitch and roll "
                   "up to 60 deg; staged (level) ".format(**s)
                   + ", ".join(f"{k} {v:.3f}" for k, v in st.items()))
+
+
+async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_scale: float, params: dict[str, object],
+                             truth: list[dict[str, object]] | None, evaluate: bool) -> int:
+    """Calibrate every unit of a station with a progress bar, write recordings and calibrations to
+    ``out``, print the tables; optionally check each calibration on the table and against the truth.
+    Returns the number of units that failed."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from procedures.engine import open_station, run_procedure
+    from service.plots import calibration_figure
+
+    out.mkdir(parents=True, exist_ok=True)
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
+                  TextColumn("{task.fields[info]}"), TimeRemainingColumn(), console=console, transient=False) as bar:
+        task = bar.add_task("calibrate", total=100.0, info="")
+
+        def on_event(e: object) -> None:
+            if e.kind == "progress":  # type: ignore[attr-defined]
+                d = e.data  # type: ignore[attr-defined]
+                bar.update(task, completed=d["percent"],
+                           info=f"table {d['table_s']:.0f} s, {d['samples']} samples, ~{d['left_s']:.0f} s left")
+            elif e.kind == "step" and "step" in e.data and e.data["step"]["kind"] == "acquire":  # type: ignore[attr-defined]
+                bar.update(task, description=f"calibrate: {e.data['step']['step']}")  # type: ignore[attr-defined]
+
+        async with open_station(modbus, compasses, time_scale=time_scale) as station:
+            result, serials, sink = await run_procedure(station, "calibrate", params, out_dir=out, on_event=on_event)
+            bar.update(task, description=f"calibrate: {result.state.value}")
+            check = None
+            if evaluate and result.outcome is not None:
+                cals = {slot: r["calibration"].to_json() for slot, r in result.outcome.results.items() if "calibration" in r}
+                if cals:
+                    eval_task = bar.add_task("evaluate", total=100.0, info="")
+                    check, _, _ = await run_procedure(
+                        station, "evaluate", {"calibrations": cals},
+                        on_event=lambda e: e.kind == "progress" and bar.update(eval_task, completed=e.data["percent"]))  # type: ignore[attr-defined]
+    console.print(f"run {result.state.value}" + (f": {result.reason}" if result.reason else "")
+                  + f" after {result.table_seconds:.1f} s of table time, {result.samples} samples kept")
+    for slot in sorted(serials):
+        if slot in sink.parts:
+            console.print(f"slot {slot} ({serials[slot]}): recording {sink.path(slot)}")
+    if result.outcome is None:
+        return len(compasses)
+    failed = 0
+    for slot, r in sorted(result.outcome.results.items()):
+        if "calibration" not in r:
+            err_console.print(f"[bold red]slot {slot} ({serials.get(slot)}): {r.get('error')}[/]")
+            failed += 1
+            continue
+        cal = r["calibration"]
+        path = out / f"{serials[slot]}.cal.json"
+        path.write_text(json.dumps(cal.to_json(), indent=2))
+        print_calibration(cal)
+        calibration_figure(sink.recording(slot), cal, out / f"{serials[slot]}.png")
+        console.print(f"calibration written to {path}, plot to {out / f'{serials[slot]}.png'}")
+        if check is not None and check.outcome is not None and slot in check.outcome.results:
+            ev = check.outcome.results[slot]
+            console.print(f"evaluate on the table: heading error max {ev['level_max_deg']:.4f} deg level, "
+                          f"{ev['tilted_max_deg']:.4f} deg at pitch and roll up to 60 deg")
+        if truth is not None and slot < len(truth):
+            print_truth(cal, truth[slot])
+    return failed
+
+
+def _run(coro: object) -> int:
+    """Run a station coroutine; driver and network errors end the command with a clear message."""
+    import asyncio
+
+    from drivers import DriverError
+    try:
+        return asyncio.run(coro)  # type: ignore[arg-type]
+    except (DriverError, OSError) as e:
+        _fail(f"station: {e}")
+    return 1
+
+
+@app.command()
+def calibrate(
+    modbus: str = typer.Option(..., help="The table's Modbus URL: tcp://HOST:PORT, rtu+tcp://HOST:PORT or a serial device."),
+    compass: list[str] = typer.Option(..., help="A compass's serial URL (a device path or socket://HOST:PORT); repeat per slot."),
+    output: Path = typer.Option(Path("out"), "-o", "--output", help="Directory for recordings and calibrations."),
+    time_scale: float = typer.Option(1.0, help="The station's time scale (a simulator run faster than real time)."),
+    samples: int = typer.Option(70, help="Samples per pose."),
+    method: Method = typer.Option(METHODS[0], help="Calibration method."),  # type: ignore[valid-type]
+    evaluate: bool = typer.Option(False, help="Then check each calibration on the table, level and at pitch and roll up to 60 deg."),
+    truth: Optional[Path] = typer.Option(None, help="True parameters written by `sim --truth`: also score against them."),
+) -> None:
+    """Run the calibration procedure on a station (real or simulated) and calibrate every unit in its fixture."""
+    truths = json.loads(truth.read_text()) if truth is not None else None
+    failed = _run(_calibrate_station(modbus, compass, output, time_scale, {"samples": samples, "method": method.value},
+                                     truths, evaluate))
+    if failed:
+        raise typer.Exit(code=1)
+
+
+@app.command()
+def demo(
+    output: Path = typer.Option(Path("out/demo"), "-o", "--output", help="Directory for recordings and calibrations."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Station TOML for the simulator (default: the paper's reference unit, 3 LSB noise, base tilt 0.05/-0.03 deg)."),
+    time_scale: float = typer.Option(20.0, help="Simulated seconds per wall second."),
+    seed: int = typer.Option(1, help="Noise seed."),
+) -> None:
+    """Start a simulated station in-process, calibrate its unit(s) over the real protocols, check the
+    result on the table and against the simulator's truth."""
+    from drivers.sim.config import ConfigError, load_config, reference_config
+    from drivers.sim.station import SimStation
+
+    try:
+        cfg = load_config(config) if config else reference_config(seed)
+    except ConfigError as e:
+        _fail(str(e))
+    cfg.world.time_scale = time_scale
+
+    async def main() -> int:
+        async with SimStation(cfg, control_port=None) as st:
+            d = st.describe()
+            console.print(f"simulated station: table {d['modbus']}, compasses "
+                          + ", ".join(f"{c['serial']} at {c['url']}" for c in d["compasses"]) + f", time scale {time_scale:g}")
+            return await _calibrate_station(d["modbus"], [c["url"] for c in d["compasses"]], output, time_scale, {},
+                                            st.truth(), evaluate=True)
+
+    if _run(main()):
+        raise typer.Exit(code=1)
+
+
+@app.command()
+def sim(
+    config: Optional[Path] = typer.Option(None, "--config", help="Station TOML (world, table, [[unit]], [[fault]]). Default: one random unit on an ideal table."),
+    modbus_port: int = typer.Option(0, help="Modbus TCP port of the table (0: any free port)."),
+    compass_tcp_port: Optional[int] = typer.Option(None, help="Serve compasses on TCP from this port (slot i on port+i; 0: any free ports) instead of ptys."),
+    time_scale: Optional[float] = typer.Option(None, help="Run this many times faster than real time (overrides the config)."),
+    seed: Optional[int] = typer.Option(None, help="Seed of the random unit and the noise (overrides the config)."),
+    truth: Optional[Path] = typer.Option(None, help="Also write the true parameters of every unit (JSON list, slot order) here."),
+) -> None:
+    """Run a simulated station until interrupted. Prints one JSON line saying where to connect, then nothing."""
+    import asyncio
+    import signal
+    import sys
+
+    from drivers.sim.config import ConfigError, default_config, load_config
+    from drivers.sim.station import SimStation
+
+    try:
+        cfg = load_config(config) if config else default_config(seed)
+    except ConfigError as e:
+        _fail(str(e))
+    if time_scale is not None:
+        if not time_scale > 0:
+            _fail(f"--time-scale must be > 0, got {time_scale}")
+        cfg.world.time_scale = time_scale
+    if seed is not None:
+        cfg.world.seed = seed
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        async with SimStation(cfg, modbus_port=modbus_port, compass_tcp_port=compass_tcp_port) as station:
+            if truth is not None:
+                truth.write_text(json.dumps(station.truth(), indent=2))
+            sys.stdout.write(json.dumps(station.describe()) + "\n")
+            sys.stdout.flush()
+            await stop.wait()
+
+    try:
+        asyncio.run(main())
+    except OSError as e:  # e.g. the port is taken
+        _fail(f"cannot start the simulated station: {e}")
 
 
 if __name__ == "__main__":

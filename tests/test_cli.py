@@ -47,3 +47,48 @@ def test_fit_refuses_a_recording_without_tilt_sweeps(tmp_path: Path) -> None:
     assert r.exit_code == 2
     said = " ".join(r.output.split())  # rich wraps long lines
     assert "no sweep about the table's x axis" in said and "no sweep about the table's y axis" in said
+
+
+def test_calibrate_against_a_sim_process_writes_recordings_and_calibrations(tmp_path: Path):
+    """`compasscal sim` in its own process, `compasscal calibrate` against it over TCP and a pty."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    truth = tmp_path / "truth.json"
+    sim = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--seed", "3", "--time-scale", "20", "--truth", str(truth)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).parent.parent)
+    try:
+        d = json.loads(sim.stdout.readline())
+        out = tmp_path / "run"
+        r = runner.invoke(app, ["calibrate", "--modbus", d["modbus"], "--compass", d["compasses"][0]["url"],
+                                "--time-scale", "20", "-o", str(out), "--truth", str(truth)])
+    finally:
+        sim.send_signal(signal.SIGINT)
+        sim.communicate(timeout=10)
+    assert r.exit_code == 0, r.output
+    serial = d["compasses"][0]["serial"]
+    said = " ".join(r.output.split())
+    assert "run completed" in said and "Table 1" in said and "against the true unit" in said
+    cal = json.loads((out / f"{serial}.cal.json").read_text())
+    assert cal["format"] == "compasscal-calibration/1" and cal["serial"] == serial
+    assert (out / f"{serial}.csv").read_text().count("\n") > 18 * 60
+    assert (out / f"{serial}.png").stat().st_size > 10_000
+
+
+def test_calibrate_names_an_unreachable_station(tmp_path: Path):
+    r = runner.invoke(app, ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)])
+    assert r.exit_code == 2
+    assert "station" in r.output and "127.0.0.1" in r.output
+
+
+def test_demo_calibrates_and_checks_the_reference_unit(tmp_path: Path):
+    r = runner.invoke(app, ["demo", "-o", str(tmp_path), "--time-scale", "40"])
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.output.split())
+    assert "evaluate on the table" in said and "against the true unit" in said
+    # the demo's unit meets the accuracy target against the simulator's truth
+    import re
+    level, tilted = map(float, re.search(r"against the true unit: heading error max ([\d.]+) deg level, ([\d.]+) deg", said).groups())
+    assert level <= 0.02 and tilted <= 0.05

@@ -124,7 +124,7 @@ def test_error_separation_recovers_the_reference_unit_noise_free() -> None:
 def test_reference_unit_with_noise_meets_the_accuracy_target(method: str) -> None:
     unit = reference_unit(3.0, 4.0)
     world = World(55.0, 23.0, TableGeometry(base_tilt_deg=(0.05, -0.03)))
-    cal = fit(recording(unit, world, samples=CalibrateParams.samples, seed=3), method, bootstrap=5)
+    cal = fit(recording(unit, world, samples=CalibrateParams().samples, seed=3), method, bootstrap=5)
     s = truth_summary(cal, unit, world)
     assert s["level_max"] <= 0.02 and s["tilted_max"] <= 0.05
 

@@ -1,0 +1,114 @@
+"""The step language of procedures: what to do, never how.
+
+A procedure is a generator function ``(params) -> Generator[Step, Reply, Outcome]``. It yields steps;
+whoever runs it (the engine against a station, or a fake engine in a test) does each step and sends
+back the reply: the samples of an :class:`Acquire`, the operator's answer to a :class:`Prompt`,
+``None`` otherwise. What the generator returns is the run's outcome (e.g. each unit's calibration).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
+from typing import Any, Union
+
+from pydantic import BaseModel
+
+from physics.recording import Recording
+
+
+@dataclass(frozen=True)
+class Move:
+    """Move the table to these encoder angles (deg) and wait until every axis is in position."""
+
+    psi: float
+    theta: float = 0.0
+    phi: float = 0.0
+
+
+@dataclass(frozen=True)
+class Settle:
+    """Wait this long (table time) after the move, so the mechanics and the sensor filters settle."""
+
+    seconds: float
+
+
+@dataclass(frozen=True)
+class Acquire:
+    """Take ``samples`` samples from every compass of the fixture, labelled ``step`` in the recording.
+
+    Reply: ``dict[slot, Recording]`` of just these samples, with the encoder angles read back."""
+
+    samples: int
+    step: str
+
+
+@dataclass(frozen=True)
+class Prompt:
+    """Ask the operator something (e.g. "mount unit SN-7 in slot 0"). Reply: the answer (str)."""
+
+    text: str
+    id: str = "prompt"
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A safe place to pause or abort (the table holds still here)."""
+
+    label: str
+
+
+Step = Union[Move, Settle, Acquire, Prompt, Checkpoint]
+Reply = Union[dict[int, Recording], str, None]
+
+
+@dataclass
+class Outcome:
+    """What a run produced, per slot: calibrations, evaluations, or any result a procedure defines."""
+
+    results: dict[int, dict[str, Any]] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+ProcedureGen = Generator[Step, Reply, Outcome]
+
+
+@dataclass(frozen=True)
+class Procedure:
+    """A named, versioned procedure with its parameter schema (validated before a run starts)."""
+
+    name: str
+    version: str
+    params: type[BaseModel]
+    run: Callable[[Any], ProcedureGen]
+    doc: str = ""
+
+    def validate(self, parameters: dict[str, Any] | None) -> BaseModel:
+        """Validated parameters (pydantic raises, naming each bad field)."""
+        return self.params.model_validate(parameters or {})
+
+    def plan(self, params: BaseModel) -> list[Step]:
+        """The steps of a run whose acquisitions all return nothing: the run's length, for progress and
+        time estimates. The data-dependent tail (a fit on no data, an adaptive move) is left out."""
+        steps: list[Step] = []
+        try:
+            drive(self.run(params), lambda step: steps.append(step) or _empty_reply(step))
+        except Exception:  # noqa: BLE001 - the tail that needs real data is not part of the plan
+            pass
+        return steps
+
+
+def _empty_reply(step: Step) -> Reply:
+    return {} if isinstance(step, Acquire) else ("" if isinstance(step, Prompt) else None)
+
+
+def drive(gen: ProcedureGen, respond: Callable[[Step], Reply]) -> Outcome:
+    """Run a procedure synchronously, answering each step with ``respond`` (a fake engine for tests and
+    offline simulation; the real engine is asynchronous and lives in procedures/engine.py)."""
+    reply: Reply = None
+    while True:
+        try:
+            step = gen.send(reply)
+        except StopIteration as stop:
+            return stop.value
+        reply = respond(step)

@@ -1,0 +1,166 @@
+"""The engine end to end against the simulated station, over the real protocols: a full calibration
+of several units, pause and resume, abort, prompts, and faults mid-run."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drivers.sim.config import StationConfig, parse_config, reference_config
+from drivers.sim.station import SimStation
+from physics.calibration import truth_summary
+from physics.recording import parse_recording
+from physics.sensor import random_unit
+from physics.simulate import truth_from_json
+from procedures.calibrate import PROCEDURES
+from procedures.engine import Engine, Event, RecordingSink, RunState, open_station, run_procedure
+from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, Prompt
+
+
+def two_units(time_scale: float = 20.0) -> StationConfig:
+    cfg = reference_config(seed=2, time_scale=time_scale)
+    u = random_unit(np.random.default_rng(11), mag_noise_lsb=3.0)
+    second = {"serial": "SN-RANDOM", "mag_M_o": u.mag.M_o.tolist(), "mag_k": (u.mag.k * 1.5).tolist(),
+              "mag_bias": u.mag.bias.tolist(), "mag_noise_lsb": 3.0, "acc_noise_lsb": 4.0, "transport": "tcp"}
+    d = cfg.model_dump()
+    d["unit"].append(second)
+    return parse_config(d)
+
+
+def run(cfg: StationConfig, name: str, params: dict | None = None, out: Path | None = None, control=None):
+    """Run one procedure on a fresh simulated station; returns (result, serials, sink, station, events, wall)."""
+    events: list[Event] = []
+
+    async def main():
+        async with SimStation(cfg, control_port=None) as st:
+            d = st.describe()
+            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=cfg.world.time_scale) as station:
+                t0 = time.monotonic()
+                result, serials, sink = await run_procedure(
+                    station, name, params, out_dir=out, on_event=events.append,
+                    engine_hook=(lambda e: control(e, st)) if control else (lambda e: None))
+                wall = time.monotonic() - t0
+                status = await station.table.status_all()
+            return result, serials, sink, st, events, wall, status
+    return asyncio.run(asyncio.wait_for(main(), 120))
+
+
+def test_calibrate_two_units_at_time_scale_20(tmp_path: Path):
+    cfg = two_units()
+    result, serials, sink, st, events, wall, _ = run(cfg, "calibrate", {}, out=tmp_path)
+    assert result.state is RunState.completed, result.reason
+    assert wall < 20.0, wall
+    # every pose's samples with the encoder angles read back, per unit, in a RECORDING.md file
+    for slot, serial in serials.items():
+        rec = parse_recording(sink.path(slot).read_text())
+        assert rec.serial == serial and rec.meta["procedure"] == "calibrate"
+        assert len(rec) == 18 * 60 and set(rec.step) == {"rotate_z", "sweep_y", "sweep_x"}
+        assert np.all(np.diff(rec.t) >= 0) and rec.t[-1] <= result.table_seconds + 1e-6
+        unit, world = truth_from_json(st.truth()[slot])
+        cal = result.outcome.results[slot]["calibration"]
+        s = truth_summary(cal, unit, world)
+        assert s["level_max"] < 0.03 and s["tilted_max"] < 0.06, (serial, s)
+    progress = [e.data["percent"] for e in events if e.kind == "progress"]
+    assert progress == sorted(progress) and progress[-1] == 100.0
+    assert [e.data["state"] for e in events if e.kind == "state"] == ["running", "completed"]
+
+
+def test_an_axis_alarm_mid_run_fails_the_run_stops_the_table_and_keeps_the_samples(tmp_path: Path):
+    cfg = reference_config(seed=3, time_scale=20)
+    d = cfg.model_dump()
+    d["fault"] = [{"kind": "axis_alarm", "axis": "y", "code": 0x30, "at_angle_deg": 100.0}]
+    result, serials, sink, st, events, wall, status = run(parse_config(d), "calibrate", {}, out=tmp_path)
+    assert result.state is RunState.failed
+    assert "0x30 overload" in result.reason and "axis y" in result.reason
+    assert not any(s.moving for s in status.values())
+    rec = parse_recording(sink.path(0).read_text())
+    assert len(rec) == (8 + 1) * 60  # the level turn and the first sweep pose, all kept
+    assert rec.step[-1] == "sweep_y"
+
+
+def test_a_compass_that_goes_silent_fails_the_run_within_seconds_with_the_samples_kept(tmp_path: Path):
+    cfg = reference_config(seed=4, time_scale=20)
+    fired = {}
+
+    def control(engine: Engine, st: SimStation) -> None:
+        def on_event(e: Event, inner=engine.on_event) -> None:
+            inner(e)
+            if e.kind == "samples" and e.data["count"] >= 3 * 60 and not fired:
+                fired["t"] = time.monotonic()
+                st.compasses[0].go_silent(True)
+        engine.on_event = on_event
+    result, serials, sink, st, events, wall, status = run(cfg, "calibrate", {}, out=tmp_path, control=control)
+    assert result.state is RunState.failed and "CompassTimeout" in result.reason
+    assert time.monotonic() - fired["t"] < 8.0
+    assert len(parse_recording(sink.path(0).read_text())) >= 3 * 60
+    assert not any(s.moving for s in status.values())
+
+
+def test_pause_resume_and_abort_at_checkpoints():
+    cfg = reference_config(seed=5, time_scale=20)
+    seen: list[str] = []
+
+    def control(engine: Engine, st: SimStation) -> None:
+        inner = engine.on_event
+
+        def on_event(e: Event) -> None:
+            inner(e)
+            if e.kind == "state":
+                seen.append(e.data["state"])
+                if e.data["state"] == "paused":
+                    asyncio.get_running_loop().call_later(0.3, engine.resume)
+            if e.kind == "samples" and e.data["count"] == 60:
+                engine.pause()
+            if e.kind == "samples" and e.data["count"] == 3 * 60:
+                engine.abort("operator pressed abort")
+        engine.on_event = on_event
+    result, *_ = run(cfg, "rotate_z", {"samples": 60}, control=control)
+    assert seen == ["running", "paused", "running", "aborted"]
+    assert result.state is RunState.aborted and result.reason == "operator pressed abort"
+    assert result.samples == 3 * 60
+
+
+def test_prompts_wait_for_the_operator():
+    def mount(params) -> object:
+        answer = yield Prompt("mount unit SN-7 in slot 0", id="mount")
+        yield Move(30.0)
+        data = yield Acquire(5, "check")
+        yield Checkpoint("done")
+        return Outcome({0: {"answer": answer, "n": len(data[0])}})
+    proc = Procedure("mount", "1", PROCEDURES["rotate_z"].params, mount)
+    cfg = reference_config(seed=6, time_scale=20)
+
+    async def main():
+        async with SimStation(cfg, control_port=None) as st:
+            d = st.describe()
+            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=20) as station:
+                events: list[Event] = []
+                eng = Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append)
+                task = asyncio.create_task(eng.run())
+                while not any(e.kind == "prompt" for e in events):
+                    await asyncio.sleep(0.01)
+                assert not eng.answer("other", "x")
+                assert eng.answer("mount", "mounted")
+                return await task
+    result = asyncio.run(asyncio.wait_for(main(), 30))
+    assert result.state is RunState.completed and result.outcome.results[0] == {"answer": "mounted", "n": 5}
+
+
+def test_a_run_on_a_table_already_in_fault_fails_before_moving():
+    cfg = reference_config(seed=7, time_scale=20)
+    cfg.table.homed = cfg.table.enabled = True
+
+    async def main():
+        async with SimStation(cfg, control_port=None) as st:
+            st.table.alarm("x", 0x28)
+            await asyncio.sleep(0.05)
+            d = st.describe()
+            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=20) as station:
+                result, _, sink = await run_procedure(station, "rotate_z", {})
+                return result, sink
+    result, sink = asyncio.run(asyncio.wait_for(main(), 30))
+    assert result.state is RunState.failed and "0x28 encoder error" in result.reason and "reset it first" in result.reason
+    assert sink.parts == {}

@@ -1,0 +1,151 @@
+"""Procedures run by a fake engine: the steps they emit, and what they conclude from data that the
+physics forward model answers with. No I/O."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from physics.calibration import truth_summary
+from physics.recording import Recording
+from physics.sensor import random_unit, reference_unit
+from physics.simulate import World
+from physics.table import TableGeometry
+from procedures.calibrate import PROCEDURES, calibration_poses, CalibrateParams
+from procedures.steps import Acquire, Checkpoint, Move, Outcome, Settle, Step, drive
+
+
+class FakeEngine:
+    """Answers steps like a station would: Move remembers the angles, Acquire simulates samples there."""
+
+    def __init__(self, units: list, world: World = World(), seed: int = 0) -> None:
+        self.units, self.world = units, world
+        self.rng = np.random.default_rng(seed)
+        self.angles = (0.0, 0.0, 0.0)
+        self.steps: list[Step] = []
+        self.t = 0.0
+
+    def __call__(self, step: Step) -> object:
+        self.steps.append(step)
+        if isinstance(step, Move):
+            self.angles = (step.psi, step.theta, step.phi)
+        if isinstance(step, Acquire):
+            n = step.samples
+            a = np.tile(self.angles, (n, 1))
+            h_b, f_b = self.world.body_vectors(a[:, 0], a[:, 1], a[:, 2])
+            out = {}
+            for slot, u in enumerate(self.units):
+                out[slot] = Recording.from_arrays(
+                    t=self.t + np.arange(n) / 20.0, step=[step.step] * n, psi_t=a[:, 0], theta_t=a[:, 1], phi_t=a[:, 2],
+                    mag=u.mag.measure(h_b, self.rng), acc=u.acc.measure(f_b, self.rng), meta={"serial": u.serial})
+            self.t += n / 20.0
+            return out
+        return None
+
+    def run(self, name: str, params: dict | None = None) -> Outcome:
+        proc = PROCEDURES[name]
+        return drive(proc.run(proc.validate(params)), self)
+
+    def kinds(self) -> list[str]:
+        return [type(s).__name__ for s in self.steps]
+
+
+def test_calibrate_emits_the_poses_in_order_then_fits_every_unit():
+    units = [reference_unit(3.0, 4.0, serial="A"), random_unit(np.random.default_rng(4), mag_noise_lsb=1.0)]
+    eng = FakeEngine(units, World(55.0, 23.0, TableGeometry(base_tilt_deg=(0.05, -0.08))))
+    out = eng.run("calibrate")
+    moves = [s for s in eng.steps if isinstance(s, Move)]
+    poses = calibration_poses(CalibrateParams())
+    assert [(m.psi, m.theta, m.phi) for m in moves] == [(p.psi_t, p.theta_t, p.phi_t) for p in poses]
+    # each pose: move, settle, acquire, checkpoint
+    assert eng.kinds()[:4] == ["Move", "Settle", "Acquire", "Checkpoint"]
+    assert [s.step for s in eng.steps if isinstance(s, Acquire)] == [p.step for p in poses]
+    assert sorted(out.results) == [0, 1]
+    for slot, unit in enumerate(units):
+        cal = out.results[slot]["calibration"]
+        s = truth_summary(cal, unit, eng.world)
+        assert s["level_max"] < 0.05 and s["tilted_max"] < 0.1, (slot, s)
+
+
+def test_a_unit_with_unusable_data_gets_an_error_and_the_others_their_calibration():
+    class Broken(FakeEngine):
+        def __call__(self, step):
+            out = super().__call__(step)
+            if isinstance(step, Acquire):
+                out[1].mag[:] = 0.0  # slot 1's magnetometer is dead
+            return out
+    eng = Broken([reference_unit(3.0, 4.0), reference_unit(3.0, 4.0, serial="B")])
+    out = eng.run("calibrate", {"samples": 10})
+    assert "calibration" in out.results[0]
+    assert "error" in out.results[1] and out.results[1]["error"]
+
+
+def test_params_are_validated_with_the_field_named():
+    with pytest.raises(ValidationError, match="z_step_deg"):
+        PROCEDURES["calibrate"].validate({"z_step_deg": 0})
+    with pytest.raises(ValidationError, match="method"):
+        PROCEDURES["calibrate"].validate({"method": "magic"})
+    with pytest.raises(ValidationError, match="samplez"):
+        PROCEDURES["calibrate"].validate({"samplez": 3})
+
+
+def test_rotate_z_turns_about_z_at_fixed_tilt():
+    eng = FakeEngine([reference_unit()])
+    eng.run("rotate_z", {"step_deg": 90, "theta_deg": 10, "samples": 5, "settle_s": 0})
+    assert [(m.psi, m.theta, m.phi) for m in eng.steps if isinstance(m, Move)] == [(a, 10, 0) for a in (0, 90, 180, 270)]
+    assert "Settle" not in eng.kinds()
+
+
+def test_sweep_finds_where_each_axis_peaks():
+    eng = FakeEngine([reference_unit()], World(55.0, 23.0))
+    out = eng.run("sweep", {"axis": "z", "step_deg": 30, "samples": 5})
+    peak = np.array(out.results[0]["peak_deg"])
+    # x_m points (nearly) along body x: it peaks when the table's heading is the field's, psi = D
+    assert abs(((peak[0] - 23.0) + 180) % 360 - 180) < 3.0
+    assert [m.psi for m in eng.steps if isinstance(m, Move)] == list(np.arange(0, 360, 30.0))
+
+
+def test_accel6_recovers_the_accelerometer():
+    unit = random_unit(np.random.default_rng(2))
+    eng = FakeEngine([unit])
+    out = eng.run("accel6", {"samples": 30})
+    assert len([s for s in eng.steps if isinstance(s, Move)]) == 6
+    np.testing.assert_allclose(out.results[0]["k"], unit.acc.k, rtol=2e-3)
+    np.testing.assert_allclose(out.results[0]["bias"], unit.acc.bias, atol=30)
+
+
+def test_level_measures_the_base_tilt_and_levels_the_platform():
+    world = World(55.0, 23.0, TableGeometry(base_tilt_deg=(0.08, -0.05)))
+    eng = FakeEngine([reference_unit(0.0, 2.0)], world)
+    out = eng.run("level", {"samples": 40})
+    np.testing.assert_allclose(out.results[0]["base_tilt_deg"], [0.08, -0.05], atol=0.01)
+    last = [s for s in eng.steps if isinstance(s, Move)][-1]
+    assert last.psi == 0 and abs(last.theta - 0.05) < 0.01 and abs(last.phi + 0.08) < 0.01
+
+
+def test_evaluate_scores_a_calibration_on_the_table():
+    unit = reference_unit(1.0, 2.0)
+    world = World(55.0, 23.0, TableGeometry(base_tilt_deg=(0.03, 0.02)))
+    eng = FakeEngine([unit], world, seed=5)
+    cal = eng.run("calibrate").results[0]["calibration"]
+    check = FakeEngine([unit], world, seed=6)
+    out = check.run("evaluate", {"calibrations": {0: cal.to_json()}, "samples": 20, "tilted_samples": 20})
+    r = out.results[0]
+    assert r["level_max_deg"] < 0.05 and r["tilted_max_deg"] < 0.1
+    assert 0 < r["level_noise_deg"] < 0.02
+    # 8 level headings, then 4 headings at each (pitch, roll) in -60..60 in 60-degree steps but level
+    assert len(r["error_deg"]) == 8 + 4 * 8
+    # a wrong calibration is caught
+    bad = cal.to_json()
+    bad["field"]["declination_deg"] += 1.0
+    out = FakeEngine([unit], world, seed=7).run("evaluate", {"calibrations": {0: bad}})
+    assert out.results[0]["level_max_deg"] > 0.9
+
+
+def test_plan_lists_the_steps_without_data():
+    proc = PROCEDURES["calibrate"]
+    steps = proc.plan(proc.validate({}))
+    assert sum(isinstance(s, Acquire) for s in steps) == 18
+    assert sum(isinstance(s, Checkpoint) for s in steps) == 18
+    assert all(isinstance(s, (Move, Settle, Acquire, Checkpoint)) for s in steps)

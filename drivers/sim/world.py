@@ -31,7 +31,8 @@ class Effect:
     ``sample_time`` (which instant's table angles the sample sees, e.g. a filter lag),
     ``body_field`` (the field in the body frame, in units of the lab field, before the sensor: stage
     hard or soft iron, gradients, field drift), ``mag_raw`` (the magnetometer output in counts, after
-    the linear sensor: nonlinearity, temperature drift, hysteresis, mains pickup).
+    the linear sensor: nonlinearity, temperature drift, hysteresis, mains pickup). Return new arrays;
+    never modify the inputs in place (the world reuses them while the table holds still).
     """
 
     def sample_time(self, t: float, slot: int) -> float:
@@ -57,6 +58,7 @@ class SimWorld:
     angles: Callable[[float], tuple[float, float, float]]
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
     effects: Sequence[Effect] = ()
+    _last: tuple = field(default=(None, None, None, None), init=False, repr=False)
 
     def temperature_c(self, t: float, slot: int) -> float:
         """Temperature inside the unit (constant lab temperature; effects may model warm-up)."""
@@ -70,9 +72,11 @@ class SimWorld:
         for e in self.effects:
             ts = e.sample_time(ts, slot)
         ang = np.asarray(self.angles(ts), dtype=float)
-        C = platform_attitude(ang[0], ang[1], ang[2], self.world.geometry)[0]
-        h_b = C.T @ self.world.field_L
-        f_b = C.T @ SPECIFIC_FORCE_L
+        key = tuple(ang)
+        if key != self._last[0]:  # the table holds still while a pose is sampled: reuse its attitude
+            C = platform_attitude(ang[0], ang[1], ang[2], self.world.geometry)[0]
+            self._last = (key, C, C.T @ self.world.field_L, C.T @ SPECIFIC_FORCE_L)
+        _, C, h_b, f_b = self._last
         for e in self.effects:
             h_b = e.body_field(t, slot, ang, C, h_b)
         temp = self.temperature_c(t, slot)

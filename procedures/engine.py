@@ -108,6 +108,7 @@ class Engine:
         self._answers: dict[str, asyncio.Future[str]] = {}
         self._t0 = time.monotonic()
         self._samples = 0
+        self._streaming = False
         self._table_used = 0.0  # table seconds until the last move, settle or acquisition ended
 
     # ---------------------------------------------------------------------------------- control
@@ -185,7 +186,8 @@ class Engine:
         return RunResult(self.state, self.reason, outcome, self._samples, self._table_used)
 
     async def _prepare(self) -> None:
-        """Enable and home the axes if needed, start the compasses streaming at the run's rate.
+        """Enable and home the axes if needed. (The compasses are set streaming at the first
+        acquisition, and again after a prompt: the operator may have mounted another unit.)
 
         An axis already in fault is not reset behind the operator's back: the run fails saying so."""
         table = self.station.table
@@ -197,7 +199,6 @@ class Engine:
             await table.enable_all()
         if not all(s.homed for s in status.values()):
             await table.home_all(vel_dps=self.station.speed_dps, acc_dps2=self.station.accel_dps2)
-        await self.station.fixture.set_rate_all(self.station.sample_rate_hz)
 
     async def _do(self, step: Step) -> Any:
         if isinstance(step, Move):
@@ -207,6 +208,9 @@ class Engine:
             await asyncio.sleep(step.seconds / self.station.time_scale)
             return None
         if isinstance(step, Acquire):
+            if not self._streaming:
+                await self.station.fixture.set_rate_all(self.station.sample_rate_hz)
+                self._streaming = True
             return await self._retry(lambda: self._acquire(step), CompassTimeout)
         if isinstance(step, Checkpoint):
             if not self._resume.is_set():
@@ -218,6 +222,7 @@ class Engine:
         if isinstance(step, Prompt):
             fut: asyncio.Future[str] = asyncio.get_running_loop().create_future()
             self._answers[step.id] = fut
+            self._streaming = False
             self.on_event(Event("prompt", {"id": step.id, "text": step.text}))
             try:
                 return await fut

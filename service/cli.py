@@ -252,9 +252,12 @@ def demo(
     config: Optional[Path] = typer.Option(None, "--config", help="Station TOML for the simulator (default: the paper's reference unit, 3 LSB noise, base tilt 0.05/-0.03 deg)."),
     time_scale: float = typer.Option(20.0, help="Simulated seconds per wall second."),
     seed: int = typer.Option(1, help="Noise seed."),
+    api: bool = typer.Option(False, "--api", help="Run the service too and calibrate through its REST API (SQLite default database)."),
+    port: int = typer.Option(8000, help="With --api: the service's port."),
+    serve_after: bool = typer.Option(True, "--serve/--no-serve", help="With --api: keep serving after the calibration until interrupted."),
 ) -> None:
     """Start a simulated station in-process, calibrate its unit(s) over the real protocols, check the
-    result on the table and against the simulator's truth."""
+    result on the table and against the simulator's truth. With --api, through the REST service."""
     from drivers.sim.config import ConfigError, load_config, reference_config
     from drivers.sim.station import SimStation
 
@@ -272,8 +275,83 @@ def demo(
             return await _calibrate_station(d["modbus"], [c["url"] for c in d["compasses"]], output, time_scale, {},
                                             st.truth(), evaluate=True)
 
+    if api:
+        if _run(_api_demo(cfg, port, serve_after)):
+            raise typer.Exit(code=1)
+        return
     if _run(main()):
         raise typer.Exit(code=1)
+
+
+async def _api_demo(cfg: object, port: int, keep_serving: bool) -> int:
+    """The service's demonstration: a simulated station and the REST service in one process; a key,
+    the station and a calibration run made through the API as a technician's script would."""
+    import asyncio
+
+    import httpx
+    import uvicorn
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from drivers.sim.station import SimStation
+    from service.api import create_app
+    from service.auth import create_key
+
+    async with SimStation(cfg, control_port=None) as st:  # type: ignore[arg-type]
+        d = st.describe()
+        app = create_app()
+        server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+        serving = asyncio.create_task(server.serve())
+        while not server.started:
+            if serving.done():
+                _fail(f"the service could not start on port {port}")
+            await asyncio.sleep(0.05)
+        base = f"http://127.0.0.1:{port}"
+        with app.state.sessions() as session:
+            admin, operator = create_key(session, "demo-admin", "admin"), create_key(session, "demo-operator", "operator")
+        console.print(f"service at {base} (OpenAPI at {base}/docs); simulated station: table {d['modbus']}, "
+                      f"compass {d['compasses'][0]['url']}")
+        async with httpx.AsyncClient(base_url=base, timeout=30) as http:
+            station = {"name": "demo", "modbus": d["modbus"], "compasses": [c["url"] for c in d["compasses"]],
+                       "time_scale": st.clock.time_scale}
+            r = await http.put("/stations/demo", json=station, headers={"X-API-Key": admin})
+            r.raise_for_status()
+            r = await http.post("/runs", json={"station": "demo", "procedure": "calibrate"}, headers={"X-API-Key": operator})
+            r.raise_for_status()
+            run = r.json()
+            console.print(f"POST /runs -> {r.status_code}: run {run['id']} {run['status']}")
+            state = "?"
+            with Progress(TextColumn("run {task.fields[run]}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
+                          console=console) as bar:
+                task = bar.add_task("", total=100.0, run=run["id"])
+                async with http.stream("GET", f"/runs/{run['id']}/events", headers={"X-API-Key": operator}) as events:
+                    kind = ""
+                    async for line in events.aiter_lines():
+                        if line.startswith("event:"):
+                            kind = line.split(":", 1)[1].strip()
+                        elif line.startswith("data:"):
+                            data = json.loads(line.split(":", 1)[1])
+                            if kind == "progress":
+                                bar.update(task, completed=data["percent"])
+                            elif kind == "state":
+                                state = data["state"]
+            run = (await http.get(f"/runs/{run['id']}", headers={"X-API-Key": operator})).json()
+            console.print(f"run {run['id']} {state}" + (f": {run.get('reason')}" if run.get("reason") else ""))
+            if state != "completed":
+                return 1
+            serial = d["compasses"][0]["serial"]
+            cal = (await http.get(f"/devices/{serial}/calibrations/current", headers={"X-API-Key": operator})).json()
+            print_calibration(Calibration.from_json(cal))
+            console.print(f"verdict [bold]{cal['verdict']}[/]" + ("".join(f"\n  {x}" for x in cal["reasons"])))
+            print_truth(Calibration.from_json(cal), st.truth()[0])
+        console.print(f"calibration history: {base}/devices/{serial}/calibrations ; current: {base}/devices/{serial}/calibrations/current")
+        console.print(f"operator key (X-API-Key header): {operator}")
+        if keep_serving:
+            console.print("serving until interrupted (Ctrl-C)")
+            await serving
+        else:
+            server.should_exit = True
+            await serving
+    return 0
 
 
 @app.command()
@@ -284,6 +362,7 @@ def sim(
     time_scale: Optional[float] = typer.Option(None, help="Run this many times faster than real time (overrides the config)."),
     seed: Optional[int] = typer.Option(None, help="Seed of the random unit and the noise (overrides the config)."),
     truth: Optional[Path] = typer.Option(None, help="Also write the true parameters of every unit (JSON list, slot order) here."),
+    host: str = typer.Option("127.0.0.1", help="Address to serve on (0.0.0.0 for other machines)."),
 ) -> None:
     """Run a simulated station until interrupted. Prints one JSON line saying where to connect, then nothing."""
     import asyncio
@@ -309,7 +388,7 @@ def sim(
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
-        async with SimStation(cfg, modbus_port=modbus_port, compass_tcp_port=compass_tcp_port) as station:
+        async with SimStation(cfg, modbus_port=modbus_port, compass_tcp_port=compass_tcp_port, host=host) as station:
             if truth is not None:
                 truth.write_text(json.dumps(station.truth(), indent=2))
             sys.stdout.write(json.dumps(station.describe()) + "\n")
@@ -320,6 +399,55 @@ def sim(
         asyncio.run(main())
     except OSError as e:  # e.g. the port is taken
         _fail(f"cannot start the simulated station: {e}")
+
+
+keys_app = typer.Typer(help="API keys (stored hashed; a key is shown once).", no_args_is_help=True)
+db_app = typer.Typer(help="The database (COMPASSCAL_DATABASE_URL, default a SQLite file in the user's data directory).",
+                     no_args_is_help=True)
+app.add_typer(keys_app, name="keys")
+app.add_typer(db_app, name="db")
+
+
+@keys_app.command("create")
+def keys_create(
+    owner: str = typer.Option(..., help="Who the key belongs to (recorded with every change it makes)."),
+    role: str = typer.Option(..., help="viewer (read), operator (runs, batches, prompts) or admin (stations, keys, limits)."),
+) -> None:
+    """Create an API key; it is printed once, alone on the last line."""
+    from service.auth import create_key
+    from service.db import make_engine, sessions, upgrade
+
+    engine = make_engine()
+    upgrade(engine)
+    try:
+        with sessions(engine)() as session:
+            key = create_key(session, owner, role)
+    except ValueError as e:
+        _fail(str(e))
+    console.print(f"API key for {owner} ({role}); store it now, it cannot be shown again:")
+    print(key)
+
+
+@db_app.command("upgrade")
+def db_upgrade() -> None:
+    """Bring the database schema to the newest migration (the service also does this on start)."""
+    from service.db import default_url, make_engine, upgrade
+
+    upgrade(make_engine())
+    url = default_url()
+    console.print(f"database at the newest migration: {url.split('@')[-1]}")
+
+
+@app.command()
+def serve(
+    host: str = typer.Option("127.0.0.1", help="Address to listen on."),
+    port: int = typer.Option(8000, help="Port to listen on."),
+) -> None:
+    """Run the REST service (OpenAPI at /docs)."""
+    import uvicorn
+
+    from service.api import create_app
+    uvicorn.run(create_app(), host=host, port=port)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ class SimStation:
     modbus_port: int = 0
     compass_tcp_port: int | None = None
     control_port: int | None = 0
+    host: str = "127.0.0.1"  # 0.0.0.0 to serve other machines (e.g. a container's network)
     effects: list[Effect] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -51,17 +52,17 @@ class SimStation:
 
     async def start(self) -> dict[str, Any]:
         """Start every device; returns :meth:`describe`."""
-        self.port = await self.table.start(self.modbus_port, framer=self.config.table.framer)
+        self.port = await self.table.start(self.modbus_port, framer=self.config.table.framer, host=self.host)
         for slot, (sim, u) in enumerate(zip(self.compasses, self.config.unit)):
             if self.compass_tcp_port is not None or u.transport == "tcp":
                 port = 0 if not self.compass_tcp_port else self.compass_tcp_port + slot
-                self.urls.append(await sim.start(transport="tcp", port=port))
+                self.urls.append(await sim.start(transport="tcp", host=self.host, port=port))
             else:
                 self.urls.append(await sim.start(transport="pty"))
         for f in self.config.fault:
             self.inject(f)
         if self.control_port is not None:
-            self._control = await asyncio.start_server(self._serve_control, "127.0.0.1", self.control_port)
+            self._control = await asyncio.start_server(self._serve_control, self.host, self.control_port)
         return self.describe()
 
     async def stop(self) -> None:
@@ -84,14 +85,15 @@ class SimStation:
     def describe(self) -> dict[str, Any]:
         """Where to connect: the `compasscal sim` JSON line."""
         scheme = "rtu+tcp" if self.config.table.framer == "rtu" else "tcp"
+        where = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
         d: dict[str, Any] = {
-            "modbus": f"{scheme}://127.0.0.1:{self.port}",
+            "modbus": f"{scheme}://{where}:{self.port}",
             "units": sorted(self.config.table.units.values()),
             "compasses": [{"slot": i, "url": url, "serial": u.serial} for i, (url, u) in enumerate(zip(self.urls, self.config.unit))],
             "time_scale": self.clock.time_scale,
         }
         if self._control is not None:
-            d["control"] = f"tcp://127.0.0.1:{self._control.sockets[0].getsockname()[1]}"
+            d["control"] = f"tcp://{where}:{self._control.sockets[0].getsockname()[1]}"
         return d
 
     def truth(self) -> list[dict[str, object]]:

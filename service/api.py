@@ -1,0 +1,199 @@
+"""The FastAPI application: health, devices and their calibration history, acceptance limits,
+uploads of foreign recordings. Stations, runs and batches live in service/runs.py, with the run
+manager that owns the hardware. OpenAPI at /docs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from contextlib import asynccontextmanager
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any, AsyncIterator
+
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from physics.recording import RecordingError, parse_recording
+from service.auth import Caller, audit, require
+from service.db import Calibration, Device, Limit, Run, make_engine, sessions, upgrade
+from service.store import insert_samples
+
+try:
+    SOFTWARE_VERSION = version("compasscal")
+except PackageNotFoundError:  # running from a checkout that is not installed
+    SOFTWARE_VERSION = "0+unknown"
+
+#: Largest accepted upload (a recording of a few hours at 100 Hz).
+MAX_UPLOAD_BYTES = 50 * 1024 * 1024
+
+router = APIRouter()
+
+
+def db(request: Request) -> Session:
+    """A session per request (FastAPI dependency)."""
+    with request.app.state.sessions() as session:
+        yield session
+
+
+@router.get("/health", tags=["service"])
+def health(request: Request) -> dict[str, Any]:
+    """Liveness and the database in use; needs no key."""
+    with request.app.state.sessions() as session:
+        session.execute(select(1))
+    return {"status": "ok", "version": SOFTWARE_VERSION, "database": request.app.state.engine.dialect.name}
+
+
+# ------------------------------------------------------------------------------------------ devices
+
+def calibration_json(row: Calibration) -> dict[str, Any]:
+    """A stored calibration: the physics JSON plus its id, run, time, status and verdict."""
+    return {**row.data, "id": row.id, "run_id": row.run_id, "created_at": row.created_at, "status": row.status,
+            "verdict": row.verdict, "reasons": row.reasons, "serial": row.device.serial}
+
+
+def _device(session: Session, serial: str) -> Device:
+    dev = session.scalar(select(Device).where(Device.serial == serial))
+    if dev is None:
+        raise HTTPException(404, f"no device with serial number {serial!r}")
+    return dev
+
+
+@router.get("/devices/{serial}", tags=["devices"])
+def get_device(serial: str, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+    """A unit: model, firmware, number of calibrations and the current one's id."""
+    dev = _device(session, serial)
+    cals = session.scalars(select(Calibration).where(Calibration.device_id == dev.id)).all()
+    current = next((c.id for c in cals if c.status == "current"), None)
+    return {"serial": dev.serial, "model": dev.model, "firmware": dev.firmware, "created_at": dev.created_at,
+            "calibrations": len(cals), "current_calibration_id": current}
+
+
+@router.get("/devices/{serial}/calibrations", tags=["devices"])
+def device_calibrations(serial: str, limit: int = 100, offset: int = 0, session: Session = Depends(db),
+                        _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
+    """The unit's calibration history, newest first (status current, superseded or rejected)."""
+    dev = _device(session, serial)
+    rows = session.scalars(select(Calibration).where(Calibration.device_id == dev.id)
+                           .order_by(Calibration.created_at.desc(), Calibration.id.desc()).limit(min(limit, 1000)).offset(offset))
+    return [{"id": r.id, "run_id": r.run_id, "created_at": r.created_at, "status": r.status, "verdict": r.verdict,
+             "reasons": r.reasons, "method": r.method, "slot": r.slot,
+             "heading_error_deg": (r.data.get("quality") or {}).get("heading_error_deg")} for r in rows]
+
+
+@router.get("/devices/{serial}/calibrations/current", tags=["devices"])
+def current_calibration(serial: str, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+    """The calibration in force (the physics calibration JSON plus id, run_id, created_at, verdict)."""
+    dev = _device(session, serial)
+    row = session.scalar(select(Calibration).where(Calibration.device_id == dev.id, Calibration.status == "current"))
+    if row is None:
+        raise HTTPException(404, f"{serial!r} has no current calibration")
+    return calibration_json(row)
+
+
+@router.get("/calibrations/{cal_id}", tags=["devices"])
+def get_calibration(cal_id: int, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+    """One stored calibration by id."""
+    row = session.get(Calibration, cal_id)
+    if row is None:
+        raise HTTPException(404, f"no calibration {cal_id}")
+    return calibration_json(row)
+
+
+# ------------------------------------------------------------------------------------------- limits
+
+class LimitIn(BaseModel):
+    """An acceptance limit: above ``marginal`` MARGINAL, above ``fail`` FAIL."""
+
+    marginal: float = Field(ge=0)
+    fail: float = Field(ge=0)
+
+
+@router.get("/limits", tags=["limits"])
+def get_limits(session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
+    """The acceptance limits every new calibration is judged by."""
+    return [{"name": r.name, "marginal": r.marginal, "fail": r.fail, "unit": r.unit, "description": r.description}
+            for r in session.scalars(select(Limit).order_by(Limit.name))]
+
+
+@router.put("/limits/{name}", tags=["limits"])
+def put_limit(name: str, body: LimitIn, session: Session = Depends(db), caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
+    """Change one limit (admin). Calibrations already judged keep their verdicts."""
+    row = session.get(Limit, name)
+    if row is None:
+        raise HTTPException(404, f"no limit {name!r}; known: " + ", ".join(session.scalars(select(Limit.name))))
+    if body.fail < body.marginal:
+        raise HTTPException(422, [{"field": "body.fail", "problem": "must be >= marginal"}])
+    old = {"marginal": row.marginal, "fail": row.fail}
+    row.marginal, row.fail = body.marginal, body.fail
+    audit(session, caller, "limit.update", name, {"old": old, "new": body.model_dump()})
+    session.commit()
+    return {"name": name, **body.model_dump(), "unit": row.unit}
+
+
+# ------------------------------------------------------------------------------------------ uploads
+
+@router.post("/recordings", status_code=201, tags=["runs"])
+async def upload_recording(request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+    """Store a foreign recording (a RECORDING.md CSV in the body) as a completed run of procedure
+    ``import``, so it can be fitted and analysed like any other."""
+    size = int(request.headers.get("content-length") or 0)
+    if size > MAX_UPLOAD_BYTES:
+        raise HTTPException(413, f"recording of {size} bytes; at most {MAX_UPLOAD_BYTES} accepted")
+    body = await request.body()
+    if len(body) > MAX_UPLOAD_BYTES:
+        raise HTTPException(413, f"recording of {len(body)} bytes; at most {MAX_UPLOAD_BYTES} accepted")
+    try:
+        rec = await asyncio.to_thread(parse_recording, body.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise HTTPException(422, [{"field": "body", "problem": "not UTF-8 text"}]) from None
+    except RecordingError as e:
+        raise HTTPException(422, [{"field": "body", "problem": str(e)}]) from None
+    serial = rec.serial or ""
+    with request.app.state.sessions() as session:
+        run = Run(procedure="import", procedure_version="1", parameters={}, status="completed", operator=caller.owner,
+                  serials={"0": serial}, software_version=SOFTWARE_VERSION, meta=dict(rec.meta),
+                  table_seconds=float(rec.t[-1] - rec.t[0]) if len(rec) else 0.0)
+        session.add(run)
+        session.flush()
+        insert_samples(session, run.id, 0, rec)
+        audit(session, caller, "recording.import", f"run {run.id}", {"serial": serial, "samples": len(rec)})
+        session.commit()
+        return {"id": run.id, "status": run.status, "procedure": "import", "samples": len(rec), "serial": serial}
+
+
+# -------------------------------------------------------------------------------------------- app
+
+def create_app(database_url: str | None = None) -> FastAPI:
+    """The service. The database is upgraded to the newest migration on start."""
+    from service.runs import RunManager, router as runs_router
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        engine = make_engine(database_url)
+        await asyncio.to_thread(upgrade, engine)
+        app.state.engine = engine
+        app.state.sessions = sessions(engine)
+        app.state.manager = RunManager(app.state.sessions, SOFTWARE_VERSION)
+        try:
+            yield
+        finally:
+            await app.state.manager.shutdown()
+            engine.dispose()
+
+    app = FastAPI(title="compasscal", version=SOFTWARE_VERSION, lifespan=lifespan,
+                  description="Electronic-compass calibration station: stations, runs, batches, calibration history.")
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # 422 naming each bad field by its path and the problem
+        errors = [{"field": ".".join(str(p) for p in e["loc"]), "problem": e["msg"]} for e in exc.errors()]
+        return JSONResponse(status_code=422, content=jsonable_encoder({"detail": errors}))
+
+    app.include_router(router)
+    app.include_router(runs_router)
+    return app

@@ -1,0 +1,75 @@
+"""API keys: ``X-API-Key`` header, stored as SHA-256 hashes, each with an owner and a role.
+
+Roles are ordered: viewer (read) < operator (runs, batches, prompts) < admin (stations, keys, limits).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import secrets
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from fastapi import Depends, HTTPException, Request
+from fastapi.security import APIKeyHeader
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from service.db import ApiKey, AuditLog
+
+ROLES = ("viewer", "operator", "admin")
+_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="an API key from `compasscal keys create`")
+
+
+@dataclass(frozen=True)
+class Caller:
+    """Who is calling: the key's owner and role."""
+
+    owner: str
+    role: str
+
+
+def hash_key(key: str) -> str:
+    """The stored form of a key."""
+    return hashlib.sha256(key.encode()).hexdigest()
+
+
+def create_key(session: Session, owner: str, role: str) -> str:
+    """A new key for ``owner`` with ``role``; only its hash is stored, so this is the only chance to see it."""
+    if role not in ROLES:
+        raise ValueError(f"role: expected one of {', '.join(ROLES)}, got {role!r}")
+    if not owner.strip():
+        raise ValueError("owner: must not be empty")
+    key = "cc_" + secrets.token_urlsafe(24)
+    session.add(ApiKey(owner=owner.strip(), role=role, key_hash=hash_key(key), prefix=key[:10]))
+    session.commit()
+    return key
+
+
+def lookup(session: Session, key: str | None) -> Caller | None:
+    """The caller a key belongs to, or None."""
+    if not key:
+        return None
+    row = session.scalar(select(ApiKey).where(ApiKey.key_hash == hash_key(key), ApiKey.revoked.is_(False)))
+    return Caller(row.owner, row.role) if row else None
+
+
+def require(role: str) -> Callable[..., Caller]:
+    """A FastAPI dependency: 401 without a valid key, 403 with too low a role."""
+    need = ROLES.index(role)
+
+    def dep(request: Request, key: str | None = Depends(_header)) -> Caller:
+        with request.app.state.sessions() as session:
+            caller = lookup(session, key)
+        if caller is None:
+            raise HTTPException(401, "a valid X-API-Key header is required", headers={"WWW-Authenticate": "X-API-Key"})
+        if ROLES.index(caller.role) < need:
+            raise HTTPException(403, f"this needs the {role} role; the key of {caller.owner} is {caller.role}")
+        request.state.caller = caller
+        return caller
+    return dep
+
+
+def audit(session: Session, caller: Caller, action: str, target: str, detail: dict[str, Any] | None = None) -> None:
+    """Write one audit-log row (committed with the caller's change)."""
+    session.add(AuditLog(owner=caller.owner, action=action, target=target, detail=detail))

@@ -1,0 +1,142 @@
+"""What the service keeps and how: samples in bulk, devices, calibrations with their verdicts and
+the never-overwrite history (a new passing calibration becomes current, the old one superseded).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from physics.calibration import Calibration as PhysCalibration
+from physics.recording import Recording
+from service.db import Calibration, Device, Limit, Run, Sample
+
+
+
+_SAMPLE_TYPES = ["integer", "integer", "float8", "varchar", *["float8"] * 10]
+_SAMPLE_COLS = ("run_id", "slot", "t", "step", "psi_t", "theta_t", "phi_t", "mx", "my", "mz", "ax", "ay", "az", "temp_c")
+
+
+def insert_samples(session: Session, run_id: int, slot: int, rec: Recording) -> int:
+    """Bulk-insert a recording's rows as samples of ``run_id``/``slot`` (not committed).
+
+    PostgreSQL gets COPY and SQLite one executemany of plain tuples: both several times faster than
+    ORM or Core inserts of dictionaries, which matters at 20 Hz x units x stations.
+    """
+    n = len(rec)
+    if n == 0:
+        return 0
+    acc = rec.acc if rec.acc is not None else np.full((n, 3), np.nan)
+    temp = rec.temp_c if rec.temp_c is not None else np.full(n, np.nan)
+    cols = np.column_stack([rec.t, rec.psi_t, rec.theta_t, rec.phi_t, rec.mag, acc, temp]).tolist()
+    rows = [(run_id, slot, c[0], step, c[1], c[2], c[3], c[4], c[5], c[6],
+             *(None if v != v else v for v in c[7:11]))  # NaN (no accelerometer, no temperature) -> NULL
+            for c, step in zip(cols, rec.step.tolist())]
+    conn = session.connection()
+    if conn.dialect.name == "postgresql":
+        # binary COPY with declared types: psycopg's C adapters do the conversion
+        with conn.connection.cursor() as cur, \
+                cur.copy(f"COPY samples ({', '.join(_SAMPLE_COLS)}) FROM STDIN (FORMAT BINARY)") as copy:
+            copy.set_types(_SAMPLE_TYPES)
+            for row in rows:
+                copy.write_row(row)
+    else:
+        conn.exec_driver_sql(f"INSERT INTO samples ({', '.join(_SAMPLE_COLS)}) VALUES ({', '.join('?' * len(_SAMPLE_COLS))})", rows)
+    session.execute(update(Run).where(Run.id == run_id).values(samples_count=Run.samples_count + n))
+    return n
+
+
+def load_recording(session: Session, run: Run, slot: int) -> Recording | None:
+    """The samples of one slot of a run as a recording (RECORDING.md metadata from the run)."""
+    rows = session.execute(
+        select(Sample.t, Sample.step, Sample.psi_t, Sample.theta_t, Sample.phi_t, Sample.mx, Sample.my, Sample.mz,
+               Sample.ax, Sample.ay, Sample.az, Sample.temp_c).where(Sample.run_id == run.id, Sample.slot == slot)
+        .order_by(Sample.id)).all()
+    if not rows:
+        return None
+    a = np.array([[np.nan if v is None else v for i, v in enumerate(r) if i != 1] for r in rows], dtype=float)
+    meta = {"serial": str(run.serials.get(str(slot), "")), "run_id": str(run.id), "procedure": run.procedure,
+            "procedure_version": run.procedure_version, "operator": run.operator, "slot": str(slot)}
+    meta.update({k: str(v) for k, v in (run.meta or {}).items() if isinstance(v, (str, int, float))})
+    return Recording.from_arrays(t=a[:, 0], step=[r[1] for r in rows], psi_t=a[:, 1], theta_t=a[:, 2], phi_t=a[:, 3],
+                                 mag=a[:, 4:7], acc=a[:, 7:10], temp_c=a[:, 10], meta=meta)
+
+
+class DbSink:
+    """The engine's sink: each acquisition's samples are committed as they arrive, so a fault or a crash
+    keeps everything acquired before it."""
+
+    def __init__(self, sessions: sessionmaker, run_id: int) -> None:
+        self.sessions, self.run_id = sessions, run_id
+
+    def add(self, slot: int, rec: Recording) -> None:
+        """Store one slot's samples of one acquisition."""
+        with self.sessions() as session:
+            insert_samples(session, self.run_id, slot, rec)
+            session.commit()
+
+
+def device(session: Session, serial: str, model: str | None = None, firmware: str | None = None) -> Device:
+    """The device row for a serial number, created on first sight."""
+    row = session.scalar(select(Device).where(Device.serial == serial))
+    if row is None:
+        row = Device(serial=serial, model=model, firmware=firmware)
+        session.add(row)
+        session.flush()
+    elif model or firmware:
+        row.model, row.firmware = model or row.model, firmware or row.firmware
+    return row
+
+
+def figures(cal: dict[str, Any]) -> dict[str, float | None]:
+    """The numbers the acceptance limits are about, from a calibration JSON."""
+    c = PhysCalibration.from_json(cal)
+    q = c.quality or {}
+    rms = [r for r in q.get("residual_rms_lsb", []) if r is not None]
+    he = q.get("heading_error_deg", {}) or {}
+    M_o = c.mag.M_o
+    misalign = float(np.degrees(np.arccos(np.clip(np.abs(np.diag(M_o)), -1, 1))).max())
+    k = c.mag.k
+    return {"residual_rms_lsb": max(rms) if rms else None,
+            "heading_error_level_deg": he.get("full"),
+            "heading_error_tilted_deg": he.get("tilted_full"),
+            "misalignment_deg": misalign,
+            "sensitivity_mismatch": float(np.max(np.abs(k / k.mean() - 1.0))),
+            "bias_lsb": float(np.linalg.norm(c.mag.bias))}
+
+
+def judge(cal: dict[str, Any], limits: list[Limit]) -> tuple[str, list[str]]:
+    """PASS, MARGINAL or FAIL with the reasons (every limit exceeded, with the figure and the limit)."""
+    fig = figures(cal)
+    verdict, reasons = "PASS", []
+    for lim in limits:
+        value = fig.get(lim.name)
+        if value is None:
+            continue
+        if value > lim.fail:
+            verdict = "FAIL"
+            reasons.append(f"{lim.name} {value:.4g} {lim.unit} above the fail limit {lim.fail:g}")
+        elif value > lim.marginal:
+            verdict = "MARGINAL" if verdict == "PASS" else verdict
+            reasons.append(f"{lim.name} {value:.4g} {lim.unit} above the marginal limit {lim.marginal:g}")
+    return verdict, reasons
+
+
+def store_calibration(session: Session, run: Run, slot: int, serial: str, cal: dict[str, Any],
+                      model: str | None = None, firmware: str | None = None) -> Calibration:
+    """Judge a calibration against the limits and keep it: PASS or MARGINAL becomes current and the
+    previous current one is superseded; FAIL is kept as rejected. Nothing is ever overwritten."""
+    dev = device(session, serial, model, firmware)
+    verdict, reasons = judge(cal, list(session.scalars(select(Limit))))
+    status = "rejected" if verdict == "FAIL" else "current"
+    if status == "current":
+        session.execute(update(Calibration).where(Calibration.device_id == dev.id, Calibration.status == "current")
+                        .values(status="superseded"))
+    row = Calibration(device_id=dev.id, run_id=run.id, slot=slot, status=status, verdict=verdict, reasons=reasons,
+                      method=str(cal.get("method", "")), data=cal)
+    session.add(row)
+    session.flush()
+    return row

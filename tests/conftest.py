@@ -1,0 +1,124 @@
+"""Shared fixtures: the service on SQLite and on the machine's PostgreSQL, API keys per role, and a
+simulated station running in its own thread (as a separate station would)."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import subprocess
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+PG_URL = "postgresql://postgres@127.0.0.1:5432/test"
+
+
+def _pg_up() -> bool:
+    import psycopg
+    try:
+        psycopg.connect("host=127.0.0.1 port=5432 user=postgres dbname=test", connect_timeout=3).close()
+        return True
+    except psycopg.OperationalError:
+        return False
+
+
+def ensure_postgres() -> str:
+    """The test database's URL, starting the machine's PostgreSQL when it is not running."""
+    if not _pg_up():
+        clusters = sorted(p.name for p in Path("/etc/postgresql").iterdir()) if Path("/etc/postgresql").exists() else []
+        if clusters and shutil.which("pg_ctlcluster"):
+            subprocess.run(["pg_ctlcluster", "--skip-systemctl-redirect", clusters[-1], "main", "start"], check=False,
+                           capture_output=True, timeout=60)
+    if not _pg_up():
+        raise RuntimeError("PostgreSQL at 127.0.0.1:5432 (database test) is not running and could not be started")
+    return PG_URL
+
+
+def fresh_database(kind: str, tmp_path: Path) -> str:
+    """An empty database of ``kind`` (sqlite: a new file; postgresql: the test database emptied)."""
+    if kind == "sqlite":
+        return f"sqlite:///{tmp_path / 'compasscal.db'}"
+    url = ensure_postgres()
+    from sqlalchemy import create_engine, text
+    eng = create_engine(url.replace("postgresql://", "postgresql+psycopg://"))
+    with eng.begin() as conn:
+        conn.execute(text("DROP SCHEMA IF EXISTS public CASCADE"))
+        conn.execute(text("CREATE SCHEMA public"))
+    eng.dispose()
+    return url
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """Each test using it runs once on SQLite and once on PostgreSQL."""
+    return fresh_database(request.param, tmp_path)
+
+
+class Api:
+    """A TestClient with one key per role: ``api.get(path, role="viewer")``."""
+
+    def __init__(self, client: Any, keys: dict[str, str]) -> None:
+        self.client, self.keys = client, keys
+
+    def __getattr__(self, method: str) -> Any:
+        def call(path: str, role: str | None = "admin", **kw: Any) -> Any:
+            headers = dict(kw.pop("headers", {}) or {})
+            if role:
+                headers["X-API-Key"] = self.keys[role]
+            return getattr(self.client, method)(path, headers=headers, **kw)
+        return call
+
+
+@pytest.fixture
+def api(db_url: str) -> Iterator[Api]:
+    """The service on a fresh database, with an admin, an operator and a viewer key."""
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.auth import create_key
+
+    app = create_app(db_url)
+    with TestClient(app) as client:
+        with app.state.sessions() as session:
+            keys = {role: create_key(session, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
+        yield Api(client, keys)
+
+
+@contextmanager
+def sim_station(cfg: Any) -> Iterator[dict[str, Any]]:
+    """A SimStation in its own thread and event loop; yields its description plus ``truth`` and ``station``."""
+    from drivers.sim.station import SimStation
+
+    info: dict[str, Any] = {}
+    started = threading.Event()
+    loop = asyncio.new_event_loop()
+    stop = asyncio.Event()
+
+    async def main() -> None:
+        async with SimStation(cfg) as st:
+            info.update(st.describe(), truth=st.truth(), station=st)
+            started.set()
+            await stop.wait()
+
+    def serve() -> None:
+        try:
+            loop.run_until_complete(main())
+        except BaseException as e:  # noqa: BLE001 - reported to the test
+            info["error"] = e
+            started.set()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    started.wait(30)
+    if "error" in info:
+        raise info["error"]
+    info["loop"] = loop
+    try:
+        yield info
+    finally:
+        loop.call_soon_threadsafe(stop.set)
+        thread.join(10)

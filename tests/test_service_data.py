@@ -1,0 +1,118 @@
+"""The service's data side on SQLite and PostgreSQL: auth, uploads, calibration history with verdicts
+and superseding, acceptance limits, the audit log, the migrations."""
+
+from __future__ import annotations
+
+import numpy as np
+from sqlalchemy import select
+
+from physics.fit import fit
+from physics.recording import format_recording, parse_recording
+from physics.sensor import reference_unit
+from physics.simulate import World, simulate_recording
+from procedures.calibrate import calibration_poses, CalibrateParams
+from service.db import AuditLog, Run
+from service.store import store_calibration
+
+
+def recording_text(serial: str = "SN-UP", seed: int = 1, noise: float = 3.0) -> str:
+    rec = simulate_recording(reference_unit(noise, 4.0, serial=serial), calibration_poses(CalibrateParams(samples=20)),
+                             World(), rng=np.random.default_rng(seed))
+    return format_recording(rec)
+
+
+def test_health_needs_no_key_and_everything_else_does(api):
+    r = api.get("/health", role=None)
+    assert r.status_code == 200 and r.json()["status"] == "ok"
+    assert api.get("/limits", role=None).status_code == 401
+    assert api.get("/limits", role=None, headers={"X-API-Key": "cc_wrong"}).status_code == 401
+    assert api.get("/limits", role="viewer").status_code == 200
+    r = api.put("/limits/bias_lsb", role="operator", json={"marginal": 1, "fail": 2})
+    assert r.status_code == 403 and "admin" in r.json()["detail"]
+
+
+def test_upload_a_foreign_recording_as_an_import_run(api):
+    text = recording_text()
+    r = api.post("/recordings", role="operator", content=text.encode(), headers={"Content-Type": "text/csv"})
+    assert r.status_code == 201, r.text
+    run = r.json()
+    assert run["procedure"] == "import" and run["serial"] == "SN-UP" and run["samples"] == 18 * 20
+    csv = api.get(f"/runs/{run['id']}/samples", role="viewer")
+    assert csv.status_code == 200
+    back = parse_recording(csv.text)
+    original = parse_recording(text)
+    np.testing.assert_allclose(back.mag, original.mag)
+    np.testing.assert_allclose(back.psi_t, original.psi_t)
+    assert back.serial == "SN-UP"
+    assert api.get("/recordings", role="viewer").status_code in (404, 405)
+
+
+def test_a_bad_upload_names_the_line_and_an_oversized_one_is_refused(api, monkeypatch):
+    bad = recording_text().replace("\n", "\nnot,a,row\n", 1)
+    r = api.post("/recordings", role="operator", content=bad.encode())
+    assert r.status_code == 422 and "line" in r.text
+    import service.api
+    monkeypatch.setattr(service.api, "MAX_UPLOAD_BYTES", 1000)
+    r = api.post("/recordings", role="operator", content=recording_text().encode())
+    assert r.status_code == 413
+
+
+def test_history_keeps_every_calibration_newest_first(api):
+    """Stored through the same path a run takes: a passing calibration becomes current and
+    supersedes the old; a failing one is kept as rejected and changes nothing."""
+    app = api.client.app
+    cals = []
+    for seed in (1, 2, 3):
+        rec = parse_recording(recording_text(serial="SN-H", seed=seed))
+        cals.append(fit(rec, "joint").to_json())
+    cals[2]["magnetometer"]["bias"] = [5000.0, 0.0, 0.0]  # beyond the 4000 LSB fail limit
+    with app.state.sessions() as session:
+        run = Run(procedure="calibrate", procedure_version="2", parameters={}, status="completed", operator="t",
+                  serials={"0": "SN-H"}, software_version="test")
+        session.add(run)
+        session.flush()
+        rows = [store_calibration(session, run, 0, "SN-H", c, model="XDC-3") for c in cals]
+        session.commit()
+        verdicts = [r.verdict for r in rows]
+    assert verdicts[0] in ("PASS", "MARGINAL") and verdicts[1] in ("PASS", "MARGINAL") and verdicts[2] == "FAIL"
+    hist = api.get("/devices/SN-H/calibrations", role="viewer").json()
+    assert [h["status"] for h in hist] == ["rejected", "current", "superseded"]
+    assert any("bias_lsb" in reason and "fail" in reason for reason in hist[0]["reasons"])
+    cur = api.get("/devices/SN-H/calibrations/current", role="viewer").json()
+    assert cur["id"] == rows[1].id and cur["format"] == "compasscal-calibration/1" and cur["verdict"] == verdicts[1]
+    dev = api.get("/devices/SN-H", role="viewer").json()
+    assert dev["calibrations"] == 3 and dev["current_calibration_id"] == rows[1].id and dev["model"] == "XDC-3"
+    assert api.get("/devices/NOPE", role="viewer").status_code == 404
+    assert api.get(f"/calibrations/{rows[0].id}", role="viewer").json()["status"] == "superseded"
+
+
+def test_limits_are_data_and_changes_are_audited(api):
+    limits = {lim["name"]: lim for lim in api.get("/limits", role="viewer").json()}
+    assert {"residual_rms_lsb", "heading_error_level_deg", "heading_error_tilted_deg", "misalignment_deg",
+            "sensitivity_mismatch", "bias_lsb"} <= set(limits)
+    r = api.put("/limits/bias_lsb", role="admin", json={"marginal": 10.0, "fail": 20.0})
+    assert r.status_code == 200
+    assert {lim["name"]: lim for lim in api.get("/limits").json()}["bias_lsb"]["fail"] == 20.0
+    bad = api.put("/limits/bias_lsb", json={"marginal": "lots", "fail": 20})
+    assert bad.status_code == 422 and bad.json()["detail"][0]["field"] == "body.marginal"
+    assert api.put("/limits/bias_lsb", json={"marginal": 30, "fail": 20}).status_code == 422
+    assert api.put("/limits/nonsense", json={"marginal": 1, "fail": 2}).status_code == 404
+    with api.client.app.state.sessions() as session:
+        log = session.scalars(select(AuditLog).where(AuditLog.action == "limit.update")).all()
+    assert len(log) == 1 and log[0].owner == "admin-user" and log[0].detail["new"]["fail"] == 20.0
+
+
+def test_the_service_upgrades_an_existing_database_without_losing_data(db_url):
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.auth import create_key
+    app = create_app(db_url)
+    with TestClient(app) as client:
+        with app.state.sessions() as session:
+            key = create_key(session, "x", "admin")
+        client.put("/limits/bias_lsb", headers={"X-API-Key": key}, json={"marginal": 5, "fail": 6})
+    app = create_app(db_url)  # a second start: migrations already applied
+    with TestClient(app) as client:
+        lim = {x["name"]: x for x in client.get("/limits", headers={"X-API-Key": key}).json()}
+    assert lim["bias_lsb"]["fail"] == 6

@@ -1,0 +1,304 @@
+"""Stations, runs and batches through the REST API, against a simulated station over the real
+protocols, on SQLite and on PostgreSQL (the ``api`` fixture): auth, validation, calibration runs and
+their history, pause/resume/abort, server-sent events, a fault mid-run and the station's reset,
+and a batch answered prompt by prompt."""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+import pytest
+from sqlalchemy import select
+
+from conftest import Api, sim_station
+from drivers.sim.config import parse_fault, reference_config
+from physics.recording import parse_recording
+from service.db import AuditLog
+
+FINAL = ("completed", "failed", "aborted")
+
+
+def make_station(api: Api, info: dict[str, Any], name: str = "lab-1") -> dict[str, Any]:
+    r = api.post("/stations", json={"name": name, "modbus": info["modbus"],
+                                    "compasses": [c["url"] for c in info["compasses"]], "time_scale": 20})
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def wait_run(api: Api, run_id: int, until: tuple[str, ...] = FINAL, timeout: float = 40.0) -> dict[str, Any]:
+    """Poll the run until its status is one of ``until``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        j = api.get(f"/runs/{run_id}", role="viewer").json()
+        if j["status"] in until:
+            return j
+        assert time.monotonic() < deadline, f"run {run_id} still {j['status']} after {timeout} s"
+        time.sleep(0.05)
+
+
+def read_events(api: Api, run_id: int) -> list[tuple[str, dict[str, Any]]]:
+    """The run's server-sent events until the stream closes."""
+    events, kind = [], None
+    with api.client.stream("GET", f"/runs/{run_id}/events", headers={"X-API-Key": api.keys["viewer"]}) as r:
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+        for line in r.iter_lines():
+            if line.startswith("event: "):
+                kind = line[7:]
+            elif line.startswith("data: "):
+                events.append((kind, json.loads(line[6:])))
+    return events
+
+
+def audited(api: Api, action: str) -> list[AuditLog]:
+    with api.client.app.state.sessions() as s:
+        return list(s.scalars(select(AuditLog).where(AuditLog.action == action)))
+
+
+def test_stations_need_admin_and_requests_are_validated(api: Api):
+    body = {"name": "lab-1", "modbus": "tcp://127.0.0.1:1502", "compasses": ["socket://127.0.0.1:4001"]}
+    assert api.post("/stations", role=None, json=body).status_code == 401
+    assert api.post("/stations", role="viewer", json=body).status_code == 403
+    assert api.post("/stations", role="operator", json=body).status_code == 403
+    r = api.post("/stations", json=body)
+    assert r.status_code == 201 and r.json()["state"] == "idle" and r.json()["time_scale"] == 1.0
+    assert api.post("/stations", json=body).status_code == 409
+    assert [a.owner for a in audited(api, "station.create")] == ["admin-user"]
+    bad = api.post("/stations", json={**body, "name": "lab-2", "modbus": "ftp://x"})
+    assert bad.status_code == 422 and bad.json()["detail"][0]["field"] == "body.modbus"
+    assert api.get("/stations", role=None).status_code == 401
+    assert [s["name"] for s in api.get("/stations", role="viewer").json()] == ["lab-1"]
+    assert api.get("/stations/nope", role="viewer").status_code == 404
+
+    # runs: unknown station and run 404; unknown procedure and bad parameters 422 naming the field
+    run = {"station": "lab-1", "procedure": "calibrate", "parameters": {"samples": 20}}
+    assert api.post("/runs", role="viewer", json=run).status_code == 403
+    assert api.post("/runs", role="operator", json={**run, "station": "nope"}).status_code == 404
+    r = api.post("/runs", role="operator", json={**run, "procedure": "dance"})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.procedure" and "calibrate" in r.json()["detail"][0]["problem"]
+    r = api.post("/runs", role="operator", json={**run, "parameters": {"samples": 0}})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.parameters.samples"
+    r = api.post("/runs", role="operator", json={**run, "parameters": {"z_step": 10}})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.parameters.z_step"
+    r = api.post("/runs", role="operator", json={**run, "serials": {"3": "SN-1"}})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.serials.3"
+    assert api.post("/runs", role="operator", json={"procedure": "calibrate"}).json()["detail"][0]["field"] == "body.station"
+    for path in ("/runs/999", "/runs/999/events", "/runs/999/samples", "/batches/999"):
+        assert api.get(path, role="viewer").status_code == 404, path
+    assert api.put("/runs/999/state", role="operator", json={"state": "paused"}).status_code == 404
+    assert api.post("/runs/999/prompts/mount", role="operator", json={"answer": "ok"}).status_code == 404
+    assert api.put("/runs/999/state", role="operator", json={"state": "dancing"}).status_code == 422
+    assert api.post("/batches", role="operator", json={"station": "nope", "serials": ["A"]}).status_code == 404
+    r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["A", "A"]})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.serials"
+    assert api.get("/runs", role="viewer").json() == []
+
+
+def test_an_unreachable_station_fails_the_run_and_stays_in_fault(api: Api):
+    api.post("/stations", json={"name": "dead", "modbus": "tcp://127.0.0.1:9", "compasses": ["socket://127.0.0.1:9"]})
+    r = api.post("/runs", role="operator", json={"station": "dead", "parameters": {"samples": 5}})
+    assert r.status_code == 202
+    j = wait_run(api, r.json()["id"])
+    assert j["status"] == "failed" and "could not open station dead" in j["reason"]
+    st = api.get("/stations/dead", role="viewer").json()
+    assert st["state"] == "fault" and "could not open" in st["fault"]
+    r = api.post("/runs", role="operator", json={"station": "dead"})
+    assert r.status_code == 409 and "fault" in r.json()["detail"]
+    r = api.post("/stations/dead/reset", role="operator")
+    assert r.status_code == 503 and api.get("/stations/dead", role="viewer").json()["state"] == "fault"
+    assert api.get("/health", role=None).json()["status"] == "ok"  # the service is fine
+
+
+def test_calibration_runs_store_history_and_stream_events(api: Api):
+    with sim_station(reference_config(seed=1, time_scale=20)) as info:
+        make_station(api, info)
+        body = {"station": "lab-1", "procedure": "calibrate", "parameters": {"samples": 20}}
+        r = api.post("/runs", role="operator", json=body)
+        assert r.status_code == 202, r.text
+        first = r.json()
+        assert first["status"] == "queued" and first["station"] == "lab-1" and first["procedure"] == "calibrate"
+        assert first["parameters"]["samples"] == 20 and first["operator"] == "operator-user"
+        busy = api.post("/runs", role="operator", json=body)
+        assert busy.status_code == 409 and f"run {first['id']}" in busy.json()["detail"]
+        station = api.get("/stations/lab-1", role="viewer").json()
+        assert station["state"] == "running" and station["run_id"] == first["id"] and station["run"]["id"] == first["id"]
+
+        done = wait_run(api, first["id"])
+        assert done["status"] == "completed", done["reason"]
+        assert done["serials"] == {"0": "GAO2017-REF"}  # the compass's own serial number
+        assert done["station_snapshot"]["modbus"] == info["modbus"] and done["station_snapshot"]["time_scale"] == 20
+        assert done["procedure_version"] and done["software_version"] and done["started_at"] and done["finished_at"]
+        assert done["samples_count"] == 18 * 20 and done["table_seconds"] > 0
+        unit = done["result"]["units"]["0"]
+        assert unit["serial"] == "GAO2017-REF" and unit["verdict"] in ("PASS", "MARGINAL")
+        cal = api.get("/devices/GAO2017-REF/calibrations/current", role="viewer").json()
+        assert cal["run_id"] == first["id"] and cal["status"] == "current" and cal["verdict"] in ("PASS", "MARGINAL")
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
+        illegal = api.put(f"/runs/{first['id']}/state", role="operator", json={"state": "paused"})
+        assert illegal.status_code == 409 and "completed -> paused" in illegal.json()["detail"]
+
+        # the samples as a RECORDING.md CSV
+        r = api.get(f"/runs/{first['id']}/samples", role="viewer")
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+        rec = parse_recording(r.text)
+        assert len(rec) == 18 * 20 and rec.serial == "GAO2017-REF" and rec.meta["run_id"] == str(first["id"])
+        assert api.get(f"/runs/{first['id']}/samples?slot=1", role="viewer").status_code == 404
+
+        # a second run supersedes the first; its events stream live until it ends
+        r = api.post("/runs", role="operator", json=body)
+        assert r.status_code == 202, r.text
+        second = r.json()["id"]
+        events = read_events(api, second)
+        kinds = [k for k, _ in events]
+        assert {"state", "step", "progress", "samples", "result"} <= set(kinds)
+        progress = [d["percent"] for k, d in events if k == "progress"]
+        assert progress == sorted(progress) and progress[-1] == 100.0
+        assert events[-1] == ("state", {"state": "completed", "reason": None})
+        assert [d["state"] for k, d in events if k == "state"] == ["queued", "running", "completed"]
+        assert api.get(f"/runs/{second}", role="viewer").json()["status"] == "completed"
+        history = api.get("/devices/GAO2017-REF/calibrations", role="viewer").json()
+        assert [(h["run_id"], h["status"]) for h in history] == [(second, "current"), (first["id"], "superseded")]
+
+        # a finished run's history replays; once forgotten, one state event from its row
+        assert read_events(api, second)[-1][0] == "state"
+        api.client.app.state.manager.history.pop(first["id"])
+        assert read_events(api, first["id"]) == [("state", {"state": "completed", "reason": None, "from": "database"})]
+
+        # listing: newest first, filters, pagination
+        runs = api.get("/runs", role="viewer").json()
+        assert [x["id"] for x in runs] == [second, first["id"]]
+        assert [x["id"] for x in api.get("/runs?limit=1&offset=1", role="viewer").json()] == [first["id"]]
+        assert len(api.get("/runs?serial=GAO2017-REF&status=completed&station=lab-1&procedure=calibrate", role="viewer").json()) == 2
+        assert api.get("/runs?serial=GAO2017", role="viewer").json() == []
+        assert api.get("/runs?station=other", role="viewer").json() == []
+        assert [a.owner for a in audited(api, "run.start")] == ["operator-user"] * 2
+
+
+def test_pause_resume_and_abort_keep_the_samples(api: Api):
+    with sim_station(reference_config(seed=5, time_scale=20)) as info:
+        make_station(api, info)
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "procedure": "rotate_z",
+                                                      "parameters": {"samples": 40, "step_deg": 20}})
+        rid = r.json()["id"]
+        wait_run(api, rid, ("running",))
+        r = api.put(f"/runs/{rid}/state", role="operator", json={"state": "paused", "reason": "coffee"})
+        assert r.status_code == 202 and r.json()["requested"] == "paused"
+        paused = wait_run(api, rid, ("paused",) + FINAL)
+        assert paused["status"] == "paused"
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "paused"
+        r = api.put(f"/runs/{rid}/state", role="operator", json={"state": "paused"})
+        assert r.status_code == 409 and "paused -> paused" in r.json()["detail"]
+        assert api.put(f"/runs/{rid}/state", role="viewer", json={"state": "running"}).status_code == 403
+        n = api.get(f"/runs/{rid}", role="viewer").json()["samples_count"]
+        time.sleep(0.3)
+        assert api.get(f"/runs/{rid}", role="viewer").json()["samples_count"] == n  # held still
+        assert api.put(f"/runs/{rid}/state", role="operator", json={"state": "running"}).status_code == 202
+        wait_run(api, rid, ("running",) + FINAL)
+        r = api.put(f"/runs/{rid}/state", role="operator", json={"state": "aborted", "reason": "wrong unit"})
+        assert r.status_code == 202
+        j = wait_run(api, rid)
+        assert j["status"] == "aborted" and j["reason"] == "wrong unit"
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
+        rec = parse_recording(api.get(f"/runs/{rid}/samples", role="viewer").text)
+        assert 0 < len(rec) < 18 * 40 and len(rec) % 40 == 0
+        states = [d["state"] for k, d in read_events(api, rid) if k == "state"]
+        assert states == ["queued", "running", "paused", "running", "aborted"]
+        assert [a.detail["state"] for a in audited(api, "run.state")] == ["paused", "running", "aborted"]
+
+
+def test_an_axis_fault_mid_run_fails_it_and_the_station_until_reset(api: Api):
+    with sim_station(reference_config(seed=3, time_scale=20)) as info:
+        make_station(api, info)
+        fault = parse_fault({"kind": "axis_alarm", "axis": "y", "code": 48, "at_angle_deg": 100})
+        info["loop"].call_soon_threadsafe(info["station"].inject, fault)
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
+        j = wait_run(api, r.json()["id"])
+        assert j["status"] == "failed" and "overload" in j["reason"] and "axis y" in j["reason"]
+        assert j["samples_count"] == 9 * 20  # the level turn and the first sweep pose
+        st = api.get("/stations/lab-1", role="viewer").json()
+        assert st["state"] == "fault" and "overload" in st["fault"] and st["run_id"] is None
+        assert api.post("/runs", role="operator", json={"station": "lab-1"}).status_code == 409
+        assert api.post("/stations/lab-1/reset", role="viewer").status_code == 403
+        r = api.post("/stations/lab-1/reset", role="operator")
+        assert r.status_code == 200, r.text
+        assert r.json()["state"] == "idle" and r.json()["reset_axes"] == ["y"]
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
+        assert [a.owner for a in audited(api, "station.reset")] == ["operator-user"]
+
+
+def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
+    with sim_station(reference_config(seed=8, time_scale=20)) as info:
+        make_station(api, info)
+        r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SN-A", "SN-B"],
+                                                         "parameters": {"samples": 20}})
+        assert r.status_code == 202, r.text
+        bid = r.json()["id"]
+        busy = api.post("/runs", role="operator", json={"station": "lab-1"})
+        assert busy.status_code == 409
+        answered, deadline = [], time.monotonic() + 60
+        while True:
+            b = api.get(f"/batches/{bid}", role="viewer").json()
+            if b["status"] != "running":
+                break
+            assert time.monotonic() < deadline, b
+            if b["prompt"]:
+                run_id, text = b["prompt"]["run_id"], b["prompt"]["text"]
+                assert b["prompt"]["id"] == "mount"
+                assert api.post(f"/runs/{run_id}/prompts/unmount", role="operator", json={"answer": "x"}).status_code == 404
+                r = api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": "mounted"})
+                assert r.status_code == 200, r.text
+                answered.append(text)
+            time.sleep(0.05)
+        assert answered[0] == "mount unit SN-A in slot 0"
+        assert answered[1].startswith("unmount unit SN-A (") and answered[1].endswith("then mount unit SN-B in slot 0")
+        assert b["status"] == "completed" and b["station"] == "lab-1"
+        assert set(b["summary"]) == {"SN-A", "SN-B"} and set(b["summary"].values()) <= {"PASS", "MARGINAL"}, b["summary"]
+        assert [(u["serial"], u["status"]) for u in b["units"]] == [("SN-A", "completed"), ("SN-B", "completed")]
+        for u in b["units"]:
+            run = api.get(f"/runs/{u['run_id']}", role="viewer").json()
+            assert run["batch_id"] == bid and run["procedure"] == "batch_calibrate" and run["serials"] == {"0": u["serial"]}
+            assert u["verdict"] == b["summary"][u["serial"]] and u["calibration_status"] == "current"
+            cur = api.get(f"/devices/{u['serial']}/calibrations/current", role="viewer").json()
+            assert cur["run_id"] == u["run_id"]
+        assert api.get("/stations/lab-1", role="viewer").json()["batch_id"] is None
+        assert len(audited(api, "run.prompt")) == 2 and len(audited(api, "batch.start")) == 1
+
+
+@pytest.mark.parametrize("target", ["running", "aborted"])
+def test_transition_table_is_explicit(target: str):
+    from service.runs import TRANSITIONS
+    assert ("completed", target) not in TRANSITIONS and ("failed", target) not in TRANSITIONS
+    assert ("queued", "paused") not in TRANSITIONS and ("paused", "running") in TRANSITIONS
+
+
+def test_shutdown_aborts_active_runs_quickly_and_a_restart_recovers(db_url: str):
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.auth import create_key
+    from service.db import Run
+
+    app = create_app(db_url)
+    with sim_station(reference_config(seed=9, time_scale=20)) as info:
+        with TestClient(app) as client:
+            with app.state.sessions() as s:
+                keys = {role: create_key(s, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
+            api = Api(client, keys)
+            make_station(api, info)
+            rid = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}}).json()["id"]
+            wait_run(api, rid, ("running",))
+            with app.state.sessions() as s:  # as if a previous process had died mid-run
+                s.add(Run(procedure="calibrate", procedure_version="2", parameters={}, status="running",
+                          operator="ghost", software_version="0"))
+                s.commit()
+            t0 = time.monotonic()
+        assert time.monotonic() - t0 < 8.0  # the lifespan's shutdown aborted the run
+    again = create_app(db_url)
+    with TestClient(again) as client:
+        api = Api(client, keys)
+        j = api.get(f"/runs/{rid}", role="viewer").json()
+        assert j["status"] == "aborted" and j["reason"] == "service shutting down" and j["samples_count"] > 0
+        assert read_events(api, rid) == [("state", {"state": "aborted", "reason": "service shutting down", "from": "database"})]
+        ghost = api.get("/runs?status=failed", role="viewer").json()
+        assert [g["operator"] for g in ghost] == ["ghost"] and "stopped" in ghost[0]["reason"]

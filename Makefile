@@ -2,8 +2,9 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= out
+PORT ?= 8000
 
-.PHONY: run test bench clean
+.PHONY: run demo test bench clean
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -11,9 +12,14 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@
 
-# The main job: a simulated station (Modbus table + serial compass, time scale 20) calibrates the
-# paper's reference unit over the real protocols, checks it on the table and against the truth.
+# The main job: a simulated station (Modbus table + serial compass, time scale 20) and the REST
+# service on the SQLite default; an operator key; the paper's reference unit calibrated through the
+# API; the result and the URLs printed; then it keeps serving until interrupted (Ctrl-C).
 run: $(VENV)/.installed
+	$(VENV)/bin/compasscal demo --api --port $(PORT)
+
+# The same calibration without the service (command line only; exits when done).
+demo: $(VENV)/.installed
 	$(VENV)/bin/compasscal demo -o $(OUT)/demo
 
 test: $(VENV)/.installed
@@ -23,6 +29,7 @@ bench: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py
 	$(PY) benchmarks/drivers.py
 	$(PY) benchmarks/procedure.py
+	$(PY) benchmarks/service.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis

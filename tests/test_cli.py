@@ -92,3 +92,18 @@ def test_demo_calibrates_and_checks_the_reference_unit(tmp_path: Path):
     import re
     level, tilted = map(float, re.search(r"against the true unit: heading error max ([\d.]+) deg level, ([\d.]+) deg", said).groups())
     assert level <= 0.02 and tilted <= 0.05
+
+
+def test_demo_api_calibrates_through_the_rest_service(tmp_path: Path, monkeypatch):
+    import socket
+    monkeypatch.setenv("COMPASSCAL_DATA_DIR", str(tmp_path))
+    monkeypatch.delenv("COMPASSCAL_DATABASE_URL", raising=False)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    r = runner.invoke(app, ["demo", "--api", "--no-serve", "--port", str(port), "--time-scale", "40"])
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.output.split())
+    assert "POST /runs -> 202" in said and "run 1 completed" in said and "verdict" in said
+    assert f"http://127.0.0.1:{port}/devices/GAO2017-REF/calibrations" in said
+    assert (tmp_path / "compasscal.db").exists()  # the SQLite default under the user's data directory

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import secrets
+import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -58,9 +59,9 @@ def require(role: str) -> Callable[..., Caller]:
     """A FastAPI dependency: 401 without a valid key, 403 with too low a role."""
     need = ROLES.index(role)
 
-    def dep(request: Request, key: str | None = Depends(_header)) -> Caller:
-        with request.app.state.sessions() as session:
-            caller = lookup(session, key)
+    # async: a cached key costs no thread-pool hop (a miss runs one short query on the loop)
+    async def dep(request: Request, key: str | None = Depends(_header)) -> Caller:
+        caller = _cached(request, key)
         if caller is None:
             raise HTTPException(401, "a valid X-API-Key header is required", headers={"WWW-Authenticate": "X-API-Key"})
         if ROLES.index(caller.role) < need:
@@ -68,6 +69,29 @@ def require(role: str) -> Callable[..., Caller]:
         request.state.caller = caller
         return caller
     return dep
+
+
+#: Seconds a looked-up key is trusted without asking the database again (a revocation takes this long).
+KEY_CACHE_S = 10.0
+
+
+def _cached(request: Request, key: str | None) -> Caller | None:
+    """:func:`lookup` with a short per-app cache: every request checks its key, most of them the same few."""
+    if not key:
+        return None
+    state = request.app.state
+    cache: dict[str, tuple[float, Caller | None]] = getattr(state, "key_cache", None) or {}
+    state.key_cache = cache
+    now = time.monotonic()
+    hit = cache.get(key)
+    if hit is not None and now - hit[0] < KEY_CACHE_S:
+        return hit[1]
+    with state.sessions() as session:
+        caller = lookup(session, key)
+    if len(cache) > 10_000:
+        cache.clear()
+    cache[key] = (now, caller)
+    return caller
 
 
 def audit(session: Session, caller: Caller, action: str, target: str, detail: dict[str, Any] | None = None) -> None:

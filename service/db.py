@@ -149,6 +149,7 @@ class Calibration(Base):
     reasons: Mapped[list[Any]] = mapped_column(JSON, default=list)
     method: Mapped[str] = mapped_column(String(32))
     data: Mapped[dict[str, Any]] = mapped_column(JSON)  # the physics calibration JSON
+    figures: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # what the limits judge (store.figures)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     run: Mapped[Run] = relationship(back_populates="calibrations")
     device: Mapped[Device] = relationship()

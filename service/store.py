@@ -108,9 +108,9 @@ def figures(cal: dict[str, Any]) -> dict[str, float | None]:
             "bias_lsb": float(np.linalg.norm(c.mag.bias))}
 
 
-def judge(cal: dict[str, Any], limits: list[Limit]) -> tuple[str, list[str]]:
-    """PASS, MARGINAL or FAIL with the reasons (every limit exceeded, with the figure and the limit)."""
-    fig = figures(cal)
+def judge(fig: dict[str, float | None], limits: list[Limit]) -> tuple[str, list[str]]:
+    """PASS, MARGINAL or FAIL from a calibration's :func:`figures`, with the reasons (every limit
+    exceeded, with the figure and the limit)."""
     verdict, reasons = "PASS", []
     for lim in limits:
         value = fig.get(lim.name)
@@ -130,13 +130,14 @@ def store_calibration(session: Session, run: Run, slot: int, serial: str, cal: d
     """Judge a calibration against the limits and keep it: PASS or MARGINAL becomes current and the
     previous current one is superseded; FAIL is kept as rejected. Nothing is ever overwritten."""
     dev = device(session, serial, model, firmware)
-    verdict, reasons = judge(cal, list(session.scalars(select(Limit))))
+    fig = figures(cal)
+    verdict, reasons = judge(fig, list(session.scalars(select(Limit))))
     status = "rejected" if verdict == "FAIL" else "current"
     if status == "current":
         session.execute(update(Calibration).where(Calibration.device_id == dev.id, Calibration.status == "current")
                         .values(status="superseded"))
     row = Calibration(device_id=dev.id, run_id=run.id, slot=slot, status=status, verdict=verdict, reasons=reasons,
-                      method=str(cal.get("method", "")), data=cal)
+                      method=str(cal.get("method", "")), data=cal, figures=fig)
     session.add(row)
     session.flush()
     return row

@@ -107,3 +107,18 @@ def test_demo_api_calibrates_through_the_rest_service(tmp_path: Path, monkeypatc
     assert "POST /runs -> 202" in said and "run 1 completed" in said and "verdict" in said
     assert f"http://127.0.0.1:{port}/devices/GAO2017-REF/calibrations" in said
     assert (tmp_path / "compasscal.db").exists()  # the SQLite default under the user's data directory
+
+
+def test_keys_create_prints_the_key_alone_on_the_last_line(tmp_path: Path, monkeypatch):
+    monkeypatch.setenv("COMPASSCAL_DATABASE_URL", f"sqlite:///{tmp_path / 'k.db'}")
+    r = runner.invoke(app, ["keys", "create", "--owner", "alice", "--role", "operator"])
+    assert r.exit_code == 0, r.output
+    key = r.output.strip().splitlines()[-1]
+    assert key.startswith("cc_") and " " not in key
+    from service.auth import lookup
+    from service.db import make_engine, sessions
+    with sessions(make_engine(f"sqlite:///{tmp_path / 'k.db'}"))() as session:
+        caller = lookup(session, key)
+    assert caller is not None and caller.owner == "alice" and caller.role == "operator"
+    bad = runner.invoke(app, ["keys", "create", "--owner", "bob", "--role", "boss"])
+    assert bad.exit_code == 2 and "role" in bad.output

@@ -19,6 +19,8 @@ from sqlalchemy.orm import Session
 from service.db import ApiKey, AuditLog
 
 ROLES = ("viewer", "operator", "admin")
+#: The session cookie of the web pages (HttpOnly, SameSite=Strict, no expiry: ends with the browser session).
+COOKIE = "compasscal_key"
 _header = APIKeyHeader(name="X-API-Key", auto_error=False, description="an API key from `compasscal keys create`")
 
 
@@ -61,7 +63,8 @@ def require(role: str) -> Callable[..., Caller]:
 
     # async: a cached key costs no thread-pool hop (a miss runs one short query on the loop)
     async def dep(request: Request, key: str | None = Depends(_header)) -> Caller:
-        caller = _cached(request, key)
+        # scripts send the header; the web pages' browser session carries the key in a cookie
+        caller = _cached(request, key or request.cookies.get(COOKIE))
         if caller is None:
             raise HTTPException(401, "a valid X-API-Key header is required", headers={"WWW-Authenticate": "X-API-Key"})
         if ROLES.index(caller.role) < need:

@@ -209,7 +209,8 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
         if check is not None and check.outcome is not None and slot in check.outcome.results:
             ev = check.outcome.results[slot]
             console.print(f"evaluate on the table: heading error max {ev['level_max_deg']:.4f} deg level, "
-                          f"{ev['tilted_max_deg']:.4f} deg at pitch and roll up to 60 deg")
+                          f"{ev['tilted_max_deg']:.4f} deg at pitch and roll up to 60 deg (each pose's own noise about "
+                          f"{ev['level_noise_deg']:.4f} and {ev['tilted_noise_deg']:.4f} deg)")
         if truth is not None and slot < len(truth):
             print_truth(cal, truth[slot])
     return failed

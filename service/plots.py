@@ -50,3 +50,370 @@ def calibration_figure(rec: Recording, cal: Calibration, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+# --------------------------------------------------------------------------- web pages and certificates
+#
+# The pages and the PDF certificate draw with the object-oriented API (``Figure``, no pyplot): the
+# service renders pages in a thread pool, and pyplot's global figure registry is not thread-safe.
+
+import io  # noqa: E402
+import uuid  # noqa: E402
+from datetime import datetime  # noqa: E402
+from typing import Any, Mapping, Sequence  # noqa: E402
+
+from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from physics.fit import evaluate, pose_means  # noqa: E402
+from physics.frames import SPECIFIC_FORCE_L, to_body  # noqa: E402
+from physics.heading import reference_heading, wrap180  # noqa: E402
+from physics.table import TableGeometry, platform_attitude  # noqa: E402
+
+STAGE_COLORS = {"raw": "#d62728", "bias": "#ff7f0e", "sensitivity": "#2ca02c", "full": "#1f77b4"}
+#: (marginal, fail) of an acceptance limit, by the limit's name (service.store.figures keys).
+Limits = Mapping[str, tuple[float, float]]
+
+
+def predicted_staged_errors(cal: Calibration, step_deg: float = 1.0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Heading error (deg) at each correction stage over a full level turn, as the calibration's own
+    model predicts it: readings of a unit that is exactly this calibration's sensor, in the field
+    (I, D) and on the base tilt the calibration found, corrected up to each stage.
+
+    This is the paper's Fig. 5 for this unit, free of noise and of the recording's pose spacing; the
+    full stage is zero for the linear methods by construction (the measured points show the rest).
+    Returns the table azimuths and the errors by stage (empty when the field is unknown).
+    """
+    psi = np.arange(0.0, 360.0, step_deg)
+    if not (np.isfinite(cal.inclination_deg) and np.isfinite(cal.declination_deg)):
+        return psi, {}
+    C = platform_attitude(psi, np.zeros_like(psi), np.zeros_like(psi),
+                          TableGeometry(base_tilt_deg=tuple(float(x) for x in cal.base_tilt_deg)))  # type: ignore[arg-type]
+    h_b = to_body(C, field_direction(cal.inclination_deg, cal.declination_deg))
+    f_b = to_body(C, SPECIFIC_FORCE_L)  # the calibrated accelerometer's f_b is the true one, in the model
+    mag = cal.mag.measure(h_b)
+    ref = reference_heading(C, cal.declination_deg)
+    return psi, {s: heading_error(cal.heading(mag, f_b, s), ref) for s in STAGES}
+
+
+def measured_staged_errors(rec: Recording, cal: Calibration) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Heading error (deg) at each stage on the recording's level poses (readings averaged per pose,
+    as physics.fit.quality scores them): table azimuth and errors by stage (empty without level poses)."""
+    mean = pose_means(rec)
+    lev = (np.abs(mean.theta_t) < 0.01) & (np.abs(mean.phi_t) < 0.01)
+    if not lev.any():
+        return np.array([]), {}
+    f_b = es.specific_force(mean, cal.acc)
+    ref = mean.psi_t[lev] - cal.declination_deg
+    order = np.argsort(mean.psi_t[lev])
+    return (mean.psi_t[lev][order],
+            {s: heading_error(cal.heading(mean.mag[lev], f_b[lev], s), ref)[order] for s in STAGES})
+
+
+def measured_tilted_errors(rec: Recording, cal: Calibration, max_tilt_deg: float = 60.0) -> dict[str, np.ndarray]:
+    """Heading error (deg) of the calibrated compass at the recording's tilted poses within
+    ``max_tilt_deg`` of pitch and roll (physics.fit.evaluate: per-pose means against the platform's
+    true heading), with each pose's noise; the level poses at the tilted poses' azimuths are included
+    (tilt 0). Keys: psi, theta, phi, error, sigma (arrays, maybe empty)."""
+    ev = evaluate(rec, cal, max_tilt_deg)
+    poses = np.asarray(ev["poses"], dtype=float).reshape(-1, 3)
+    err = np.asarray(ev["error_deg"], dtype=float)
+    sigma = np.asarray(ev["sigma_deg"], dtype=float)
+    theta, phi = wrap180(poses[:, 1]), wrap180(poses[:, 2])
+    level = (np.abs(theta) < 0.01) & (np.abs(phi) < 0.01)
+    tilted = ~level & (np.abs(theta) <= max_tilt_deg) & (np.abs(phi) <= max_tilt_deg)
+    # the level pose at a tilted pose's azimuth is the sweep's zero: it completes the curve
+    at_tilted_psi = np.isin(np.round(poses[:, 0], 2), np.round(poses[tilted, 0], 2))
+    keep = tilted | (level & at_tilted_psi)
+    return {"psi": poses[keep, 0], "theta": theta[keep], "phi": phi[keep], "error": err[keep], "sigma": sigma[keep]}
+
+
+def _limit_lines(ax: Axes, limits: Limits | None, name: str) -> None:
+    """The acceptance limit as +- lines, so the engineer sees the margin at a glance."""
+    if not limits or name not in limits:
+        return
+    marginal, fail = limits[name]
+    for value, color, label in ((marginal, "#e6a700", "marginal limit"), (fail, "#c00000", "fail limit")):
+        ax.axhline(value, color=color, lw=0.9, ls="--", label=label)
+        ax.axhline(-value, color=color, lw=0.9, ls="--")
+
+
+def draw_staged(axes: Sequence[Axes], cal: Calibration, rec: Recording | None, limits: Limits | None = None) -> None:
+    """Left: the staged heading error over a full level turn (model lines, measured pose means as
+    markers). Right: the calibrated error alone, zoomed, with the level acceptance limits."""
+    ax, zoom = axes
+    psi, predicted = predicted_staged_errors(cal)
+    m_psi, measured = measured_staged_errors(rec, cal) if rec is not None else (np.array([]), {})
+    for stage in STAGES:
+        color = STAGE_COLORS[stage]
+        if stage in predicted:
+            ax.plot(psi, predicted[stage], "-", color=color, lw=1.2, label=STAGE_LABELS[stage])
+        if stage in measured:
+            ax.plot(m_psi, measured[stage], "o", color=color, ms=3.5, mfc="none",
+                    label=None if stage in predicted else STAGE_LABELS[stage])
+    ax.set(title="Heading error by correction stage, level turn", xlabel="table azimuth $\\psi_t$ (deg)",
+           ylabel="heading error (deg)", xlim=(0, 360), xticks=np.arange(0, 361, 60))
+    ax.grid(True, lw=0.4, alpha=0.6)
+    if predicted or measured:
+        ax.legend(fontsize=7, loc="best", title="lines: model, o: measured" if measured and predicted else None,
+                  title_fontsize=7)
+    if "full" in measured:
+        zoom.plot(m_psi, measured["full"], "o-", color=STAGE_COLORS["full"], ms=3.5, lw=0.8, label="measured (pose means)")
+    if "full" in predicted and np.max(np.abs(predicted["full"])) > 1e-6:  # a non-linear heading model's residual
+        zoom.plot(psi, predicted["full"], "-", color="0.4", lw=1, label="model")
+    _limit_lines(zoom, limits, "heading_error_level_deg")
+    zoom.set(title=f"Calibrated heading error ({cal.method}), level", xlabel="table azimuth $\\psi_t$ (deg)",
+             ylabel="heading error (deg)", xlim=(0, 360), xticks=np.arange(0, 361, 60))
+    zoom.grid(True, lw=0.4, alpha=0.6)
+    if "full" in measured:
+        zoom.legend(fontsize=7, loc="best")
+    else:
+        zoom.text(0.5, 0.5, "no level poses recorded", transform=zoom.transAxes, ha="center", color="0.4")
+
+
+def draw_tilted(ax: Axes, cal: Calibration, rec: Recording | None, limits: Limits | None = None,
+                max_tilt_deg: float = 60.0) -> None:
+    """Heading error of the calibrated compass at the recorded tilted poses against the tilt angle:
+    pitch-only poses (a sweep about y), roll-only poses (about x), and poses with both."""
+    t = measured_tilted_errors(rec, cal, max_tilt_deg) if rec is not None else None
+    if t is not None and len(t["error"]):
+        pitch_only = np.abs(t["phi"]) < 0.01
+        roll_only = np.abs(t["theta"]) < 0.01
+        both = ~pitch_only & ~roll_only
+        for mask, x, label, marker, color in (
+                (pitch_only, t["theta"], "pitch $\\theta_t$ (roll 0)", "o", "#1f77b4"),
+                (roll_only, t["phi"], "roll $\\varphi_t$ (pitch 0)", "s", "#2ca02c"),
+                (both, t["theta"], "pitch and roll (x: pitch)", "^", "#9467bd")):
+            if mask.any():
+                order = np.argsort(x[mask])
+                ax.errorbar(x[mask][order], t["error"][mask][order], yerr=t["sigma"][mask][order], fmt=marker,
+                            ls="-" if mask is not both else "none", lw=0.8, ms=4, mfc="none", color=color,
+                            capsize=2, label=label)
+        headings = sorted({round(float(p), 1) for p in t["psi"]})
+        note = "at table azimuth " + ", ".join(f"{h:g}" for h in headings[:6]) + (" ..." if len(headings) > 6 else "") + " deg"
+        ax.text(0.01, 0.02, note, transform=ax.transAxes, fontsize=7, color="0.35")
+    else:
+        ax.text(0.5, 0.5, f"no tilted poses within +-{max_tilt_deg:g} deg recorded", transform=ax.transAxes,
+                ha="center", color="0.4")
+    _limit_lines(ax, limits, "heading_error_tilted_deg")
+    ax.set(title=f"Calibrated heading error at pitch and roll up to +-{max_tilt_deg:g} deg",
+           xlabel="tilt angle (deg)", ylabel="heading error (deg)", xlim=(-max_tilt_deg - 5, max_tilt_deg + 5),
+           xticks=np.arange(-max_tilt_deg, max_tilt_deg + 1, 15))
+    ax.grid(True, lw=0.4, alpha=0.6)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7, loc="best")
+
+
+def staged_figure(cal: Calibration, rec: Recording | None = None, limits: Limits | None = None) -> Figure:
+    """The staged heading-error figure of a calibration (see :func:`draw_staged`)."""
+    fig = Figure(figsize=(11, 3.8))
+    draw_staged(fig.subplots(1, 2), cal, rec, limits)
+    fig.tight_layout()
+    return fig
+
+
+def tilted_figure(cal: Calibration, rec: Recording | None = None, limits: Limits | None = None) -> Figure:
+    """The tilted heading-error figure of a calibration (see :func:`draw_tilted`)."""
+    fig = Figure(figsize=(8, 3.6))
+    draw_tilted(fig.subplots(), cal, rec, limits)
+    fig.tight_layout()
+    return fig
+
+
+def trend_figures(history: Sequence[Mapping[str, Any]]) -> dict[str, Figure]:
+    """A unit's calibrations over time: sensitivities, biases, misalignment angles and heading error.
+
+    ``history`` holds dicts with ``created_at`` (datetime), ``data`` (the calibration JSON), ``status``
+    and ``figures`` (service.store.figures). Rejected calibrations are drawn with red crosses over
+    their points: they are kept in the history but never used.
+    """
+    import matplotlib.dates as mdates
+
+    rows = sorted(history, key=lambda h: h["created_at"])
+    when = [h["created_at"] for h in rows]
+    cals = [Calibration.from_json(h["data"]) for h in rows]
+    rejected = np.array([h.get("status") == "rejected" for h in rows], dtype=bool)
+    axes_names = ("x_m", "y_m", "z_m")
+
+    def sig(c: Calibration, key: str) -> np.ndarray:
+        v = c.sigma.get(key)
+        return np.full(3, np.nan) if v is None else np.asarray(v, dtype=float).reshape(-1)[:3]
+
+    def diag_sigma(c: Calibration) -> np.ndarray:
+        v = c.sigma.get("angles_deg")
+        return np.full(3, np.nan) if v is None else np.diag(np.asarray(v, dtype=float).reshape(3, 3))
+
+    series = {
+        "sensitivity": ("Sensitivities k", "LSB per field unit",
+                        np.array([c.mag.k for c in cals]), np.array([sig(c, "k") for c in cals]), axes_names),
+        "bias": ("Biases b", "LSB", np.array([c.mag.bias for c in cals]), np.array([sig(c, "bias") for c in cals]),
+                 axes_names),
+        "misalignment": ("Misalignment: angle between sensor and body axis", "deg",
+                         np.array([np.diag(c.mag.angles_deg) for c in cals]), np.array([diag_sigma(c) for c in cals]),
+                         ("x_m to x_b", "y_m to y_b", "z_m to z_b")),
+    }
+    he = np.array([[(h.get("figures") or {}).get(k) for k in ("heading_error_level_deg", "heading_error_tilted_deg")]
+                   for h in rows], dtype=float).reshape(-1, 2)
+    series["heading"] = ("Heading error (max |error|, on the calibration's recording)", "deg", he,
+                         np.full_like(he, np.nan), ("level", "pitch and roll up to +-60 deg"))
+    out: dict[str, Figure] = {}
+    for key, (title, unit, values, sigmas, labels) in series.items():
+        fig = Figure(figsize=(5.6, 3.0))
+        ax = fig.subplots()
+        for j, label in enumerate(labels):
+            y = values[:, j]
+            if not np.isfinite(y).any():
+                continue
+            e = sigmas[:, j]
+            ax.errorbar(when, y, yerr=np.where(np.isfinite(e), e, 0.0), fmt="o-", ms=4, lw=1, capsize=2, label=label)
+        if rejected.any():
+            for j in range(values.shape[1]):
+                ax.plot([w for w, r in zip(when, rejected) if r], values[rejected, j], "x", color="#c00000", ms=8,
+                        label="rejected" if j == 0 else None)
+        ax.set(title=title, ylabel=unit)
+        ax.title.set_fontsize(9)
+        locator = mdates.AutoDateLocator()
+        ax.xaxis.set_major_locator(locator)
+        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
+        ax.grid(True, lw=0.4, alpha=0.6)
+        ax.tick_params(labelsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, loc="best")
+        fig.tight_layout()
+        out[key] = fig
+    return out
+
+
+def svg(fig: Figure, css_class: str, label: str) -> str:
+    """An inline ``<svg>`` element of a figure for an HTML page: no XML prolog, the given class, an
+    accessible label, scaled to its container. Text stays text (svg.fonttype none), so the page
+    needs no embedded glyphs; a random hash salt keeps element ids unique among several figures."""
+    import re
+    from html import escape
+
+    buf = io.StringIO()
+    with matplotlib.rc_context({"svg.fonttype": "none", "svg.hashsalt": uuid.uuid4().hex}):
+        fig.savefig(buf, format="svg", metadata={"Date": None})
+    text = buf.getvalue()
+    text = text[text.index("<svg"):]
+    text = re.sub(r"\s*<metadata>.*?</metadata>", "", text, count=1, flags=re.S)  # RDF boilerplate, no use inline
+    head_end = text.index(">")
+    head = text[:head_end]
+    width = re.search(r'width="([\d.]+)pt"', head)
+    head = re.sub(r'\s(width|height)="[^"]*"', "", head)
+    style = f"width:100%;height:auto;max-width:{float(width.group(1)) * 4 / 3:.0f}px" if width else "width:100%;height:auto"
+    head += f' class="{escape(css_class)}" role="img" aria-label="{escape(label)}" style="{style}"'
+    return head + f"><title>{escape(label)}</title>" + text[head_end + 1:]
+
+
+def _table(ax: Axes, title: str, header: Sequence[str], rows: Sequence[Sequence[str]], col_widths: Sequence[float] | None = None) -> None:
+    """A table filling an axes (certificate PDF)."""
+    ax.axis("off")
+    ax.set_title(title, loc="left", fontsize=10, fontweight="bold")
+    tab = ax.table(cellText=[list(r) for r in rows] or [["-"] * len(header)], colLabels=list(header), loc="upper left",
+                   cellLoc="left", colLoc="left", colWidths=list(col_widths) if col_widths else None)
+    tab.auto_set_font_size(False)
+    tab.set_fontsize(8)
+    tab.scale(1, 1.35)
+    for (r, _), cell in tab.get_celld().items():
+        cell.set_linewidth(0.4)
+        if r == 0:
+            cell.set_facecolor("#e8eef5")
+            cell.set_text_props(fontweight="bold")
+
+
+def certificate_pdf(cert: Mapping[str, Any], cal: Calibration, rec: Recording | None, limits: Limits | None) -> bytes:
+    """The calibration certificate as a PDF (A4, three pages): identification and parameters with
+    their uncertainties; the heading-error curves; the acceptance limits and the verdict.
+
+    ``cert`` is the context of the HTML certificate (service/web.py): strings, the two tables' rows
+    (``table1``, ``table2``), ``info`` pairs, ``field`` lines, ``limits`` rows, verdict and reasons.
+    """
+    from matplotlib.backends.backend_pdf import PdfPages
+
+    a4 = (8.27, 11.69)
+    out = io.BytesIO()
+    meta = {"Title": f"Calibration certificate {cert['number']}", "Author": "compasscal", "Subject": cert["serial"],
+            "Creator": f"compasscal {cert['software_version']}"}
+    with PdfPages(out, metadata=meta) as pdf:
+        # --- page 1: who, what, where, and the parameters
+        fig = Figure(figsize=a4)
+        fig.text(0.07, 0.955, "Calibration certificate", fontsize=18, fontweight="bold")
+        fig.text(0.07, 0.93, f"No. {cert['number']}  -  electronic compass, three-axis magnetometer", fontsize=10)
+        fig.text(0.93, 0.955, cert["verdict"], fontsize=18, fontweight="bold", ha="right",
+                 color={"PASS": "#1a7f37", "MARGINAL": "#b58100"}.get(cert["verdict"], "#c00000"))
+        y = 0.895
+        for label, value in cert["info"]:
+            fig.text(0.07, y, label, fontsize=8.5, color="0.3")
+            fig.text(0.32, y, str(value), fontsize=8.5)
+            y -= 0.019
+        ax1 = fig.add_axes((0.07, y - 0.16, 0.86, 0.13))
+        _table(ax1, "Table 1: angles between sensor axes and body axes (deg, +- 1 sigma)",
+               ["axis", "x_b", "y_b", "z_b"], cert["table1"], [0.16, 0.28, 0.28, 0.28])
+        y -= 0.2
+        ax2 = fig.add_axes((0.07, y - 0.16, 0.86, 0.13))
+        _table(ax2, "Table 2: sensitivities and biases (LSB, +- 1 sigma) and model residuals",
+               ["axis", "sensitivity k", "bias b", "residual rms"], cert["table2"], [0.16, 0.3, 0.3, 0.24])
+        y -= 0.2
+        fig.text(0.07, y, "Field and table", fontsize=10, fontweight="bold")
+        for line in cert["field"]:
+            y -= 0.02
+            fig.text(0.07, y, line, fontsize=8.5)
+        if cert.get("staged"):
+            y -= 0.035
+            fig.text(0.07, y, "Staged heading error on the recording (max |error|, deg)", fontsize=10, fontweight="bold")
+            for label, value in cert["staged"]:
+                y -= 0.018
+                fig.text(0.07, y, label, fontsize=8.5)
+                fig.text(0.45, y, value, fontsize=8.5)
+        if cert.get("notes"):
+            y -= 0.035
+            fig.text(0.07, y, "Notes", fontsize=10, fontweight="bold")
+            for note in cert["notes"][:8]:
+                if y < 0.07:  # the page is full; the HTML certificate lists them all
+                    break
+                y -= 0.018
+                fig.text(0.07, y, note[:130], fontsize=7.5, color="0.25")
+        fig.text(0.07, 0.03, f"compasscal {cert['software_version']} - page 1 of 3", fontsize=7, color="0.4")
+        pdf.savefig(fig)
+
+        # --- page 2: the curves
+        fig = Figure(figsize=a4)
+        fig.text(0.07, 0.955, f"Heading error - {cert['serial']}", fontsize=14, fontweight="bold")
+        fig.text(0.07, 0.935, "Lines: the calibration's model over a full level turn at each correction stage; "
+                 "markers: the recording's pose means.", fontsize=8, color="0.3")
+        ax_a = fig.add_axes((0.1, 0.67, 0.82, 0.23))
+        ax_b = fig.add_axes((0.1, 0.37, 0.82, 0.23))
+        draw_staged((ax_a, ax_b), cal, rec, limits)
+        ax_c = fig.add_axes((0.1, 0.07, 0.82, 0.23))
+        draw_tilted(ax_c, cal, rec, limits)
+        fig.text(0.07, 0.03, f"compasscal {cert['software_version']} - page 2 of 3", fontsize=7, color="0.4")
+        pdf.savefig(fig)
+
+        # --- page 3: limits and verdict
+        fig = Figure(figsize=a4)
+        fig.text(0.07, 0.955, "Acceptance", fontsize=14, fontweight="bold")
+        n = max(1, len(cert["limits"]))
+        h = min(0.5, 0.04 * (n + 1))
+        ax = fig.add_axes((0.07, 0.9 - h - 0.02, 0.86, h))
+        _table(ax, "Acceptance limits (above marginal: MARGINAL; above fail: FAIL)",
+               ["figure", "value", "marginal", "fail", "unit", "result"],
+               [[r["name"], r["value_text"], f"{r['marginal']:g}", f"{r['fail']:g}", r["unit"], r["result"]]
+                for r in cert["limits"]], [0.34, 0.14, 0.12, 0.12, 0.1, 0.18])
+        y = 0.9 - h - 0.08
+        fig.text(0.07, y, f"Verdict: {cert['verdict']}", fontsize=14, fontweight="bold",
+                 color={"PASS": "#1a7f37", "MARGINAL": "#b58100"}.get(cert["verdict"], "#c00000"))
+        y -= 0.025
+        fig.text(0.07, y, f"Calibration status: {cert['status']}", fontsize=9)
+        for reason in cert["reasons"] or ["every figure within its marginal limit"]:
+            y -= 0.02
+            fig.text(0.09, y, "- " + reason, fontsize=8.5)
+        y -= 0.08
+        fig.text(0.07, y, f"Issued {cert['issued']} by compasscal {cert['software_version']}; "
+                 f"calibration {cert['id']}, run {cert['run_id']}.", fontsize=8)
+        fig.text(0.07, y - 0.05, "Signature: ______________________________", fontsize=9)
+        fig.text(0.07, 0.03, f"compasscal {cert['software_version']} - page 3 of 3", fontsize=7, color="0.4")
+        pdf.savefig(fig)
+        info = pdf.infodict()
+        info["CreationDate"] = datetime.now()
+    return out.getvalue()

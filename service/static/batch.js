@@ -1,0 +1,95 @@
+/* Batch page: refresh the units' rows and prompts while the batch runs; answer prompts (operators). */
+"use strict";
+
+(() => {
+  const root = document.getElementById("batch");
+  if (!root) return;
+  const batchId = root.dataset.batchId;
+  const isOperator = root.dataset.operator === "true";
+  const prompts = document.getElementById("prompts");
+  const DONE = ["completed", "failed", "aborted"];
+
+  function rowOf(serial) {
+    for (const tr of document.querySelectorAll("#units tr[data-serial]")) if (tr.dataset.serial === serial) return tr;
+    return null;
+  }
+
+  function update(b) {
+    const st = document.getElementById("batch-status");
+    if (st) { st.textContent = b.status; st.className = `status-${b.status}`; }
+    let done = 0;
+    for (const u of b.units) {
+      if (DONE.includes(u.status)) done += 1;
+      const tr = rowOf(u.serial);
+      if (!tr) continue;
+      const run = tr.querySelector("td.run");
+      if (run) {
+        run.replaceChildren();
+        if (u.run_id) run.append(cc.el("a", { href: `/ui/runs/${u.run_id}` }, `run ${u.run_id}`));
+      }
+      const status = tr.querySelector("td.status");
+      if (status) {
+        status.textContent = u.status + (u.reason ? `: ${u.reason}` : "");
+        status.className = `status status-${u.status}`;
+      }
+      const verdict = tr.querySelector("td.verdict");
+      if (verdict) {
+        const over = DONE.includes(u.status) || !["queued", "running"].includes(b.status);
+        const v = u.verdict || (over ? (b.summary || {})[u.serial] || "" : "");
+        verdict.textContent = v;
+        verdict.className = `verdict verdict-${(u.verdict || "").toLowerCase()}`;
+      }
+      const cert = tr.querySelector("td.cert");
+      if (cert) {
+        cert.replaceChildren();
+        if (u.calibration_id) cert.append(cc.el("a", { className: "certificate", href: `/ui/calibrations/${u.calibration_id}/certificate` }, "certificate"));
+      }
+    }
+    cc.setText("batch-progress", `${done} of ${b.units.length} units done`);
+    const bar = document.getElementById("batch-bar");
+    if (bar) bar.value = done;
+    if (prompts) {
+      const want = b.units.flatMap((u) => (u.prompts || []).map((p) => ({ run: u.run_id, ...p })));
+      const key = (run, id) => `${run}/${id}`;
+      const keep = new Set(want.map((p) => key(p.run, p.id)));
+      for (const div of prompts.querySelectorAll(".prompt")) if (!keep.has(key(div.dataset.run, div.dataset.prompt))) div.remove();
+      for (const p of want) {
+        const exists = [...prompts.querySelectorAll(".prompt")].some((d) => d.dataset.run === String(p.run) && d.dataset.prompt === p.id);
+        if (exists) continue;
+        const div = cc.el("div", { className: "prompt", "data-run": p.run, "data-prompt": p.id });
+        div.append(cc.el("span", { className: "prompt-text" }, p.text));
+        if (isOperator) div.append(" ", cc.el("button", { type: "button", className: "answer", "data-run": p.run, "data-prompt": p.id }, "Done"));
+        div.append(" ", cc.el("a", { href: `/ui/runs/${p.run}` }, `run ${p.run}`));
+        prompts.append(div);
+      }
+    }
+  }
+
+  if (prompts) {
+    prompts.addEventListener("click", async (ev) => {
+      const button = ev.target instanceof Element ? ev.target.closest("button.answer") : null;
+      if (!button) return;
+      button.disabled = true;
+      try {
+        await cc.api("POST", `/runs/${button.dataset.run}/prompts/${encodeURIComponent(button.dataset.prompt)}`, { answer: "done" });
+        const div = button.closest(".prompt");
+        if (div) div.remove();
+      } catch (e) {
+        button.disabled = false;
+        button.title = e.message;
+      }
+    });
+  }
+
+  if (root.dataset.active === "true") {
+    cc.poll(async () => {
+      const b = await cc.api("GET", `/batches/${batchId}`);
+      update(b);
+      if (!["queued", "running"].includes(b.status)) {
+        setTimeout(() => window.location.reload(), 400);
+        return false;
+      }
+      return true;
+    }, 2000);
+  }
+})();

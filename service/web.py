@@ -1,0 +1,485 @@
+"""The web pages under ``/ui/`` and the calibration certificates (HTML and PDF).
+
+Server-rendered Jinja2 templates with a little vanilla JavaScript for the live parts (the run's
+server-sent events, station states, the live sample plot), all served from this machine: no CDN,
+no web font, plots as inline SVG drawn by matplotlib.
+
+Authentication: a page accepts the ``X-API-Key`` header (scripts, tests) or the browser-session
+cookie :data:`service.auth.COOKIE` that ``POST /ui/login`` sets (HttpOnly, SameSite=Strict, no
+expiry). A page without either redirects to the login form; the JavaScript calls the JSON API with
+the same cookie, so the API's own role checks apply to every action.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, quote, urlencode
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
+from fastapi.templating import Jinja2Templates
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from physics.calibration import Calibration as PhysCalibration
+from physics.recording import Recording
+from service import plots
+from service.auth import COOKIE, ROLES, Caller, lookup, require
+from service.db import Batch, Calibration, Device, Limit, Run, Sample, Station
+from service.store import load_recording
+
+HERE = Path(__file__).parent
+templates = Jinja2Templates(directory=str(HERE / "templates"))
+STATIC = HERE / "static"
+#: What /ui/static serves (a fixed list: nothing else under the package is reachable).
+STATIC_TYPES = {".css": "text/css; charset=utf-8", ".js": "text/javascript; charset=utf-8",
+                ".svg": "image/svg+xml"}
+#: Rows per poll of the live sample plot (a long run is fetched in pieces, never all at once).
+LIVE_ROWS = 5000
+ACTIVE = ("queued", "running", "paused")
+
+router = APIRouter(include_in_schema=False)
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+def _software_version() -> str:
+    from service.api import SOFTWARE_VERSION  # late: service.api includes this module's router
+    return SOFTWARE_VERSION
+
+
+def _safe_next(target: str | None) -> str:
+    """Where to go after the login: a path on this site only (never ``//host`` or ``http://``)."""
+    if target and target.startswith("/") and not target.startswith("//") and "\\" not in target:
+        return target
+    return "/ui/stations"
+
+
+def _caller(request: Request) -> Caller | None:
+    key = request.headers.get("x-api-key") or request.cookies.get(COOKIE)
+    if not key:
+        return None
+    with request.app.state.sessions() as session:
+        return lookup(session, key)
+
+
+def _page_caller(request: Request, role: str = "viewer") -> Caller | Response:
+    """The caller of a page, or the response to send instead: a redirect to the login form
+    without a valid key (303, keeping where they wanted to go), a 403 page with too low a role."""
+    caller = _caller(request)
+    if caller is None:
+        target = request.url.path + (f"?{request.url.query}" if request.url.query else "")
+        return RedirectResponse("/ui/login?" + urlencode({"next": target}), status_code=303)
+    if ROLES.index(caller.role) < ROLES.index(role):
+        return _error_page(request, caller, 403, "Not allowed",
+                           f"This page needs the {role} role; the key of {caller.owner} is {caller.role}.")
+    return caller
+
+
+def _render(request: Request, caller: Caller | None, name: str, status_code: int = 200, **ctx: Any) -> HTMLResponse:
+    base = {"caller": caller, "operator": bool(caller and ROLES.index(caller.role) >= ROLES.index("operator")),
+            "version": _software_version()}
+    return templates.TemplateResponse(request, name, {**base, **ctx}, status_code=status_code)
+
+
+def _error_page(request: Request, caller: Caller | None, status: int, title: str, message: str) -> HTMLResponse:
+    return _render(request, caller, "error.html", status_code=status, title=title, message=message, status=status)
+
+
+def _when(dt: datetime | None) -> str:
+    """A stored (naive UTC) time as people read it."""
+    if dt is None:
+        return ""
+    if dt.tzinfo is not None:
+        dt = dt.astimezone(timezone.utc).replace(tzinfo=None)
+    return dt.strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+templates.env.filters["when"] = _when
+
+
+def _num(v: Any) -> float:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+    return f
+
+
+def pm(value: Any, sigma: Any, digits: int) -> str:
+    """``value ± sigma`` with ``digits`` decimals; the sigma is left out when unknown."""
+    v, s = _num(value), _num(sigma)
+    if not math.isfinite(v):
+        return "-"
+    return f"{v:.{digits}f} ± {s:.{digits}f}" if math.isfinite(s) else f"{v:.{digits}f}"
+
+
+def _figure_text(v: Any) -> str:
+    f = _num(v)
+    return f"{f:.4g}" if math.isfinite(f) else "-"
+
+
+# ------------------------------------------------------------------------------ calibration views
+
+AXES = ("x_m", "y_m", "z_m")
+
+
+def calibration_tables(cal: PhysCalibration) -> dict[str, Any]:
+    """The paper's Table 1 (angles between sensor and body axes, deg) and Table 2 (sensitivities,
+    biases, residual rms, LSB) as rows of strings with 1-sigma, plus the field and base tilt lines."""
+    sig = cal.sigma
+    ang = cal.mag.angles_deg
+    s_ang = np.asarray(sig.get("angles_deg") if sig.get("angles_deg") is not None else np.full((3, 3), np.nan), float)
+    s_k = np.asarray(sig.get("k") if sig.get("k") is not None else np.full(3, np.nan), float)
+    s_b = np.asarray(sig.get("bias") if sig.get("bias") is not None else np.full(3, np.nan), float)
+    rms = list((cal.quality or {}).get("residual_rms_lsb") or [None] * 3) + [None] * 3
+    table1 = [[name, *(pm(ang[i, j], s_ang[i, j], 4) for j in range(3))] for i, name in enumerate(AXES)]
+    table2 = [[name, pm(cal.mag.k[i], s_k[i], 3), pm(cal.mag.bias[i], s_b[i], 3),
+               "-" if rms[i] is None else f"{float(rms[i]):.2f}"] for i, name in enumerate(AXES)]
+    return {"table1": table1, "table2": table2}
+
+
+def field_lines(cal: PhysCalibration, data: dict[str, Any]) -> list[str]:
+    """The field (I, D) and the base tilt with their 1-sigma, as lines of text."""
+    sig = cal.sigma
+    tilt_sigma = data.get("base_tilt_sigma_deg") or [None, None]
+    tilt = cal.base_tilt_deg
+    lines = [f"Field inclination I = {pm(cal.inclination_deg, sig.get('inclination_deg'), 4)} deg",
+             f"Field declination D = {pm(cal.declination_deg, sig.get('declination_deg'), 4)} deg "
+             "(from the table's azimuth zero mark)",
+             f"Base tilt about x = {pm(tilt[0], tilt_sigma[0], 4)} deg, about y = {pm(tilt[1], tilt_sigma[1], 4)} deg"]
+    if cal.heading_model:
+        lines.append(f"Heading model: {cal.heading_model.get('kind')}")
+    return lines
+
+
+def staged_rows(cal: PhysCalibration) -> list[list[str]]:
+    """The staged heading errors the fit scored on the recording (max |error|, deg)."""
+    he = (cal.quality or {}).get("heading_error_deg") or {}
+    labels = {"raw": "raw", "bias": "bias removed", "sensitivity": "+ sensitivity", "full": "+ non-orthogonality (full)",
+              "tilted_full": "full, pitch and roll up to ±60 deg"}
+    return [[label, f"{float(he[k]):.4f}"] for k, label in labels.items() if he.get(k) is not None]
+
+
+def limits_of(session: Session) -> list[Limit]:
+    """The acceptance limits, by name."""
+    return list(session.scalars(select(Limit).order_by(Limit.name)))
+
+
+def limit_pairs(limits: list[Limit]) -> dict[str, tuple[float, float]]:
+    """(marginal, fail) by limit name, for the plots."""
+    return {lim.name: (lim.marginal, lim.fail) for lim in limits}
+
+
+def unit_view(row: Calibration, rec: Recording | None, limits: list[Limit], curves: bool = True) -> dict[str, Any]:
+    """Everything a page shows of one stored calibration: tables, field, verdict, and the curves
+    as inline SVG (the staged level turn and the tilted poses, see service.plots)."""
+    cal = PhysCalibration.from_json(row.data)
+    view: dict[str, Any] = {
+        "id": row.id, "slot": row.slot, "serial": row.device.serial, "model": row.device.model,
+        "firmware": row.device.firmware, "verdict": row.verdict, "status": row.status,
+        "reasons": list(row.reasons or []), "method": row.method, "created_at": row.created_at,
+        **calibration_tables(cal), "field": field_lines(cal, row.data), "staged": staged_rows(cal),
+        "notes": list(cal.notes), "has_recording": rec is not None,
+    }
+    if curves:
+        pairs = limit_pairs(limits)
+        view["staged_svg"] = plots.svg(plots.staged_figure(cal, rec, pairs), "staged-curve",
+                                       f"Staged heading error of {row.device.serial} over a level turn")
+        view["tilted_svg"] = plots.svg(plots.tilted_figure(cal, rec, pairs), "tilted-curve",
+                                       f"Heading error of {row.device.serial} at pitch and roll up to 60 deg")
+    return view
+
+
+def limit_rows(limits: list[Limit], figures: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """Each acceptance limit with this calibration's figure and how it fared."""
+    out = []
+    for lim in limits:
+        value = (figures or {}).get(lim.name)
+        v = _num(value)
+        if not math.isfinite(v):
+            result = "not judged"
+        elif v > lim.fail:
+            result = "FAIL"
+        elif v > lim.marginal:
+            result = "MARGINAL"
+        else:
+            result = "PASS"
+        out.append({"name": lim.name, "description": lim.description, "value": value, "value_text": _figure_text(value),
+                    "marginal": lim.marginal, "fail": lim.fail, "unit": lim.unit, "result": result})
+    return out
+
+
+def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, Any], PhysCalibration, Recording | None, list[Limit]]:
+    """The certificate's content (shared by the HTML page and the PDF), the calibration, its
+    recording (None when the samples are gone) and the limits."""
+    run = row.run
+    cal = PhysCalibration.from_json(row.data)
+    rec = load_recording(session, run, row.slot) if run is not None else None
+    limits = limits_of(session)
+    snap = (run.station_snapshot if run is not None else None) or {}
+    compasses = snap.get("compasses") or []
+    slot_url = compasses[row.slot] if row.slot < len(compasses) else None
+    dev = row.device
+    info = [
+        ("Unit serial number", dev.serial), ("Model", dev.model or "-"), ("Firmware", dev.firmware or "-"),
+        ("Calibration date", _when(row.created_at)), ("Operator", run.operator if run else "-"),
+        ("Station", snap.get("name") or ((run.meta or {}).get("station") if run else None) or "-"),
+        ("Turntable (Modbus)", snap.get("modbus") or "-"),
+        ("Fixture slot", f"{row.slot}" + (f" ({slot_url})" if slot_url else "")),
+        ("Run", f"{run.id}, {run.status}" if run else "-"),
+        ("Procedure", f"{run.procedure} version {run.procedure_version}" if run else "-"),
+        ("Method", row.method),
+        ("Software", f"compasscal {run.software_version}" if run else "-"),
+        ("Certificate issued by", f"compasscal {_software_version()}"),
+    ]
+    cert = {
+        "id": row.id, "run_id": row.run_id, "number": f"CC-{row.id:06d}", "serial": dev.serial, "model": dev.model,
+        "firmware": dev.firmware, "verdict": row.verdict, "status": row.status, "reasons": list(row.reasons or []),
+        "info": info, **calibration_tables(cal), "field": field_lines(cal, row.data), "staged": staged_rows(cal),
+        "notes": list(cal.notes), "limits": limit_rows(limits, row.figures), "software_version": _software_version(),
+        "issued": _when(datetime.now(timezone.utc)), "parameters": (run.parameters if run else {}) or {},
+        "snapshot": snap,
+    }
+    return cert, cal, rec, limits
+
+
+# ------------------------------------------------------------------------------------ login/out
+
+@router.get("/ui", response_class=HTMLResponse)
+@router.get("/ui/", response_class=HTMLResponse)
+def ui_root() -> Response:
+    """The pages start at the stations."""
+    return RedirectResponse("/ui/stations", status_code=303)
+
+
+@router.get("/ui/login", response_class=HTMLResponse)
+def login_form(request: Request, next: str | None = None) -> Response:
+    """The login form: one API key, kept for the browser session."""
+    return _render(request, _caller(request), "login.html", title="Log in", next=_safe_next(next), error=None)
+
+
+@router.post("/ui/login", response_class=HTMLResponse)
+async def login(request: Request) -> Response:
+    """Check the key; on success set the session cookie and go on (303)."""
+    # parsed by hand: a urlencoded form needs no python-multipart
+    form = parse_qs((await request.body()).decode("utf-8", "replace"))
+    key = (form.get("key") or [""])[0].strip()
+    target = _safe_next((form.get("next") or [None])[0])
+
+    def check() -> Caller | None:
+        with request.app.state.sessions() as session:
+            return lookup(session, key)
+    caller = await asyncio.to_thread(check) if key else None
+    if caller is None:
+        return _render(request, None, "login.html", status_code=401, title="Log in", next=target,
+                       error="That key is not valid (unknown or revoked).")
+    resp = RedirectResponse(target, status_code=303)
+    # no max_age/expires: a browser-session cookie; HttpOnly keeps it from page scripts
+    resp.set_cookie(COOKIE, key, httponly=True, samesite="strict", path="/")
+    return resp
+
+
+@router.post("/ui/logout")
+def logout() -> Response:
+    """Forget the key in this browser."""
+    resp = RedirectResponse("/ui/login", status_code=303)
+    resp.delete_cookie(COOKIE, path="/", httponly=True, samesite="strict")
+    return resp
+
+
+@router.get("/ui/static/{name}")
+def static(name: str) -> Response:
+    """The pages' own CSS and JavaScript (no external resources anywhere)."""
+    path = STATIC / name
+    kind = STATIC_TYPES.get(path.suffix)
+    if "/" in name or name.startswith(".") or kind is None or not path.is_file():
+        raise HTTPException(404, f"no static file {name!r}")
+    return FileResponse(path, media_type=kind, headers={"Cache-Control": "no-cache"})
+
+
+# ---------------------------------------------------------------------------------------- pages
+
+@router.get("/ui/search", response_class=HTMLResponse)
+def search(request: Request, serial: str = "") -> Response:
+    """A serial number: its device page; a part of one: the matches (straight there when one)."""
+    who = _page_caller(request)
+    if isinstance(who, Response):
+        return who
+    q = serial.strip()
+    if not q:
+        return RedirectResponse("/ui/stations", status_code=303)
+    with request.app.state.sessions() as s:
+        if s.scalar(select(Device.id).where(Device.serial == q)) is None:
+            needle = q.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+            found = list(s.scalars(select(Device.serial).where(func.lower(Device.serial).like(f"%{needle.lower()}%", escape="\\"))
+                                   .order_by(Device.serial).limit(100)))
+            if len(found) == 1:
+                q = found[0]
+            elif found:
+                return _render(request, who, "search.html", title=f"Search {q}", query=q, found=found)
+    return RedirectResponse(f"/ui/devices/{quote(q, safe='')}", status_code=303)
+
+
+@router.get("/ui/stations", response_class=HTMLResponse)
+def stations_page(request: Request) -> Response:
+    """Every station with its live state and current run; operators can start a run."""
+    who = _page_caller(request)
+    if isinstance(who, Response):
+        return who
+    from service.runs import PROCEDURES, run_json
+
+    mgr = request.app.state.manager
+    with request.app.state.sessions() as s:
+        rows = s.scalars(select(Station).order_by(Station.name)).all()
+        stations = []
+        for r in rows:
+            st = mgr.station_state(r.name)
+            stations.append({"name": r.name, "state": st.state, "run_id": st.run_id, "batch_id": st.batch_id,
+                             "fault": st.reason, "slots": len(r.compasses or []), "modbus": r.modbus})
+        runs = [run_json(r, mgr) for r in s.scalars(select(Run).order_by(Run.created_at.desc(), Run.id.desc()).limit(20))]
+    procs = [{"name": p.name, "description": p.doc} for name, p in PROCEDURES.items() if name != "batch_calibrate"]
+    return _render(request, who, "stations.html", title="Stations", stations=stations, runs=runs, procedures=procs)
+
+
+@router.get("/ui/runs/{run_id}", response_class=HTMLResponse)
+def run_page(request: Request, run_id: int) -> Response:
+    """A run: live progress while it runs, then each unit's tables, curves and verdict."""
+    who = _page_caller(request)
+    if isinstance(who, Response):
+        return who
+    from service.runs import run_json
+
+    mgr = request.app.state.manager
+    with request.app.state.sessions() as s:
+        row = s.get(Run, run_id)
+        if row is None:
+            return _error_page(request, who, 404, "No such run", f"There is no run {run_id}.")
+        run = run_json(row, mgr)
+        active = run["status"] in ACTIVE
+        units: list[dict[str, Any]] = []
+        errors: list[dict[str, Any]] = []
+        if not active:
+            limits = limits_of(s)
+            cals = s.scalars(select(Calibration).where(Calibration.run_id == run_id).order_by(Calibration.slot)).all()
+            for c in cals:
+                units.append(unit_view(c, load_recording(s, row, c.slot), limits))
+            stored = {str(c.slot) for c in cals}
+            for slot, entry in sorted(((run["result"] or {}).get("units") or {}).items()):
+                if slot not in stored and isinstance(entry, dict) and "calibration_id" not in entry:
+                    errors.append({"slot": slot, "serial": entry.get("serial", ""),
+                                   "error": entry.get("error") or "no calibration from this slot"})
+        progress = run["progress"] or {}
+        if run["status"] == "completed":
+            percent = 100.0
+        else:
+            percent = float(progress.get("percent") or 0.0)
+        snap = row.station_snapshot or {}
+        time_scale = float(snap.get("time_scale") or 1.0)
+    return _render(request, who, "run.html", title=f"Run {run_id}", run=run, active=active, units=units,
+                   errors=errors, percent=percent, time_scale=time_scale,
+                   left_s=(progress.get("left_s") if active else 0.0))
+
+
+@router.get("/ui/runs/{run_id}/samples.json")
+def live_samples(request: Request, run_id: int, slot: int = Query(0, ge=0), after: int = Query(0, ge=0),
+                 _: Caller = Depends(require("viewer"))) -> JSONResponse:
+    """The samples of a run's slot stored after sample id ``after`` (at most LIVE_ROWS), for the
+    live plot: ``{"last": id, "more": bool, "rows": [[step, psi_t, theta_t, phi_t, mx, my, mz], ...]}``.
+    Always 200 for a known run (no samples yet is an empty list), unlike the CSV's 404."""
+    with request.app.state.sessions() as s:
+        if s.get(Run, run_id) is None:
+            raise HTTPException(404, f"no run {run_id}")
+        rows = s.execute(select(Sample.id, Sample.step, Sample.psi_t, Sample.theta_t, Sample.phi_t, Sample.mx,
+                                Sample.my, Sample.mz).where(Sample.run_id == run_id, Sample.slot == slot, Sample.id > after)
+                         .order_by(Sample.id).limit(LIVE_ROWS)).all()
+    last = rows[-1][0] if rows else after
+    return JSONResponse({"last": last, "more": len(rows) == LIVE_ROWS,
+                         "rows": [[r[1], *(round(float(v), 4) for v in r[2:])] for r in rows]})
+
+
+@router.get("/ui/devices/{serial}", response_class=HTMLResponse)
+def device_page(request: Request, serial: str) -> Response:
+    """A unit's calibration history (newest first) and its trends, each with its certificate."""
+    who = _page_caller(request)
+    if isinstance(who, Response):
+        return who
+    with request.app.state.sessions() as s:
+        dev = s.scalar(select(Device).where(Device.serial == serial))
+        if dev is None:
+            return _error_page(request, who, 404, "Unknown serial number",
+                               f"No device with serial number {serial!r} has been seen by this service.")
+        rows = s.scalars(select(Calibration).where(Calibration.device_id == dev.id)
+                         .order_by(Calibration.created_at.desc(), Calibration.id.desc())).all()
+        history = [{"id": c.id, "run_id": c.run_id, "created_at": c.created_at, "status": c.status,
+                    "verdict": c.verdict, "reasons": list(c.reasons or []), "method": c.method,
+                    "figures": c.figures or {}, "data": c.data} for c in rows]
+        device = {"serial": dev.serial, "model": dev.model, "firmware": dev.firmware, "created_at": dev.created_at}
+    trends: dict[str, str] = {}
+    if history:
+        labels = {"sensitivity": "Sensitivities over time", "bias": "Biases over time",
+                  "misalignment": "Misalignment angles over time", "heading": "Heading error over time"}
+        for key, fig in plots.trend_figures(history).items():
+            trends[key] = plots.svg(fig, f"trend trend-{key}", f"{labels[key]} of {serial}")
+    current = next((h for h in history if h["status"] == "current"), None)
+    return _render(request, who, "device.html", title=f"Device {serial}", device=device, history=history,
+                   trends=trends, current=current)
+
+
+@router.get("/ui/batches/{batch_id}", response_class=HTMLResponse)
+def batch_page(request: Request, batch_id: int) -> Response:
+    """A batch: its progress and one row per unit with its verdict; prompts answerable."""
+    who = _page_caller(request)
+    if isinstance(who, Response):
+        return who
+    from service.runs import _batch_json
+
+    with request.app.state.sessions() as s:
+        batch = s.get(Batch, batch_id)
+        if batch is None:
+            return _error_page(request, who, 404, "No such batch", f"There is no batch {batch_id}.")
+        b = _batch_json(s, batch, request.app.state.manager)
+    done = sum(1 for u in b["units"] if u["status"] in ("completed", "failed", "aborted"))
+    return _render(request, who, "batch.html", title=f"Batch {batch_id}", batch=b, done=done,
+                   active=b["status"] in ("queued", "running"))
+
+
+@router.get("/ui/calibrations/{cal_id}/certificate", response_class=HTMLResponse)
+def certificate_page(request: Request, cal_id: int) -> Response:
+    """The printable calibration certificate."""
+    who = _page_caller(request)
+    if isinstance(who, Response):
+        return who
+    with request.app.state.sessions() as s:
+        row = s.get(Calibration, cal_id)
+        if row is None:
+            return _error_page(request, who, 404, "No such calibration", f"There is no calibration {cal_id}.")
+        cert, cal, rec, limits = certificate_context(s, row)
+    pairs = limit_pairs(limits)
+    cert["staged_svg"] = plots.svg(plots.staged_figure(cal, rec, pairs), "staged-curve",
+                                   f"Staged heading error of {cert['serial']} over a level turn")
+    cert["tilted_svg"] = plots.svg(plots.tilted_figure(cal, rec, pairs), "tilted-curve",
+                                   f"Heading error of {cert['serial']} at pitch and roll up to 60 deg")
+    return _render(request, who, "certificate.html", title=f"Certificate {cert['number']}", cert=cert)
+
+
+@router.get("/calibrations/{cal_id}/certificate.pdf", tags=["devices"], include_in_schema=True)
+def certificate_pdf(request: Request, cal_id: int, _: Caller = Depends(require("viewer"))) -> Response:
+    """The calibration certificate as a PDF (A4: identification and parameters with uncertainties,
+    the heading-error curves, the acceptance limits and the verdict)."""
+    with request.app.state.sessions() as s:
+        row = s.get(Calibration, cal_id)
+        if row is None:
+            raise HTTPException(404, f"no calibration {cal_id}")
+        cert, cal, rec, limits = certificate_context(s, row)
+    pdf = plots.certificate_pdf(cert, cal, rec, limit_pairs(limits))
+    name = f"certificate-{cert['serial']}-{cert['number']}.pdf".replace('"', "")
+    return Response(pdf, media_type="application/pdf", headers={"Content-Disposition": f'inline; filename="{name}"'})
+
+
+__all__ = ["router", "calibration_tables", "certificate_context", "unit_view", "pm"]

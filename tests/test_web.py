@@ -1,0 +1,459 @@
+"""The web pages end to end in headless Chromium (Debian's, driven by Playwright; see tests/browser.py),
+against the service served by uvicorn on a local port and a simulated station, on SQLite.
+
+The calibration as a technician and a quality engineer see it: log in, start a calibration on the
+stations page, watch its progress reach 100 %, read the tables, curves and verdict, find the unit by
+its serial number, its history and trends, its certificate and the certificate's PDF. Then pause,
+resume and abort from the run page, a failed run's reason, what a viewer may not do, and the
+redirect to the login page. Every page is screenshotted, may log no console error and raise no
+error, and may load nothing from outside the machine.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+import httpx
+import pytest
+
+from browser import BrowserSetupError, Guard, Shots, ensure_chromium, free_port, guarded_context, launch, serve
+from conftest import fresh_database, sim_station
+from drivers.sim.config import reference_config
+
+ROOT = Path(__file__).resolve().parent.parent
+SERIAL = "GAO2017-REF"  # the paper's reference unit (drivers.sim.config.reference_config)
+FINAL = ("completed", "failed", "aborted")
+#: Generous waits (ms); a calibration at time scale 40 takes about 5 s of wall time.
+RUN_TIMEOUT_MS = 60_000
+STATE_TIMEOUT_MS = 20_000
+#: Records every text #progress shows, from the first paint on (to see the progress is live), in
+#: sessionStorage: the run page reloads itself when the run ends, to show the server-rendered results.
+PROGRESS_RECORDER = """
+document.addEventListener('DOMContentLoaded', () => {
+  const seen = () => {
+    const el = document.getElementById('progress');
+    const text = el ? el.textContent.trim() : null;
+    const all = JSON.parse(sessionStorage.getItem('progress-seen') || '[]');
+    if (text && all[all.length - 1] !== text) {
+      all.push(text);
+      sessionStorage.setItem('progress-seen', JSON.stringify(all));
+    }
+  };
+  seen();
+  new MutationObserver(seen).observe(document.documentElement, {subtree: true, childList: true, characterData: true});
+});
+"""
+
+
+# ------------------------------------------------------------------------------------------ set-up
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    """Debian's Chromium, installed first if missing (a failure, never a skip, when it cannot be)."""
+    try:
+        ensure_chromium()
+    except BrowserSetupError as e:
+        pytest.fail(str(e), pytrace=False)
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.fail("the Python package playwright is missing: pip install -e '.[test]' "
+                    "(its browser download is not needed: the tests use /usr/bin/chromium)", pytrace=False)
+    with sync_playwright() as p:
+        b = launch(p)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@dataclass
+class Site:
+    """The service on a fresh SQLite database, served on a local port, with a key per role."""
+
+    base: str
+    app: Any
+    keys: dict[str, str]
+    shots: Shots
+    http: httpx.Client
+    station: dict[str, Any] | None = None
+    guards: list[Guard] = field(default_factory=list)
+
+    def api(self, method: str, path: str, role: str = "admin", **kw: Any) -> httpx.Response:
+        return self.http.request(method, path, headers={"X-API-Key": self.keys[role]}, **kw)
+
+    def run(self, run_id: int) -> dict[str, Any]:
+        r = self.api("GET", f"/runs/{run_id}", "viewer")
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    @contextmanager
+    def context(self, browser: Any) -> Iterator[tuple[Any, Guard]]:
+        """A browser context of its own (cookies and all); its guard is checked at the end of the test."""
+        with guarded_context(browser, self.base) as (ctx, guard):
+            self.guards.append(guard)
+            yield ctx, guard
+
+
+def shots_dir(tmp_path: Path, request: pytest.FixtureRequest) -> Path:
+    """``out/screenshots`` under the test's tmp path, or under $COMPASSCAL_SCREENSHOTS to keep them."""
+    keep = os.environ.get("COMPASSCAL_SCREENSHOTS")
+    return (Path(keep) / request.node.name) if keep else tmp_path / "out" / "screenshots"
+
+
+@contextmanager
+def site(tmp_path: Path, request: pytest.FixtureRequest, time_scale: float | None = None,
+         seed: int = 1) -> Iterator[Site]:
+    """The service, and with ``time_scale`` a simulated reference station registered as ``sim``.
+
+    The station outlives the server (the server's shutdown stops any run still using it); the
+    browser contexts are closed before the server stops; the guards and screenshots are checked last."""
+    from service.api import create_app
+    from service.auth import create_key
+
+    with ExitStack() as stack:
+        info = stack.enter_context(sim_station(reference_config(seed=seed, time_scale=time_scale))) if time_scale else None
+        app = create_app(fresh_database("sqlite", tmp_path))
+        base = stack.enter_context(serve(app))
+        http = stack.enter_context(httpx.Client(base_url=base, timeout=15, follow_redirects=False))
+        with app.state.sessions() as session:
+            keys = {role: create_key(session, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
+        s = Site(base, app, keys, Shots(shots_dir(tmp_path, request)), http)
+        if info is not None:
+            s.station = {"modbus": info["modbus"], "compasses": [c["url"] for c in info["compasses"]],
+                         "time_scale": time_scale}
+            r = s.api("PUT", "/stations/sim", json=s.station)
+            assert r.status_code in (200, 201), r.text
+            assert [c["serial"] for c in info["compasses"]] == [SERIAL]
+        yield s
+    for guard in s.guards:
+        guard.check()
+    s.shots.check()
+
+
+def login(page: Any, key: str, shots: Shots | None = None) -> None:
+    """Log in on /ui/login with ``key``; lands on the stations page."""
+    r = page.goto("/ui/login")
+    assert r is not None and r.status == 200, (f"/ui/login answered {r and r.status}"
+                                               + ("" if (ROOT / "service" / "web.py").exists() else
+                                                  " (service/web.py, the web pages, does not exist yet)"))
+    page.fill("input#api-key", key)
+    if shots:
+        shots(page, "login")
+    page.click("button#login")
+    page.wait_for_url(re.compile(r"/ui/stations(\?.*)?$"))
+
+
+def wait_text(page: Any, selector: str, pattern: str, timeout: float = STATE_TIMEOUT_MS) -> str:
+    """Wait until the element's trimmed text matches the regular expression; returns the text."""
+    try:
+        page.wait_for_function(
+            """([sel, pat]) => { const el = document.querySelector(sel);
+                                 return !!el && new RegExp(pat).test(el.textContent.trim()); }""",
+            arg=[selector, pattern], timeout=timeout, polling=100)
+    except Exception as e:
+        now = page.evaluate("sel => { const el = document.querySelector(sel); return el ? el.textContent.trim() : null; }",
+                            selector)
+        raise AssertionError(f"{selector} on {page.url} never matched /{pattern}/ within {timeout / 1000:.0f} s; "
+                             f"it shows {now!r}") from e
+    return page.locator(selector).first.inner_text().strip()
+
+
+def assert_drawn(locator: Any, what: str) -> None:
+    """The element is visible, has an area, and any image in or at it has loaded."""
+    assert locator.count() >= 1, f"no {what}"
+    el = locator.first
+    el.scroll_into_view_if_needed()
+    assert el.is_visible(), f"{what} is not visible"
+    box = el.bounding_box()
+    assert box and box["width"] > 20 and box["height"] > 20, f"{what} has no area: {box}"
+    broken = el.evaluate("""el => [el, ...el.querySelectorAll('img')].filter(i => i.tagName === 'IMG')
+                                 .filter(i => !(i.complete && i.naturalWidth > 0)).map(i => i.src)""")
+    assert not broken, f"{what}: images that did not load: {broken}"
+
+
+def start_run_api(s: Site, procedure: str = "calibrate", **parameters: Any) -> int:
+    r = s.api("POST", "/runs", "operator", json={"station": "sim", "procedure": procedure, "parameters": parameters})
+    assert r.status_code == 202, r.text
+    return r.json()["id"]
+
+
+def wait_run_api(s: Site, run_id: int, until: tuple[str, ...] = FINAL, timeout: float = 30.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while (j := s.run(run_id))["status"] not in until:
+        assert time.monotonic() < deadline, f"run {run_id} still {j['status']} after {timeout} s"
+        time.sleep(0.1)
+    return j
+
+
+# ------------------------------------------------------------------------------------------- tests
+
+def test_calibration_end_to_end(browser: Any, tmp_path: Path, request: pytest.FixtureRequest):
+    """Stations page -> start a calibration -> live progress to 100 % -> tables, curves, verdict ->
+    device history and trends via the search box -> certificate -> its PDF."""
+    with site(tmp_path, request, time_scale=40) as s, s.context(browser) as (ctx, guard):
+        ctx.add_init_script(PROGRESS_RECORDER)
+        page = ctx.new_page()
+        login(page, s.keys["operator"], s.shots)
+
+        # the stations page: the simulated station, idle, with its start form
+        row = page.locator('table#stations tr[data-station="sim"]')
+        row.wait_for()
+        assert row.locator("td.state").inner_text().strip().lower() == "idle"
+        form = page.locator('form.start-run[data-station="sim"]')
+        assert form.count() == 1
+        procedures = form.locator("select[name=procedure] option").evaluate_all("os => os.map(o => o.value)")
+        assert "calibrate" in procedures, procedures
+        form.locator("select[name=procedure]").select_option("calibrate")
+        form.locator("input[name=samples]").fill("20")
+        s.shots(page, "stations")
+        start = form.locator("button.start")
+        assert start.get_attribute("id") == "start-sim"
+        start.click()
+        page.wait_for_url(re.compile(r"/ui/runs/\d+$"))
+        run_id = int(urlsplit(page.url).path.rsplit("/", 1)[1])
+        run = s.run(run_id)
+        assert run["procedure"] == "calibrate" and run["parameters"]["samples"] == 20
+        assert run["operator"] == "operator-user"
+
+        # live: progress, time left, samples, the live plot
+        page.locator("#live-plot").wait_for()
+        for sel in ("#state", "#progress", "#time-left", "#samples", "#pause", "#resume", "#abort", "#prompts"):
+            assert page.locator(sel).count() == 1, f"the run page has no {sel}"
+        s.shots(page, "run-live")
+        wait_text(page, "#progress", r"(^|\D)100\.0 %$", RUN_TIMEOUT_MS)
+        wait_text(page, "#state", r"^completed$", STATE_TIMEOUT_MS)
+        run = s.run(run_id)
+        assert run["status"] == "completed", run
+        # the results (the page may reload itself to show them)
+        unit = page.locator(f'section#results div.unit[data-slot="0"][data-serial="{SERIAL}"]')
+        unit.wait_for(timeout=STATE_TIMEOUT_MS)
+        page.wait_for_load_state("load")
+        progress = page.locator("#progress").inner_text().strip()
+        assert progress.endswith("100.0 %"), progress
+        assert page.locator("#state").inner_text().strip() == "completed"
+        seen = json.loads(page.evaluate("sessionStorage.getItem('progress-seen') || '[]'"))
+        values = [float(m.group(1)) for t in seen if (m := re.search(r"([\d.]+) %$", t))]
+        assert len(set(values)) >= 3, f"#progress hardly moved while the run ran: {seen}"
+        assert values == sorted(values) and values[-1] == 100.0, f"#progress went backwards or stopped short: {seen}"
+        assert str(run["samples_count"]) in page.locator("#samples").inner_text(), \
+            f"#samples shows {page.locator('#samples').inner_text()!r}, the run has {run['samples_count']} samples"
+        for button in ("#pause", "#resume", "#abort"):
+            assert page.locator(button).is_disabled(), f"{button} is still enabled on a completed run"
+
+        # the results: the paper's two tables, the curves, the verdict, the certificate link
+        assert page.locator("section#results div.unit").count() == 1
+        for table in ("table.table1", "table.table2"):
+            assert unit.locator(table).count() == 1, f"no {table} in the unit's results"
+            assert unit.locator(f"{table} tr").count() >= 3, f"{table} has almost no rows"
+            assert unit.locator(table).is_visible()
+        assert_drawn(unit.locator(".staged-curve"), "the staged error-separation curves")
+        assert_drawn(unit.locator(".tilted-curve"), "the tilted heading-error curves")
+        cal = run["calibrations"][0]
+        assert cal["serial"] == SERIAL and cal["verdict"] in ("PASS", "MARGINAL"), cal
+        verdict = unit.locator("div.verdict").inner_text()
+        assert cal["verdict"] in verdict, f"div.verdict shows {verdict!r}, the calibration's verdict is {cal['verdict']}"
+        assert ({"PASS", "MARGINAL", "FAIL"} - {cal["verdict"]}).isdisjoint(verdict.split()), verdict
+        cert_link = unit.locator("a.certificate")
+        assert cert_link.count() == 1
+        assert urlsplit(cert_link.get_attribute("href")).path == f"/ui/calibrations/{cal['id']}/certificate"
+        assert page.locator("#reason").count() == 0 or not page.locator("#reason").inner_text().strip()
+        s.shots(page, "run-results")
+
+        # the unit's history through the search box
+        page.fill("form#search input[name=serial]", SERIAL)
+        page.press("form#search input[name=serial]", "Enter")
+        page.wait_for_url(re.compile(rf"/ui/devices/{re.escape(SERIAL)}$"))
+        history = page.locator("table#history tr:has(td)")
+        history.first.wait_for()
+        assert history.count() == 1, f"{history.count()} rows in the history of a unit calibrated once"
+        assert cal["verdict"] in history.first.inner_text()
+        trends = page.locator(".trend")
+        assert trends.count() >= 1, "no trend plots on the device page"
+        for i in range(trends.count()):
+            assert_drawn(trends.nth(i), f"trend plot {i + 1}")
+        links = page.locator("a.certificate")
+        assert links.count() >= 1
+        s.shots(page, "device")
+
+        # the certificate: printable page, its content, its PDF
+        links.first.click()
+        page.wait_for_url(re.compile(rf"/ui/calibrations/{cal['id']}/certificate$"))
+        page.wait_for_load_state("load")
+        text = page.locator("body").inner_text()
+        device = s.api("GET", f"/devices/{SERIAL}", "viewer").json()
+        for expected in (SERIAL, device["model"], device["firmware"], cal["verdict"], "sim", "operator-user"):
+            assert expected in text, f"the certificate does not mention {expected!r}"
+        s.shots(page, "certificate")
+        pdf = page.locator("a#pdf")
+        assert pdf.count() == 1
+        href = pdf.get_attribute("href")
+        assert urlsplit(href).path == f"/calibrations/{cal['id']}/certificate.pdf", href
+        r = page.request.get(href, timeout=30_000)  # with the browser's session cookie
+        assert r.status == 200, f"{href}: {r.status} {r.text()[:300]}"
+        assert r.headers["content-type"].startswith("application/pdf"), r.headers["content-type"]
+        body = r.body()
+        assert body.startswith(b"%PDF") and len(body) > 1000, body[:40]
+        (s.shots.dir / "certificate.pdf").write_bytes(body)
+        # the PDF for scripts: the X-API-Key header, and nothing without a key
+        r2 = s.api("GET", f"/calibrations/{cal['id']}/certificate.pdf", "viewer")
+        assert r2.status_code == 200 and r2.content.startswith(b"%PDF")
+        assert s.http.get(f"/calibrations/{cal['id']}/certificate.pdf").status_code == 401
+        guard.check()
+
+
+def test_pause_resume_and_abort_from_the_run_page(browser: Any, tmp_path: Path, request: pytest.FixtureRequest):
+    with site(tmp_path, request, time_scale=20, seed=5) as s, s.context(browser) as (ctx, guard):
+        page = ctx.new_page()
+        page.on("dialog", lambda d: d.accept())  # an "are you sure?" before aborting is fine
+        login(page, s.keys["operator"])
+        run_id = start_run_api(s, samples=40)
+        page.goto(f"/ui/runs/{run_id}")
+        wait_text(page, "#state", r"^running$")
+        s.shots(page, "running")
+        page.click("#pause")
+        wait_text(page, "#state", r"^paused$")
+        assert s.run(run_id)["status"] == "paused"
+        s.shots(page, "paused")
+        page.click("#resume")
+        wait_text(page, "#state", r"^running$")
+        assert s.run(run_id)["status"] == "running"
+        page.click("#abort")
+        wait_text(page, "#state", r"^aborted$")
+        run = wait_run_api(s, run_id)
+        assert run["status"] == "aborted" and run["calibrations"] == []
+        page.locator("div#reason").wait_for()  # the page may reload itself once the run has ended
+        page.wait_for_load_state("load")
+        assert "aborted" in page.locator("div#reason").inner_text()
+        assert page.locator("#state").inner_text().strip() == "aborted"
+        assert not page.locator("#progress").inner_text().strip().endswith("100.0 %")
+        for button in ("#pause", "#resume", "#abort"):
+            assert page.locator(button).is_disabled(), f"{button} is still enabled on an aborted run"
+        assert page.locator("section#results div.unit").count() == 0
+        s.shots(page, "aborted")
+        # the stations page shows the station free again
+        page.goto("/ui/stations")
+        wait_text(page, 'tr[data-station="sim"] td.state', r"^idle$")
+        guard.check()
+
+
+def test_operator_prompts_are_answered_on_the_run_page(browser: Any, tmp_path: Path, request: pytest.FixtureRequest):
+    """A batch unit's run waits for the operator to mount the unit: the prompt shows on the run page,
+    with an answer button for an operator and none for a viewer; answering lets the run go on."""
+    with site(tmp_path, request, time_scale=40, seed=2) as s, s.context(browser) as (ctx, guard), \
+            s.context(browser) as (vctx, vguard):
+        page, viewer = ctx.new_page(), vctx.new_page()
+        login(page, s.keys["operator"])
+        login(viewer, s.keys["viewer"])
+        run_id = start_run_api(s, "batch_calibrate", serial=SERIAL, samples=10)
+        page.goto(f"/ui/runs/{run_id}")
+        answer = page.locator("#prompts button.answer")
+        answer.wait_for()
+        assert answer.count() == 1 and f"mount unit {SERIAL}" in page.locator("#prompts").inner_text()
+        s.shots(page, "prompt")
+        viewer.goto(f"/ui/runs/{run_id}")
+        viewer.locator("#prompts").get_by_text(f"mount unit {SERIAL}").wait_for()
+        assert viewer.locator("#prompts button.answer").count() == 0, "a viewer is offered to answer a prompt"
+        for button in ("#pause", "#resume", "#abort"):
+            assert viewer.locator(button).count() == 0 or viewer.locator(button).is_disabled(), \
+                f"a viewer is offered {button}"
+        s.shots(viewer, "prompt-as-viewer")
+        answer.click()
+        answer.wait_for(state="detached")
+        viewer.locator("#prompts button.answer, #prompts .prompt").first.wait_for(state="detached")
+        deadline = time.monotonic() + 10
+        while (run := s.run(run_id))["prompts"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert run["prompts"] == [] and run["status"] in ("running", "completed"), run
+        if run["status"] == "running":
+            assert s.api("PUT", f"/runs/{run_id}/state", "operator", json={"state": "aborted"}).status_code == 202
+        wait_text(page, "#state", r"^(aborted|completed)$")
+        wait_text(viewer, "#state", r"^(aborted|completed)$")
+        guard.check()
+        vguard.check()
+
+
+def test_a_failed_run_shows_its_reason(browser: Any, tmp_path: Path, request: pytest.FixtureRequest):
+    """A station whose table does not answer: the run fails, and the run page says why."""
+    with site(tmp_path, request) as s, s.context(browser) as (ctx, guard):
+        dead = {"modbus": f"tcp://127.0.0.1:{free_port()}", "compasses": [f"socket://127.0.0.1:{free_port()}"],
+                "time_scale": 20}
+        assert s.api("PUT", "/stations/sim", json=dead).status_code in (200, 201)
+        page = ctx.new_page()
+        login(page, s.keys["operator"])
+        run_id = start_run_api(s, samples=5)
+        page.goto(f"/ui/runs/{run_id}")
+        wait_text(page, "#state", r"^failed$", 30_000)
+        run = wait_run_api(s, run_id)
+        assert run["status"] == "failed" and run["reason"]
+        reason = page.locator("div#reason")
+        reason.wait_for()
+        assert reason.inner_text().strip(), "div#reason is empty"
+        s.shots(page, "failed")
+        guard.check()
+
+
+def test_a_viewer_cannot_start_runs(browser: Any, tmp_path: Path, request: pytest.FixtureRequest):
+    with site(tmp_path, request) as s, s.context(browser) as (ctx, guard):
+        station = {"modbus": "tcp://127.0.0.1:1502", "compasses": ["socket://127.0.0.1:4001"], "time_scale": 20}
+        assert s.api("PUT", "/stations/sim", json=station).status_code in (200, 201)
+        page = ctx.new_page()
+        login(page, s.keys["viewer"])
+        page.locator('table#stations tr[data-station="sim"]').wait_for()
+        s.shots(page, "stations-as-viewer")
+        start = page.locator("button.start")
+        if start.count() and start.first.is_visible():  # shown anyway: the attempt must be refused
+            guard.allowed.append("status of 403")
+            with page.expect_response(lambda r: r.request.method == "POST", timeout=15_000) as resp:
+                start.first.click()
+            assert resp.value.status == 403, f"a viewer's start got {resp.value.status}"
+        # the browser session's cookie carries the viewer's role to the API too
+        r = page.request.post(f"{s.base}/runs", data={"station": "sim", "parameters": {"samples": 5}}, timeout=15_000)
+        assert r.status == 403, f"POST /runs with a viewer's session: {r.status}"
+        assert s.api("GET", "/runs", "viewer").json() == []
+        guard.check()
+
+
+def test_pages_without_a_key_redirect_to_the_login(browser: Any, tmp_path: Path, request: pytest.FixtureRequest):
+    with site(tmp_path, request) as s, s.context(browser) as (ctx, guard):
+        page = ctx.new_page()
+        for path in ("/ui/stations", f"/ui/devices/{SERIAL}", "/ui/runs/1", "/ui/calibrations/1/certificate"):
+            page.goto(path)
+            url = urlsplit(page.url)
+            assert url.path == "/ui/login", f"{path} without a key ended on {page.url}"
+            assert parse_qs(url.query).get("next") == [path], f"{path} without a key: {page.url}"
+        s.shots(page, "login")
+        # scripts: no key -> a redirect, the X-API-Key header -> the page
+        r = s.http.get("/ui/stations")
+        assert r.status_code in (302, 303, 307) and urlsplit(r.headers["location"]).path == "/ui/login"
+        r = s.api("GET", "/ui/stations", "viewer")
+        assert r.status_code == 200 and re.search(r"""id=["']?stations\b""", r.text), r.text[:300]
+        # a wrong key does not log in
+        guard.allowed += ["status of 401", "status of 403"]
+        page.goto("/ui/login?next=/ui/stations")
+        page.fill("input#api-key", "cc_not-a-key")
+        page.click("button#login")
+        page.wait_for_load_state("load")
+        assert urlsplit(page.url).path != "/ui/stations", "a wrong key was let in"
+        s.shots(page, "wrong-key")
+        page.goto("/ui/stations")
+        assert urlsplit(page.url).path == "/ui/login"
+        # the right key, from a redirect: in, and kept for the browser session
+        page.goto("/ui/stations")
+        page.fill("input#api-key", s.keys["viewer"])
+        page.click("button#login")
+        page.wait_for_url(re.compile(r"/ui/stations$"))
+        page.goto("/ui/stations")
+        assert urlsplit(page.url).path == "/ui/stations"
+        page.locator("table#stations").wait_for(state="attached")
+        s.shots(page, "logged-in")
+        guard.check()

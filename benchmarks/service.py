@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from conftest import ensure_postgres  # noqa: E402
+from conftest import fresh_database  # noqa: E402
 from physics.fit import fit  # noqa: E402
 from physics.recording import Recording  # noqa: E402
 from physics.sensor import reference_unit  # noqa: E402
@@ -40,16 +40,10 @@ from procedures.calibrate import CalibrateParams, calibration_poses  # noqa: E40
 
 
 def fresh(kind: str, tmp: Path) -> str:
-    if kind == "sqlite":
-        return f"sqlite:///{tmp / f'bench-{time.time_ns()}.db'}"
-    from sqlalchemy import create_engine, text
-    url = ensure_postgres()
-    eng = create_engine(url.replace("postgresql://", "postgresql+psycopg://"))
-    with eng.begin() as c:
-        c.execute(text("DROP SCHEMA IF EXISTS public CASCADE"))
-        c.execute(text("CREATE SCHEMA public"))
-    eng.dispose()
-    return url
+    """An empty database of ``kind`` (a new SQLite file each call; the PostgreSQL test database emptied)."""
+    where = tmp / f"bench-{time.time_ns()}"
+    where.mkdir()
+    return fresh_database(kind, where)
 
 
 def insert_rate(url: str, total: int = 120_000, chunk: int = 480) -> float:

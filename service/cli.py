@@ -345,6 +345,7 @@ async def _api_demo(cfg: object, port: int, keep_serving: bool) -> int:
             console.print(f"verdict [bold]{cal['verdict']}[/]" + ("".join(f"\n  {x}" for x in cal["reasons"])))
             print_truth(Calibration.from_json(cal), st.truth()[0])
         console.print(f"calibration history: {base}/devices/{serial}/calibrations ; current: {base}/devices/{serial}/calibrations/current")
+        console.print(f"web pages: {base}/ui/runs/{run['id']} , {base}/ui/devices/{serial} (log in with the key below)")
         console.print(f"operator key (X-API-Key header): {operator}")
         if keep_serving:
             console.print("serving until interrupted (Ctrl-C)")

@@ -232,8 +232,12 @@ def test_calibration_end_to_end(browser: Any, tmp_path: Path, request: pytest.Fi
         s.shots(page, "run-live")
         wait_text(page, "#progress", r"(^|\D)100\.0 %$", RUN_TIMEOUT_MS)
         wait_text(page, "#state", r"^completed$", STATE_TIMEOUT_MS)
-        run = s.run(run_id)
-        assert run["status"] == "completed", run
+        # the page's final state comes over SSE; allow the API's row a moment to agree
+        run, deadline = s.run(run_id), time.monotonic() + 5.0
+        while run["status"] != "completed" and time.monotonic() < deadline:
+            time.sleep(0.1)
+            run = s.run(run_id)
+        assert run["status"] == "completed", f"run {run['status']}: {run.get('reason')}"
         # the results (the page may reload itself to show them)
         unit = page.locator(f'section#results div.unit[data-slot="0"][data-serial="{SERIAL}"]')
         unit.wait_for(timeout=STATE_TIMEOUT_MS)

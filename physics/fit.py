@@ -230,11 +230,12 @@ def evaluate(rec: Recording, cal: Calibration, max_tilt_deg: float = 60.0) -> di
     f_b = es.specific_force(mean, cal.acc)
     geometry = TableGeometry(base_tilt_deg=tuple(cal.base_tilt_deg))  # type: ignore[arg-type]
     C = platform_attitude(mean.psi_t, mean.theta_t, mean.phi_t, geometry)
-    err = heading_error(cal.heading(mean.mag, f_b), reference_heading(C, cal.declination_deg))
+    h_mean = cal.heading(mean.mag, f_b)
+    err = heading_error(h_mean, reference_heading(C, cal.declination_deg))
     # each sample's heading about its pose's mean, for the pose's standard error
     group = _pose_groups(rec)
     h = cal.heading(rec.mag, es.specific_force(rec, cal.acc))
-    dev = wrap180(h - cal.heading(mean.mag, f_b)[group])
+    dev = wrap180(h - h_mean[group])
     n = np.bincount(group)
     sigma = np.sqrt(np.bincount(group, dev * dev) / np.maximum(n - 1, 1) / n)
     lev = _level(mean)

@@ -4,6 +4,7 @@ the never-overwrite history (a new passing calibration becomes current, the old 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -108,18 +109,28 @@ def figures(cal: dict[str, Any]) -> dict[str, float | None]:
             "bias_lsb": float(np.linalg.norm(c.mag.bias))}
 
 
+def limit_result(value: Any, lim: Limit) -> str | None:
+    """How one figure fares against one limit: PASS, MARGINAL or FAIL; None when it cannot be judged
+    (missing or not finite)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    if not math.isfinite(v):
+        return None
+    return "FAIL" if v > lim.fail else "MARGINAL" if v > lim.marginal else "PASS"
+
+
 def judge(fig: dict[str, float | None], limits: list[Limit]) -> tuple[str, list[str]]:
     """PASS, MARGINAL or FAIL from a calibration's :func:`figures`, with the reasons (every limit
     exceeded, with the figure and the limit)."""
     verdict, reasons = "PASS", []
     for lim in limits:
-        value = fig.get(lim.name)
-        if value is None:
-            continue
-        if value > lim.fail:
+        value, result = fig.get(lim.name), limit_result(fig.get(lim.name), lim)
+        if result == "FAIL":
             verdict = "FAIL"
             reasons.append(f"{lim.name} {value:.4g} {lim.unit} above the fail limit {lim.fail:g}")
-        elif value > lim.marginal:
+        elif result == "MARGINAL":
             verdict = "MARGINAL" if verdict == "PASS" else verdict
             reasons.append(f"{lim.name} {value:.4g} {lim.unit} above the marginal limit {lim.marginal:g}")
     return verdict, reasons

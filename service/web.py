@@ -31,7 +31,7 @@ from physics.recording import Recording
 from service import plots
 from service.auth import COOKIE, ROLES, Caller, lookup, require
 from service.db import Batch, Calibration, Device, Limit, Run, Sample, Station
-from service.store import load_recording
+from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
 templates = Jinja2Templates(directory=str(HERE / "templates"))
@@ -201,15 +201,7 @@ def limit_rows(limits: list[Limit], figures: dict[str, Any] | None) -> list[dict
     out = []
     for lim in limits:
         value = (figures or {}).get(lim.name)
-        v = _num(value)
-        if not math.isfinite(v):
-            result = "not judged"
-        elif v > lim.fail:
-            result = "FAIL"
-        elif v > lim.marginal:
-            result = "MARGINAL"
-        else:
-            result = "PASS"
+        result = limit_result(value, lim) or "not judged"
         out.append({"name": lim.name, "description": lim.description, "value": value, "value_text": _figure_text(value),
                     "marginal": lim.marginal, "fail": lim.fail, "unit": lim.unit, "result": result})
     return out

@@ -35,6 +35,16 @@ MAX_UPLOAD_BYTES = 50 * 1024 * 1024
 router = APIRouter()
 
 
+def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[str, str]]:
+    """Pydantic errors as the service's 422 detail: ``[{"field": "body.parameters.samples", "problem": ...}]``."""
+    return [{"field": ".".join([*prefix, *(str(p) for p in e["loc"])]), "problem": e["msg"]} for e in errors]
+
+
+def unprocessable(field: str, problem: str) -> HTTPException:
+    """A 422 for one field, in the same shape."""
+    return HTTPException(422, [{"field": field, "problem": problem}])
+
+
 def db(request: Request) -> Session:
     """A session per request (FastAPI dependency)."""
     with request.app.state.sessions() as session:
@@ -137,7 +147,7 @@ def put_limit(name: str, body: LimitIn, session: Session = Depends(db), caller: 
     if row is None:
         raise HTTPException(404, f"no limit {name!r}; known: " + ", ".join(session.scalars(select(Limit.name))))
     if body.fail < body.marginal:
-        raise HTTPException(422, [{"field": "body.fail", "problem": "must be >= marginal"}])
+        raise unprocessable("body.fail", "must be >= marginal")
     old = {"marginal": row.marginal, "fail": row.fail}
     row.marginal, row.fail = body.marginal, body.fail
     audit(session, caller, "limit.update", name, {"old": old, "new": body.model_dump()})
@@ -160,9 +170,9 @@ async def upload_recording(request: Request, caller: Caller = Depends(require("o
     try:
         rec = await asyncio.to_thread(parse_recording, body.decode("utf-8"))
     except UnicodeDecodeError:
-        raise HTTPException(422, [{"field": "body", "problem": "not UTF-8 text"}]) from None
+        raise unprocessable("body", "not UTF-8 text") from None
     except RecordingError as e:
-        raise HTTPException(422, [{"field": "body", "problem": str(e)}]) from None
+        raise unprocessable("body", str(e)) from None
     serial = rec.serial or ""
     with request.app.state.sessions() as session:
         run = Run(procedure="import", procedure_version="1", parameters={}, status="completed", operator=caller.owner,
@@ -202,8 +212,7 @@ def create_app(database_url: str | None = None) -> FastAPI:
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         # 422 naming each bad field by its path and the problem
-        errors = [{"field": ".".join(str(p) for p in e["loc"]), "problem": e["msg"]} for e in exc.errors()]
-        return JSONResponse(status_code=422, content=jsonable_encoder({"detail": errors}))
+        return JSONResponse(status_code=422, content=jsonable_encoder({"detail": field_errors(exc.errors())}))
 
     app.include_router(router)
     app.include_router(runs_router)

@@ -60,6 +60,7 @@ from physics.recording import format_recording
 from procedures.calibrate import PROCEDURES as BASE_PROCEDURES, CalibrateParams, calibrate
 from procedures.engine import Engine, Event, open_station
 from procedures.steps import Procedure, ProcedureGen, Prompt
+from service.api import field_errors, unprocessable
 from service.auth import Caller, audit, require
 from service.db import Batch, Calibration, Device, Run, Station, utcnow
 from service.store import DbSink, load_recording, store_calibration
@@ -152,15 +153,6 @@ def plain(v: Any) -> Any:
     if v is None or isinstance(v, str):
         return v
     return str(v)
-
-
-def validation_detail(e: ValidationError, prefix: tuple[str, ...]) -> list[dict[str, str]]:
-    """A pydantic error in the shape of the app's 422 handler: ``[{"field": "body.parameters.samples", "problem": ...}]``."""
-    return [{"field": ".".join([*prefix, *(str(p) for p in err["loc"])]), "problem": err["msg"]} for err in e.errors()]
-
-
-def _unprocessable(field_: str, problem: str) -> HTTPException:
-    return HTTPException(422, [{"field": field_, "problem": problem}])
 
 
 def _run_in_thread(name: str, fn: Callable[[], Any]) -> asyncio.Future[Any]:
@@ -376,11 +368,11 @@ class RunManager:
             raise HTTPException(409, "the service is shutting down")
         proc = PROCEDURES.get(procedure)
         if proc is None:
-            raise _unprocessable("body.procedure", f"unknown procedure {procedure!r}; known: {', '.join(sorted(PROCEDURES))}")
+            raise unprocessable("body.procedure", f"unknown procedure {procedure!r}; known: {', '.join(sorted(PROCEDURES))}")
         try:
             params = proc.validate(parameters)
         except ValidationError as e:
-            raise HTTPException(422, validation_detail(e, ("body", "parameters"))) from None
+            raise HTTPException(422, field_errors(e.errors(), ("body", "parameters"))) from None
         with self.sessions() as s:
             row = s.scalar(select(Station).where(Station.name == station_name))
             if row is None:
@@ -390,10 +382,10 @@ class RunManager:
             given: dict[str, str] = {}
             for key, serial in (serials or {}).items():
                 if not (key.isascii() and key.isdigit() and int(key) < len(row.compasses)):
-                    raise _unprocessable(f"body.serials.{key}", f"not a slot of station {row.name} "
+                    raise unprocessable(f"body.serials.{key}", f"not a slot of station {row.name} "
                                          f"(slots 0 to {len(row.compasses) - 1})")
                 if not str(serial).strip():
-                    raise _unprocessable(f"body.serials.{key}", "empty serial number")
+                    raise unprocessable(f"body.serials.{key}", "empty serial number")
                 given[str(int(key))] = str(serial).strip()
             st = self.station_state(row.name)
             why = st.busy(batch_id)
@@ -669,10 +661,10 @@ class RunManager:
         try:
             BatchCalibrateParams.model_validate({**parameters, "serial": serials[0]})
         except ValidationError as e:
-            raise HTTPException(422, validation_detail(e, ("body", "parameters"))) from None
+            raise HTTPException(422, field_errors(e.errors(), ("body", "parameters"))) from None
         for key in ("serial", "unmount"):
             if key in parameters:
-                raise _unprocessable(f"body.parameters.{key}", "set by the batch for each unit")
+                raise unprocessable(f"body.parameters.{key}", "set by the batch for each unit")
         with self.sessions() as s:
             row = s.scalar(select(Station).where(Station.name == station_name))
             if row is None:

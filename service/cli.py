@@ -96,36 +96,27 @@ def fit(
         console.print(f"plot written to {plot}")
 
 
-def _pm(value: float, sigma: object, digits: int) -> str:
-    s = "" if sigma is None or not np.isfinite(float(sigma)) else f" ± {float(sigma):.{digits}f}"  # type: ignore[arg-type]
-    return f"{value:.{digits}f}{s}"
-
-
 def print_calibration(cal: Calibration) -> None:
     """Print the paper's Table 1 and Table 2 with 1-sigma, the field, and the staged heading errors."""
+    from service.web import calibration_tables, pm  # the same rows the web pages and certificates show
+
     sig = cal.sigma
     console.print(f"[bold]{cal.serial or 'unit'}[/]: method [bold]{cal.method}[/]")
+    tables = calibration_tables(cal)
     t1 = Table(title="Table 1: angles between sensor and body axes (deg)")
-    t1.add_column("axis")
-    for b in ("x_b", "y_b", "z_b"):
-        t1.add_column(b, justify="right")
-    ang = cal.mag.angles_deg
-    s_ang = np.asarray(sig.get("angles_deg", np.full((3, 3), np.nan)), dtype=float)
-    for i, name in enumerate(("x_m", "y_m", "z_m")):
-        t1.add_row(name, *[_pm(ang[i, j], s_ang[i, j], 4) for j in range(3)])
+    for c in ("axis", "x_b", "y_b", "z_b"):
+        t1.add_column(c, justify="right" if c != "axis" else "left")
+    for row in tables["table1"]:
+        t1.add_row(*row)
     console.print(t1)
     t2 = Table(title="Table 2: sensitivities and biases (LSB)")
     for c in ("axis", "sensitivity k", "bias b", "residual rms"):
         t2.add_column(c, justify="right")
-    s_k = np.asarray(sig.get("k", np.full(3, np.nan)), dtype=float)
-    s_b = np.asarray(sig.get("bias", np.full(3, np.nan)), dtype=float)
-    rms = cal.quality.get("residual_rms_lsb", [None] * 3)
-    for i, name in enumerate(("x_m", "y_m", "z_m")):
-        r = "-" if rms[i] is None else f"{rms[i]:.2f}"
-        t2.add_row(name, _pm(cal.mag.k[i], s_k[i], 3), _pm(cal.mag.bias[i], s_b[i], 3), r)
+    for row in tables["table2"]:
+        t2.add_row(*row)
     console.print(t2)
-    console.print(f"field: I = {_pm(cal.inclination_deg, sig.get('inclination_deg'), 4)} deg, "
-                  f"D = {_pm(cal.declination_deg, sig.get('declination_deg'), 4)} deg; "
+    console.print(f"field: I = {pm(cal.inclination_deg, sig.get('inclination_deg'), 4)} deg, "
+                  f"D = {pm(cal.declination_deg, sig.get('declination_deg'), 4)} deg; "
                   f"base tilt (about x, about y) = {cal.base_tilt_deg[0]:.4f}, {cal.base_tilt_deg[1]:.4f} deg")
     he = cal.quality.get("heading_error_deg", {})
     t3 = Table(title="Staged heading error on the recording's level turn (max |error|, deg; Fig. 5)")

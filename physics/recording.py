@@ -52,6 +52,11 @@ class Recording:
         return len(self.t)
 
     @property
+    def has_angles(self) -> bool:
+        """False for a recording without table angles (a hand-held one: the angle cells are empty)."""
+        return not bool(np.isnan(self.psi_t).all() and np.isnan(self.theta_t).all() and np.isnan(self.phi_t).all())
+
+    @property
     def serial(self) -> str | None:
         """The unit's serial number from the metadata, if recorded."""
         return self.meta.get("serial")
@@ -113,7 +118,9 @@ def _float_array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
 def _validate(rec: Recording) -> None:
     """Refuse a Recording whose text form parse_recording would reject (or misread)."""
     n = len(rec)
-    for name in ("t", *ANGLE_COLUMNS, "mag"):
+    # table angles may be empty in every row (a recording without them), never in some rows only
+    no_angles = all(np.isnan(np.asarray(getattr(rec, a), dtype=float)).all() for a in ANGLE_COLUMNS)
+    for name in ("t", *([] if no_angles else ANGLE_COLUMNS), "mag"):
         bad = np.flatnonzero(~np.isfinite(np.asarray(getattr(rec, name), dtype=float)).reshape(n, -1).all(axis=1))
         if bad.size:
             raise RecordingError(f"{name} has non-finite values at row(s) {bad[:10].tolist()}")
@@ -189,6 +196,7 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False) -> Recording:
             problems.extend(row_problems)
             continue
         last_t, last_t_line = row["t"], lineno
+        row["line"] = lineno
         rows.append(row)
 
     if problems and not skip_bad_rows:
@@ -203,6 +211,11 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False) -> Recording:
         raise RecordingError(f"recording has no data rows{skipped}")
 
     column = lambda c: np.array([r[c] for r in rows], dtype=float)  # noqa: E731
+    empty = np.isnan(np.column_stack([column(c) for c in ANGLE_COLUMNS]))
+    if empty.any() and not empty.all():
+        where = [f"line {rows[i]['line']}" for i in np.flatnonzero(empty.any(axis=1))[:10]]
+        raise RecordingError("table angles psi_t, theta_t, phi_t must be given in every row or left empty in every "
+                             f"row (a recording without table angles); empty in: {', '.join(where)}")
     acc = np.column_stack([column(c) for c in ACC_COLUMNS]) if has_acc else None
     temp = column("temp_c") if has_temp else None
     return Recording(
@@ -253,7 +266,7 @@ def _parse_row(line: str, lineno: int, names: list[str], col: dict[str, int],
     for c in numeric:
         raw = cells[col[c]].strip()
         if not raw:
-            if c in REQUIRED_COLUMNS:
+            if c in REQUIRED_COLUMNS and c not in ANGLE_COLUMNS:  # angles: empty in every row or none
                 problems.append(f"{where}: column {c}: empty required cell ('')")
             row[c] = math.nan  # empty optional cell
             continue

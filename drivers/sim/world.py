@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from physics.effects import Effect  # re-exported: the stage interface lives with the catalogue
 from physics.frames import SPECIFIC_FORCE_L
 from physics.sensor import Unit
 from physics.simulate import World
@@ -20,32 +21,6 @@ from physics.table import platform_attitude
 
 #: Raw counts are signed 16-bit on the wire; beyond this the device clips and flags saturation.
 RAW_LIMIT = 32767
-
-
-class Effect:
-    """Extra physics the nominal model leaves out, concealed in the simulation (the hook for the
-    discrepancy engine's catalogue). Each method defaults to "no effect"; an effect overrides the
-    stage(s) it acts on.
-
-    Stages, in the order the world applies them for one sample of one unit at simulated time ``t``:
-    ``sample_time`` (which instant's table angles the sample sees, e.g. a filter lag),
-    ``body_field`` (the field in the body frame, in units of the lab field, before the sensor: stage
-    hard or soft iron, gradients, field drift), ``mag_raw`` (the magnetometer output in counts, after
-    the linear sensor: nonlinearity, temperature drift, hysteresis, mains pickup). Return new arrays;
-    never modify the inputs in place (the world reuses them while the table holds still).
-    """
-
-    def sample_time(self, t: float, slot: int) -> float:
-        """The instant whose table angles this sample sees."""
-        return t
-
-    def body_field(self, t: float, slot: int, angles_deg: np.ndarray, C_LP: np.ndarray, h_b: np.ndarray) -> np.ndarray:
-        """The field in the body frame (3,) at encoder angles ``angles_deg`` (psi, theta, phi)."""
-        return h_b
-
-    def mag_raw(self, t: float, slot: int, raw: np.ndarray, temp_c: float) -> np.ndarray:
-        """The magnetometer output (3,) in counts, before quantisation."""
-        return raw
 
 
 @dataclass
@@ -57,31 +32,48 @@ class SimWorld:
     units: list[Unit]
     angles: Callable[[float], tuple[float, float, float]]
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
-    effects: Sequence[Effect] = ()
+    #: concealed effects: an Effect acts on every slot; (slot, Effect) on that slot only (None: all)
+    effects: Sequence[Effect | tuple[int | None, Effect]] = ()
     _last: tuple = field(default=(None, None, None, None), init=False, repr=False)
 
+    def __post_init__(self) -> None:
+        pairs = [e if isinstance(e, tuple) else (None, e) for e in self.effects]
+        # the table's geometry is shared by every slot, so a geometry effect applies to all
+        geometry = self.world.geometry
+        for _, e in pairs:
+            geometry = e.geometry(geometry)
+        self.geometry = geometry  # the table's true geometry, with any concealed axis errors
+        self._by_slot = [[e for s, e in pairs if s is None or s == slot] for slot in range(len(self.units))]
+
+    def effects_of(self, slot: int) -> list[Effect]:
+        """The effects concealed in the unit of ``slot``, in the order they apply."""
+        return list(self._by_slot[slot])
+
     def temperature_c(self, t: float, slot: int) -> float:
-        """Temperature inside the unit (constant lab temperature; effects may model warm-up)."""
-        return self.world.temperature_c
+        """Temperature inside the unit at simulated time ``t`` (the lab's, plus the warm-up when the
+        world models one)."""
+        at = getattr(self.world, "temperature_at", None)
+        return float(at(t)) if at is not None else self.world.temperature_c
 
     def read(self, slot: int, t: float) -> tuple[list[int], list[int], float]:
         """One raw sample of the unit in ``slot`` at simulated time ``t``: (mag counts, acc counts,
         temperature degC). Counts are clipped to +-32767, which the device reports as saturated."""
         unit = self.units[slot]
+        effects = self._by_slot[slot]
         ts = t
-        for e in self.effects:
+        for e in effects:
             ts = e.sample_time(ts, slot)
         ang = np.asarray(self.angles(ts), dtype=float)
         key = tuple(ang)
         if key != self._last[0]:  # the table holds still while a pose is sampled: reuse its attitude
-            C = platform_attitude(ang[0], ang[1], ang[2], self.world.geometry)[0]
+            C = platform_attitude(ang[0], ang[1], ang[2], self.geometry)[0]
             self._last = (key, C, C.T @ self.world.field_L, C.T @ SPECIFIC_FORCE_L)
         _, C, h_b, f_b = self._last
-        for e in self.effects:
+        for e in effects:
             h_b = e.body_field(t, slot, ang, C, h_b)
         temp = self.temperature_c(t, slot)
         mag = unit.mag.measure(h_b, self.rng)[0]
-        for e in self.effects:
+        for e in effects:
             mag = e.mag_raw(t, slot, mag, temp)
         acc = unit.acc.measure(f_b, self.rng)[0] if unit.acc is not None else np.zeros(3)
         return _counts(mag), _counts(acc), temp

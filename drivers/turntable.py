@@ -43,6 +43,7 @@ from drivers.protocol import (
 
 POLL_INTERVAL = 0.005  # s wall between status polls while waiting (a poll itself takes ~1 ms)
 SETTLE_MARGIN = 2.0  # s added to every computed move time (servo settling, bus latency)
+SCAN_POLL_INTERVAL = 0.002  # s wall between encoder polls while scanning (positions are interpolated between them)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -409,15 +410,22 @@ class Axis:
             trapezoid_time(delta_deg, vel_dps, acc_dps2, dec_dps2) * 1.2 + SETTLE_MARGIN)
         return await self.wait_in_position(t)
 
-    async def wait_in_position(self, timeout: float) -> AxisStatus:
+    async def wait_in_position(self, timeout: float, trace: list[tuple[float, float, float]] | None = None,
+                               poll_interval: float | None = None) -> AxisStatus:
         """Poll until MOVING = 0 and IN_POSITION = 1 (AxisFault on FAULT, MoveTimeout at the deadline).
 
         Call only after a command was accepted (CMD_COUNT changed): the controller clears
         IN_POSITION synchronously on acceptance, so what is read afterwards is never stale.
+        With ``trace``, every poll appends (time.monotonic() before the request, after the reply,
+        encoder degrees): the controller latched the position somewhere in between.
         """
         deadline = time.monotonic() + timeout
+        interval = self.poll_interval if poll_interval is None else poll_interval
         while True:
+            t0 = time.monotonic()
             st = await self.status()
+            if trace is not None:
+                trace.append((t0, time.monotonic(), st.position_deg))
             if st.fault:
                 raise AxisFault(self.name, st.fault_code)
             if not st.moving and st.in_position:
@@ -428,7 +436,7 @@ class Axis:
                 raise MoveTimeout(
                     self.name, f"not in position after {timeout:.1f} s (at {st.position_deg:.3f} deg, "
                                f"demand {st.demand_deg:.3f}, flags {'|'.join(st.flags)})")
-            await asyncio.sleep(self.poll_interval)
+            await asyncio.sleep(interval)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -537,6 +545,26 @@ class Turntable:
         ) * 1.2 + SETTLE_MARGIN
         sts = await self._each(lambda a: a.wait_in_position(t))
         return tuple(s.position_deg for s in sts)  # type: ignore[return-value]
+
+    async def scan(self, axis: str, deg: float, speed_dps: float, accel_dps2: float = 60.0,
+                   trace: list[tuple[float, float, float]] | None = None, timeout: float | None = None,
+                   poll_interval: float = SCAN_POLL_INTERVAL) -> float:
+        """Turn one axis (``"z"``, ``"y"`` or ``"x"``) to ``deg`` at ``speed_dps`` while the others hold,
+        polling its encoder as often as ``poll_interval`` allows; each poll is appended to ``trace`` as
+        (time.monotonic() before the request, after the reply, degrees) as it comes, so a caller keeps
+        the positions up to an error. Returns
+        the final encoder position. On any error (refusal, fault, timeout, unreachable axis) every axis
+        is stopped and the error is raised."""
+        a = self.axes[axis]
+        try:
+            st = await a.start_move_abs(deg, speed_dps, accel_dps2)
+            t = timeout if timeout is not None else (
+                trapezoid_time(deg - st.position_deg, speed_dps, accel_dps2) * 1.2 + SETTLE_MARGIN)
+            st = await a.wait_in_position(t, trace=trace, poll_interval=poll_interval)
+        except BaseException as exc:
+            await asyncio.shield(self._stop_after(exc))  # a second cancellation must not cut the stop short
+            raise
+        return st.position_deg
 
     async def positions(self) -> tuple[float, float, float]:
         """Encoder positions (psi, theta, phi) in degrees."""

@@ -2,7 +2,7 @@
 
 ``calibrate`` is the full error-separation procedure of the paper (PHYSICS.md, "The error-separation
 procedure"); the others are its building blocks and checks: ``level``, ``sweep``, ``rotate_z``,
-``accel6`` and ``evaluate``. Each takes validated parameters with defaults chosen for accuracy per
+``accel6`` and ``evaluate``; ``characterize`` is the run the discrepancy analysis (issue 6) needs. Each takes validated parameters with defaults chosen for accuracy per
 second of table time, and none does I/O: the engine, or a fake one in a test, runs them.
 """
 
@@ -18,8 +18,9 @@ from physics.calibration import Calibration
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, evaluate as evaluate_recording, fit
 from physics.recording import Recording, RecordingError, concat
-from physics.simulate import Pose
-from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, ProcedureGen, Settle
+from physics.simulate import Pose, Scan as PlanScan, plan_timeline
+from physics.table import Motion
+from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, ProcedureGen, Scan, Settle
 
 NAME = "calibrate"
 VERSION = "2"
@@ -267,6 +268,158 @@ def evaluate(p: EvaluateParams) -> ProcedureGen:
     return out
 
 
+# --- characterize: a run designed to make the catalogue of physics/effects.py identifiable ---------
+
+class CharacterizeParams(_Params):
+    """Choices of the characterize run (defaults: 9.5 minutes of table time at the default Motion,
+    see :func:`characterize_plan`).
+
+    samples: samples of each hold (60 at 20 Hz = 3 s, long enough for a spectrum of the noise).
+    long_samples: samples of the first hold and of the closing hold that repeats it (drift, warm-up,
+    the mains alias line).
+    azimuths: level holds per turn, each visited from both sides.
+    tilt_deg, tilt_azimuths: pitch and roll holds of +-tilt_deg at this many azimuths (stage iron,
+    table axis errors and gradients need tilts at several azimuths); ``diagonal`` adds the four
+    combined pitch-and-roll holds at each of those azimuths.
+    z_speeds_dps: turns about z, both ways at each of these speeds (a lag changes sign with the
+    direction and grows with the speed; hysteresis does neither).
+    tilt_scan_speed_dps: turns about y and about x, both ways at this speed (0: none).
+    """
+
+    samples: int = Field(60, ge=1, le=10_000, description="samples of each hold")
+    # A sensor that lags the encoder still sees the last move for its lag after the table stops:
+    # wait out the largest plausible lag (physics.effects) so that holds are truly at rest.
+    settle_s: float = Field(0.5, ge=0, le=60, description="wait after each move is in position, table seconds")
+    long_samples: int = Field(600, ge=1, le=100_000, description="samples of the first and the closing hold")
+    azimuths: int = Field(8, ge=3, le=72, description="level holds per turn, each approached from both sides")
+    tilt_deg: float = Field(60.0, gt=0, le=80, description="pitch and roll of the tilted holds, deg")
+    tilt_azimuths: int = Field(4, ge=2, le=36, description="azimuths of the tilted holds")
+    diagonal: bool = Field(True, description="also hold pitched and rolled at once")
+    z_speeds_dps: list[float] = Field([10.0, 30.0], min_length=1, max_length=4,
+                                      description="speeds of the turns about z (each turned both ways), deg/s")
+    tilt_scan_speed_dps: float = Field(30.0, ge=0, le=60, description="speed of the turns about y and x (0: none)")
+
+    @field_validator("z_speeds_dps")
+    @classmethod
+    def _speeds(cls, v: list[float]) -> list[float]:
+        bad = [x for x in v if not 0 < x <= 60]
+        if bad:
+            raise ValueError(f"each speed must be > 0 and <= 60 deg/s (the controller's MAX_VEL), got {bad}")
+        return v
+
+
+def characterize_plan(p: CharacterizeParams = CharacterizeParams()) -> list[Pose | PlanScan]:
+    """The characterize run as poses and scans (physics.simulate types, so the offline simulator runs
+    the same plan). With the defaults: 571 s (9.5 min) of table time at the default Motion
+    (:func:`plan_seconds`; about 620 s on the simulated station, whose moves also wait for the
+    servo to settle): 50 holds (4080 samples at rest) and 8 turns (about 2950 samples in motion at
+    20 Hz).
+
+    1. ``hold_first``: a long level hold at psi = 0 (noise floor, its colour and spectrum, warm-up).
+    2. ``level_up``: a level turn of ``azimuths`` holds, each approached from below (going up).
+    3. ``scan_z_down_<v>``, ``scan_z_up_<v>``: full turns about z (-180 to 180 deg) both ways at each
+       speed: time lag (its sign follows the direction, its size the speed) against hysteresis.
+    4. ``level_down``: the level holds again, each approached from above (coming down): hysteresis
+       against the direction of approach, and the level harmonics (stage soft iron, nonlinearity,
+       gradients).
+    5. ``tilt_theta``, ``tilt_phi`` (and ``tilt_both``): pitch and roll holds at several azimuths:
+       stage hard and soft iron, table axis errors, gradients.
+    6. ``scan_y_down``/``scan_y_up``, ``scan_x_down``/``scan_x_up``: full turns about y and about x
+       at the first tilt azimuth: first harmonics against theta and phi (iron on the outer or middle
+       stage).
+    7. ``hold_closing``: the first hold again, approached the same way: drift over the run.
+    """
+    # Both sides of approach come from the order of the holds (a pass going up, a pass coming down),
+    # never from an unrecorded overshoot: the analysis follows the table between recorded samples and
+    # could not see a detour.
+    first = Pose("hold_first", 0.0, 0.0, 0.0, p.long_samples)
+    plan: list[Pose | PlanScan] = [first]
+    level = [float(a) for a in _turn(360.0 / p.azimuths)]
+    plan += [Pose("level_up", a, 0.0, 0.0, p.samples) for a in level]
+    # the turns about z come between the two level passes (the table is near +180 there)
+    for v in p.z_speeds_dps:
+        name = f"{v:g}".replace(".", "p")
+        plan += [PlanScan(f"scan_z_down_{name}", "psi", 180.0, -180.0, v),
+                 PlanScan(f"scan_z_up_{name}", "psi", -180.0, 180.0, v)]
+    plan += [Pose("level_down", a, 0.0, 0.0, p.samples) for a in reversed(level)]
+    T = p.tilt_deg
+    azimuths = [round(float(x), 6) for x in _turn(360.0 / p.tilt_azimuths) + 180.0 / p.tilt_azimuths]
+    for a in reversed(azimuths):  # ends at the first azimuth, where the turns about y and x are made
+        plan += [Pose("tilt_theta", a, th, 0.0, p.samples) for th in (T, -T)]
+        plan += [Pose("tilt_phi", a, 0.0, ph, p.samples) for ph in (T, -T)]
+        if p.diagonal:
+            plan += [Pose("tilt_both", a, th, ph, p.samples) for th, ph in ((T, T), (T, -T), (-T, -T), (-T, T))]
+    if p.tilt_scan_speed_dps > 0:
+        v, psi = p.tilt_scan_speed_dps, azimuths[0]  # neither horizontal body axis along a table axis
+        for axis, label in (("theta", "y"), ("phi", "x")):
+            plan += [PlanScan(f"scan_{label}_down", axis, 180.0, -180.0, v, psi_t=psi),
+                     PlanScan(f"scan_{label}_up", axis, -180.0, 180.0, v, psi_t=psi)]
+    plan.append(Pose("hold_closing", first.psi_t, first.theta_t, first.phi_t, first.samples))
+    return plan
+
+
+def plan_seconds(plan: list[Pose | PlanScan], motion: Motion = Motion(),
+                 start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> float:
+    """Table seconds of a plan under ``motion``, as the offline simulator lays it out
+    (physics.simulate.plan_timeline: moves as trapezoids, a settle before each hold and scan, holds at
+    the sample rate, scans at their own speed)."""
+    return float(plan_timeline(plan, motion, start).duration_s)
+
+
+def run_plan(plan: list[Pose | PlanScan], settle_s: float, data: Collected) -> ProcedureGen:
+    """Run poses (an approach move first when they have one; settle; acquire) and scans, with a
+    checkpoint after each, keeping the samples in ``data``."""
+    for item in plan:
+        if isinstance(item, PlanScan):
+            data.add((yield Scan(item.step, item.axis, item.start_deg, item.stop_deg, item.speed_dps,
+                                 item.psi_t, item.theta_t, item.phi_t)))
+        else:
+            if item.approach_deg:
+                yield Move(item.psi_t - item.approach_deg, item.theta_t, item.phi_t)
+            yield Move(item.psi_t, item.theta_t, item.phi_t)
+            if settle_s > 0:
+                yield Settle(settle_s)
+            data.add((yield Acquire(item.samples, item.step)))
+        yield Checkpoint(item.step)
+    return Outcome()
+
+
+def _holds(rec: Recording) -> Recording:
+    """The samples taken at rest (every step but the scans)."""
+    keep = np.array([not str(s).startswith("scan_") for s in rec.step])
+    return Recording.from_arrays(rec.t[keep], rec.step[keep], rec.psi_t[keep], rec.theta_t[keep], rec.phi_t[keep],
+                                 rec.mag[keep], None if rec.acc is None else rec.acc[keep],
+                                 None if rec.temp_c is None else rec.temp_c[keep], dict(rec.meta))
+
+
+def characterize(p: CharacterizeParams) -> ProcedureGen:
+    """Run :func:`characterize_plan`, then for each unit: the nominal calibration (the joint fit of the
+    holds; the scans are left to the analysis, since a lag or hysteresis would bias the fit) and the
+    discrepancy analysis of the whole recording (physics.discrepancy)."""
+    data = Collected()
+    yield from run_plan(characterize_plan(p), p.settle_s, data)
+
+    out = Outcome()
+    for slot, rec in data.recordings().items():
+        res: dict[str, Any] = {"samples": len(rec), "notes": []}
+        try:
+            res["calibration"] = fit(_holds(rec), "joint", bootstrap=0).to_json()
+        except (RecordingError, InsufficientData, ValueError) as e:
+            res["calibration"] = None
+            res["notes"].append(f"no calibration: {e}")
+        try:
+            from physics.discrepancy import analyze  # written alongside; the plan runs without it
+            res["analysis"] = analyze(rec).to_json()
+        except ImportError as e:
+            res["analysis"] = None
+            res["notes"].append(f"no analysis: the discrepancy analyser is not available ({e})")
+        except Exception as e:  # noqa: BLE001 - the run's data are kept; a failed analysis must not lose the fit
+            res["analysis"] = None
+            res["notes"].append(f"no analysis: {type(e).__name__}: {e}")
+        out.results[slot] = res
+    return out
+
+
 PROCEDURES: dict[str, Procedure] = {
     proc.name: proc for proc in (
         Procedure(NAME, VERSION, CalibrateParams, calibrate, "error-separation calibration, ending in the fit"),
@@ -275,5 +428,7 @@ PROCEDURES: dict[str, Procedure] = {
         Procedure("accel6", "1", Accel6Params, accel6, "six-position accelerometer calibration"),
         Procedure("level", "1", LevelParams, level, "base tilt by reversal; level the platform"),
         Procedure("evaluate", "1", EvaluateParams, evaluate, "heading error of given calibrations, level and tilted"),
+        Procedure("characterize", "1", CharacterizeParams, characterize,
+                  "holds from both sides, tilts, turns both ways at two speeds: the discrepancy analysis's run"),
     )
 }

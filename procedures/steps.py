@@ -2,8 +2,8 @@
 
 A procedure is a generator function ``(params) -> Generator[Step, Reply, Outcome]``. It yields steps;
 whoever runs it (the engine against a station, or a fake engine in a test) does each step and sends
-back the reply: the samples of an :class:`Acquire`, the operator's answer to a :class:`Prompt`,
-``None`` otherwise. What the generator returns is the run's outcome (e.g. each unit's calibration).
+back the reply: the samples of an :class:`Acquire` or a :class:`Scan`, the operator's answer to a
+:class:`Prompt`, ``None`` otherwise. What the generator returns is the run's outcome (e.g. each unit's calibration).
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from typing import Any, Union
 from pydantic import BaseModel
 
 from physics.recording import Recording
+from physics.table import Motion, move_seconds
 
 
 @dataclass(frozen=True)
@@ -43,6 +44,56 @@ class Acquire:
     step: str
 
 
+#: The encoder angle each Scan axis turns (psi about z, theta about y, phi about x).
+SCAN_AXES = ("psi", "theta", "phi")
+
+
+@dataclass(frozen=True)
+class Scan:
+    """Move to the start (all axes: ``axis`` at ``start``, the others at ``psi``, ``theta``, ``phi``),
+    then turn ``axis`` alone to ``stop`` at ``speed_dps`` while acquiring every sample the compasses
+    stream, each labelled ``step`` and carrying the encoder angles at its instant (interpolated from
+    the encoder polled throughout the turn). The move to the start is not sampled.
+
+    Reply: ``dict[slot, Recording]`` of the scan's samples, like :class:`Acquire`."""
+
+    step: str
+    axis: str  # "psi" | "theta" | "phi"
+    start: float
+    stop: float
+    speed_dps: float
+    psi: float = 0.0
+    theta: float = 0.0
+    phi: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.axis not in SCAN_AXES:
+            raise ValueError(f"axis: expected one of {', '.join(SCAN_AXES)}, got {self.axis!r}")
+        if not self.speed_dps > 0:
+            raise ValueError(f"speed_dps: must be > 0, got {self.speed_dps}")
+
+    @property
+    def index(self) -> int:
+        """0, 1, 2 for psi, theta, phi."""
+        return SCAN_AXES.index(self.axis)
+
+    def at(self, angle: float) -> tuple[float, float, float]:
+        """The three encoder angles with the scanned axis at ``angle``."""
+        a = [self.psi, self.theta, self.phi]
+        a[self.index] = angle
+        return (a[0], a[1], a[2])
+
+    @property
+    def start_angles(self) -> tuple[float, float, float]:
+        """Where the scan starts."""
+        return self.at(self.start)
+
+    @property
+    def stop_angles(self) -> tuple[float, float, float]:
+        """Where the scan ends."""
+        return self.at(self.stop)
+
+
 @dataclass(frozen=True)
 class Prompt:
     """Ask the operator something (e.g. "mount unit SN-7 in slot 0"). Reply: the answer (str)."""
@@ -58,7 +109,9 @@ class Checkpoint:
     label: str
 
 
-Step = Union[Move, Settle, Acquire, Prompt, Checkpoint]
+Step = Union[Move, Settle, Acquire, Scan, Prompt, Checkpoint]
+#: Steps that take table time (progress counts them).
+TIMED_STEPS = (Move, Settle, Acquire, Scan)
 Reply = Union[dict[int, Recording], str, None]
 
 
@@ -99,7 +152,34 @@ class Procedure:
 
 
 def _empty_reply(step: Step) -> Reply:
-    return {} if isinstance(step, Acquire) else ("" if isinstance(step, Prompt) else None)
+    return {} if isinstance(step, (Acquire, Scan)) else ("" if isinstance(step, Prompt) else None)
+
+
+def step_seconds(steps: list[Step], motion: Motion = Motion(),
+                 start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> list[float]:
+    """Nominal table seconds of each step under ``motion`` (speed, acceleration, sample rate), from
+    ``start``: moves as trapezoids, settles as given, acquisitions at the sample rate, scans as the
+    move to their start plus the turn at their own speed. Prompts and checkpoints take none."""
+    here = list(start)
+    out: list[float] = []
+    for s in steps:
+        if isinstance(s, Move):
+            there = [s.psi, s.theta, s.phi]
+            out.append(move_seconds([b - a for a, b in zip(here, there)], motion))
+            here = there
+        elif isinstance(s, Settle):
+            out.append(float(s.seconds))
+        elif isinstance(s, Acquire):
+            out.append(s.samples / motion.sample_rate_hz)
+        elif isinstance(s, Scan):
+            first = list(s.start_angles)
+            turn = Motion(s.speed_dps, motion.max_accel_dps2, motion.settle_s, motion.sample_rate_hz)
+            out.append(move_seconds([b - a for a, b in zip(here, first)], motion)
+                       + move_seconds([s.stop - s.start], turn))
+            here = list(s.stop_angles)
+        else:
+            out.append(0.0)
+    return out
 
 
 def drive(gen: ProcedureGen, respond: Callable[[Step], Reply]) -> Outcome:

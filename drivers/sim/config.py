@@ -6,13 +6,15 @@ is simulated. Unknown keys are refused, so a typo cannot silently simulate an id
 
 from __future__ import annotations
 
+import inspect
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from physics.effects import CATALOGUE, CONCEAL, Effect, make_effect
 from physics.sensor import ACC_LSB_PER_G, LinearSensor, Unit, angles_to_Mo, random_unit, reference_unit
 from physics.simulate import World
 from physics.table import TableGeometry
@@ -38,6 +40,10 @@ FORMS: dict[str, str] = {
     "acc_angles_deg": "a 3x3 matrix of angles, degrees",
     "acc_k": "3 sensitivities, LSB per g, e.g. [16384.0, 16384.0, 16384.0]",
     "acc_bias": "3 biases in LSB",
+    "warmup_c": "degrees C the unit warms up by after power-on, e.g. 4.0",
+    "warmup_tau_s": "the warm-up's time constant in seconds, > 0, e.g. 300",
+    "id": "one of " + ", ".join(CONCEAL),
+    "slot": "a slot number of the fixture (0 for the first [[unit]])",
     "kind": "one of " + ", ".join(
         ["axis_alarm", "axis_silent", "stuck_encoder", "estop", "compass_silent", "garbage",
          "fused_line", "truncated_line", "compass_reset", "port_vanish"]),
@@ -57,13 +63,16 @@ class WorldConfig(_Strict):
     nonperp_deg: Vec2 = [0.0, 0.0]
     encoder_zero_deg: Vec3 = [0.0, 0.0, 0.0]
     temperature_c: float = 23.0
+    warmup_c: float = 0.0
+    warmup_tau_s: float = Field(300.0, gt=0)
     time_scale: float = Field(1.0, gt=0)
     seed: int | None = None
 
     def world(self) -> World:
         """The physics world this describes."""
         geometry = TableGeometry(tuple(self.base_tilt_deg), tuple(self.nonperp_deg), tuple(self.encoder_zero_deg))  # type: ignore[arg-type]
-        return World(self.inclination_deg, self.declination_deg, geometry, self.temperature_c)
+        return World(self.inclination_deg, self.declination_deg, geometry, self.temperature_c,
+                     warmup_c=self.warmup_c, warmup_tau_s=self.warmup_tau_s)
 
 
 class TableConfig(_Strict):
@@ -146,6 +155,77 @@ class FaultConfig(_Strict):
         return self
 
 
+#: Parameters an effect takes from its unit rather than from the config.
+FROM_UNIT: dict[str, tuple[str, ...]] = {"nonlinearity": ("k", "bias")}
+#: Effects of the table itself (shared by every slot), which a ``slot`` cannot select.
+TABLE_EFFECTS = ("table_axis_error",)
+
+
+def _effect_keys(effect_id: str) -> tuple[list[str], list[str]]:
+    """(required, optional) config keys of a catalogue effect: its constructor's parameters."""
+    params = inspect.signature(CONCEAL[effect_id].__init__).parameters
+    names = [(n, p) for n, p in params.items() if n != "self" and n not in FROM_UNIT.get(effect_id, ())]
+    return ([n for n, p in names if p.default is inspect.Parameter.empty],
+            [n for n, p in names if p.default is not inspect.Parameter.empty])
+
+
+def _effect_form(effect_id: str, key: str) -> str:
+    form = CATALOGUE[effect_id].params.get(key) if effect_id in CATALOGUE else None
+    return form or {"t_ref_c": "deg C at which the bias is nominal, e.g. 23.0",
+                    "t0": "simulated seconds at which the drift starts, e.g. 0",
+                    "freq_hz": "the mains frequency in Hz, e.g. 50.0",
+                    "sample_rate_hz": "the compass's sample rate in Hz, e.g. 20"}.get(key, "see physics/effects.py")
+
+
+class EffectConfig(BaseModel):
+    """Extra physics concealed in the station (``[[effect]]``): ``id`` from the catalogue of
+    physics/effects.py, ``slot`` (default: every unit) and the effect's parameters as keys, e.g.
+    ``id = "stage_hard_iron"``, ``stage = "outer"``, ``m = [0.01, 0, 0]``. ``nonlinearity`` takes its
+    unit's k and bias from the ``[[unit]]`` itself."""
+
+    model_config = ConfigDict(extra="allow")
+
+    id: str
+    slot: int | None = Field(None, ge=0)
+
+    @property
+    def params(self) -> dict[str, Any]:
+        """The effect's parameters (every key but id and slot)."""
+        return dict(self.model_extra or {})
+
+    @model_validator(mode="after")
+    def _buildable(self) -> "EffectConfig":
+        if self.id not in CONCEAL:
+            raise ValueError(f"id: unknown effect {self.id!r} (expected {FORMS['id']})")
+        if self.slot is not None and self.id in TABLE_EFFECTS:
+            raise ValueError(f"{self.id} is the table's own and acts on every slot: remove slot")
+        required, optional = _effect_keys(self.id)
+        unknown = [k for k in self.params if k not in required + optional]
+        missing = [k for k in required if k not in self.params]
+        problems = [f"{k}: taken from the [[unit]] (its mag_{k}), not given here" if k in FROM_UNIT.get(self.id, ())
+                    else f"{k}: unknown key for {self.id} (its keys: {', '.join(required + optional)})" for k in unknown]
+        problems += [f"{k}: missing (expected {_effect_form(self.id, k)})" for k in missing]
+        if not problems:
+            try:
+                self.build(np.ones(3), np.zeros(3))
+            except (ValueError, TypeError) as e:
+                text = str(e).removeprefix(f"effect {self.id}: ")
+                key = text.split(":", 1)[0].strip()
+                if key in required + optional:
+                    problems.append(f"{text} (expected {_effect_form(self.id, key)})")
+                else:  # the message does not say which key: give every key's form
+                    problems.append(f"{text} (expected " + "; ".join(
+                        f"{k}: {_effect_form(self.id, k)}" for k in required + optional) + ")")
+        if problems:
+            raise ValueError(f"{self.id}: " + "; ".join(problems))
+        return self
+
+    def build(self, k: np.ndarray, bias: np.ndarray) -> Effect:
+        """The effect, for a unit of sensitivities ``k`` and biases ``bias`` (LSB)."""
+        extra = {"k": list(k), "bias": list(bias)} if self.id in FROM_UNIT else {}
+        return make_effect(self.id, {**self.params, **extra})
+
+
 class StationConfig(_Strict):
     """A whole simulated station."""
 
@@ -153,6 +233,7 @@ class StationConfig(_Strict):
     table: TableConfig = TableConfig()
     unit: list[UnitConfig] = Field(default_factory=list)
     fault: list[FaultConfig] = Field(default_factory=list)
+    effect: list[EffectConfig] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _slots(self) -> "StationConfig":
@@ -163,7 +244,25 @@ class StationConfig(_Strict):
         for f in self.fault:
             if f.slot is not None and f.slot >= max(1, len(self.unit)):
                 raise ValueError(f"fault {f.kind}: slot {f.slot} does not exist (the fixture has {len(self.unit)} unit(s))")
+        for i, e in enumerate(self.effect):
+            if e.slot is not None and e.slot >= max(1, len(self.unit)):
+                raise ValueError(f"effect[{i}].slot: {e.id}: slot {e.slot} does not exist "
+                                 f"(the fixture has {len(self.unit)} unit(s))")
         return self
+
+    def effects(self) -> list[tuple[int | None, Effect]]:
+        """The concealed effects as (slot or None for every slot, Effect), built fresh (some keep state).
+        An effect that needs its unit's parameters is built once per slot it acts on."""
+        out: list[tuple[int | None, Effect]] = []
+        for e in self.effect:
+            if e.id in FROM_UNIT:
+                slots = [e.slot] if e.slot is not None else list(range(len(self.unit)))
+                for slot in slots:
+                    u = self.unit[slot]
+                    out.append((slot, e.build(np.array(u.mag_k), np.array(u.mag_bias))))
+            else:
+                out.append((e.slot, e.build(np.ones(3), np.zeros(3))))
+        return out
 
 
 class ConfigError(ValueError):

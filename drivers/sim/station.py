@@ -29,7 +29,8 @@ class SimStation:
     compass_tcp_port: int | None = None
     control_port: int | None = 0
     host: str = "127.0.0.1"  # 0.0.0.0 to serve other machines (e.g. a container's network)
-    effects: list[Effect] = field(default_factory=list)
+    #: concealed effects besides the config's ``[[effect]]`` tables: an Effect (every slot) or (slot, Effect)
+    effects: list[Effect | tuple[int | None, Effect]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         w = self.config.world
@@ -40,7 +41,7 @@ class SimStation:
         self.table = TableSim(self.clock, tuple(t.start_deg), units=dict(t.units), homed=t.homed,  # type: ignore[arg-type]
                               enabled=t.enabled, hard_limits={k: (v[0], v[1]) for k, v in t.hard_limits_deg.items()})
         self.world = SimWorld(self.physics_world, self.units, self.table.true_angles,
-                              rng=np.random.default_rng(w.seed), effects=self.effects)
+                              rng=np.random.default_rng(w.seed), effects=[*self.config.effects(), *self.effects])
         self.compasses = [
             CompassSim(serial=u.serial, model=u.model, firmware=u.firmware, read=self.world.reader(slot), clock=self.clock)
             for slot, u in enumerate(self.config.unit)
@@ -97,8 +98,15 @@ class SimStation:
         return d
 
     def truth(self) -> list[dict[str, object]]:
-        """True parameters of every mounted unit (the ``.truth.json`` format of physics), slot order."""
-        return [truth_json(u, self.physics_world) for u in self.units]
+        """True parameters of every mounted unit (the ``.truth.json`` format of physics), slot order,
+        with the effects concealed in each (``effects``: [{"effect": id, "parameters": {...}}]; the
+        geometry given is the configured one, without a concealed table_axis_error)."""
+        out = []
+        for slot, u in enumerate(self.units):
+            d = truth_json(u, self.physics_world)
+            d["effects"] = [{"effect": e.id, "parameters": e.params()} for e in self.world.effects_of(slot)]
+            out.append(d)
+        return out
 
     # ----------------------------------------------------------------------------------- faults
     def inject(self, fault: FaultConfig) -> None:

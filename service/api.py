@@ -190,6 +190,7 @@ async def upload_recording(request: Request, caller: Caller = Depends(require("o
 
 def create_app(database_url: str | None = None) -> FastAPI:
     """The service. The database is upgraded to the newest migration on start."""
+    from service.analyses import router as analyses_router
     from service.runs import RunManager, router as runs_router
     from service.web import router as web_router
 
@@ -216,5 +217,6 @@ def create_app(database_url: str | None = None) -> FastAPI:
 
     app.include_router(router)
     app.include_router(runs_router)
+    app.include_router(analyses_router)
     app.include_router(web_router)
     return app

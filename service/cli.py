@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from enum import Enum
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 import typer
@@ -15,7 +15,7 @@ from rich.table import Table
 from physics.calibration import Calibration, staged_truth_errors, truth_summary
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, fit as fit_recording
-from physics.recording import RecordingError, format_recording, parse_recording
+from physics.recording import Recording, RecordingError, format_recording, parse_recording
 from physics.sensor import random_unit, reference_unit
 from physics.simulate import World, plan_cost, simulate_recording, truth_from_json, truth_json
 from physics.table import TableGeometry
@@ -143,6 +143,145 @@ def print_truth(cal: Calibration, truth: dict[str, object]) -> None:
                   "up to 60 deg; staged (level) ".format(**s)
                   + ", ".join(f"{k} {v:.3f}" for k, v in st.items()))
 
+
+def _read_recording(path: Path) -> Recording:
+    """A recording from a file: RECORDING.md CSV or a foreign format (service.imports); errors end
+    the command naming the file and the line or field."""
+    try:
+        from service.imports import read_recording_file
+    except ImportError:  # only the project's own CSV then
+        read_recording_file = None
+    try:
+        if read_recording_file is not None:
+            return read_recording_file(path)
+        return parse_recording(path.read_text(encoding="utf-8"))
+    except (ValueError, OSError) as e:  # RecordingError, undecodable text, unreadable file
+        msg = str(e)
+        _fail(msg if msg.startswith(f"{path.name}:") else f"{path}: {msg}")  # the importers name the file already
+    raise AssertionError  # not reached: _fail exits
+
+
+def _read_calibration(path: Path) -> Calibration:
+    """A calibration JSON (``fit -o``) as the nominal model; errors name the file and the field."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        _fail(f"{path}: not JSON: line {e.lineno}, column {e.colno}: {e.msg}")
+    except (ValueError, OSError) as e:
+        _fail(f"{path}: {e}")
+    if not isinstance(data, dict):
+        _fail(f"{path}: expected a calibration JSON object, got {type(data).__name__}")
+    try:
+        return Calibration.from_json(data)
+    except (ValueError, TypeError, KeyError) as e:
+        _fail(f"{path}: {e}")
+    raise AssertionError
+
+
+@app.command()
+def analyze(
+    recording: Path = typer.Argument(..., exists=True, dir_okay=False, help="Recording: RECORDING.md CSV, or a foreign format the importers read (e.g. .mat)."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration", exists=True, dir_okay=False, help="The unit's calibration JSON (from `fit -o`): the nominal model the recording's own fit is compared with (shifted parameters are reported)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the analysis JSON here."),
+    html: Optional[Path] = typer.Option(None, "--html", help="Write the HTML report (self-contained, plots inline) here."),
+    null_sims: int = typer.Option(200, "--null-sims", min=0, help="Simulated null recordings that calibrate the tests' false-alarm rate."),
+    seed: Optional[int] = typer.Option(None, help="Seed of the null simulations (default: the analyser's own fixed seed)."),
+    alpha: float = typer.Option(0.01, min=1e-6, max=0.5, help="Significance after correction for the number of tests."),
+) -> None:
+    """Find where a recording departs from the nominal model, name the missing physics, and show the
+    fit before and after (held out)."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from physics.discrepancy import analyze as run_analysis
+
+    rec = _read_recording(recording)
+    cal = _read_calibration(calibration) if calibration is not None else None
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
+                  TimeElapsedColumn(), console=err_console, transient=True) as bar:
+        task = bar.add_task("analyse", total=1.0)
+
+        def progress(stage: str, fraction: float) -> None:
+            bar.update(task, description=f"analyse: {stage}", completed=max(0.0, min(1.0, float(fraction))))
+
+        try:
+            a = run_analysis(rec, cal, alpha=alpha, null_sims=null_sims,
+                             rng=np.random.default_rng(seed) if seed is not None else None, progress=progress)
+        except ValueError as e:  # the recording cannot support the analysis (e.g. no static hold): say why
+            _fail(f"{recording}: {e}")
+    print_analysis(a.result)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(a.to_json(), indent=2))
+        console.print(f"analysis JSON written to {json_out}")
+    if html is not None:
+        from service.report import analysis_html
+
+        html.parent.mkdir(parents=True, exist_ok=True)
+        html.write_text(analysis_html(a.result, a.series, f"Discrepancy analysis: {rec.serial or recording.name}"),
+                        encoding="utf-8")
+        console.print(f"HTML report written to {html}")
+
+
+def print_analysis(result: dict[str, object]) -> None:
+    """The analysis for a terminal: verdict, noise floor, fit before and after, ranked findings with
+    their evidence, parameters, heading impact and confusions, and what could not be tested."""
+    from rich.markup import escape
+
+    from service.plots import residual_names
+    from service.report import num, parameter_rows, text
+
+    r: dict[str, Any] = dict(result)
+    verdict = str(r.get("verdict"))
+    color = "red" if verdict == "discrepancy" else "green"
+    console.print(f"verdict: [bold {color}]{escape(verdict)}[/] (model {escape(str(r.get('model')))}, {r.get('samples')} samples "
+                  f"over {num(r.get('duration_s'), 5)} s, alpha {num(r.get('alpha'), 3)})")
+    held = r.get("heldout") or {}
+    free = r.get("model") == "attitude_free"
+    t = Table(title="Noise floor and fit (LSB)")
+    t.add_column("")
+    for name in ("m_x", "m_y", "m_z"):  # the noise is per axis; without angles the residual is |m|'s (first column)
+        t.add_column(name, justify="right")
+    rows = [("noise floor (1 sigma)", r.get("noise_floor_lsb"), 3), ("noise lag-1 autocorrelation", r.get("noise_ar1"), 3),
+            ("rms before (in-sample)", r.get("residual_rms_before_lsb"), 4),
+            ("rms after (in-sample)", r.get("residual_rms_after_lsb"), 4),
+            ("rms before (held out)", held.get("rms_before_lsb"), 4),
+            ("rms after (held out)", held.get("rms_after_lsb"), 4)]
+    names = residual_names(r)
+    for k, (label, vals, digits) in enumerate(rows):
+        v = list(vals) if isinstance(vals, (list, tuple)) else []
+        cells = [num(v[i] if i < len(v) else None, digits) for i in range(3)]
+        if free and k >= 2:  # residuals of the field magnitude (and the dip), not of the axes
+            cells = [f"{n} {c}" if n else "" for n, c in zip(names, cells)]
+        t.add_row(escape(label), *cells)
+    console.print(t)
+    he = r.get("heading_error_deg") or {}
+    console.print(f"held-out improvement: [bold]{num(held.get('improvement_pct'), 3)} %[/] "
+                  f"({escape(str(held.get('scheme', 'scheme not given')))})")
+    console.print(f"max level heading error: {num(he.get('before'), 3)} deg before, {num(he.get('after'), 3)} deg after "
+                  "the fitted effects")
+    findings = r.get("findings") or []
+    if not findings:
+        console.print("findings: none beyond the noise")
+    for rank, f in enumerate(findings, start=1):
+        console.print(f"[bold]{rank}. {escape(str(f.get('effect')))}[/]: statistic {num(f.get('statistic'))} (df {num(f.get('df'))}), "
+                      f"p {num(f.get('p_value'), 3)}, adjusted {num(f.get('p_adjusted'), 3)}; heading impact "
+                      f"{num(f.get('heading_impact_deg'), 3)} deg")
+        for name, value in parameter_rows(f):
+            console.print(f"   {escape(name)} = {escape(value)}")
+        if f.get("where"):
+            console.print(f"   where: {escape(text(f.get('where')))}")
+        if f.get("explanation"):
+            console.print(f"   {escape(text(f.get('explanation')))}")
+        if f.get("confusable_with"):
+            console.print(f"   confusable with {escape(', '.join(str(x) for x in f['confusable_with']))}: "
+                          f"{escape(text(f.get('separating_experiment') or 'no separating experiment named'))}")
+    untestable = r.get("untestable") or []
+    if untestable:
+        console.print("untestable on this recording:")
+        for u in untestable:
+            console.print(f"   {escape(str(u.get('effect')))}: {escape(text(u.get('reason')))}")
+    for note in r.get("notes") or []:
+        console.print(f"[dim]note: {escape(text(note))}[/]")
 
 async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_scale: float, params: dict[str, object],
                              truth: list[dict[str, object]] | None, evaluate: bool) -> int:
@@ -441,6 +580,36 @@ def serve(
 
     from service.api import create_app
     uvicorn.run(create_app(), host=host, port=port)
+
+
+@app.command()
+def prove(
+    n: int = typer.Option(10, "--n", min=1, help="Recordings per catalogue effect (non-centrality log-uniform in 3-300)."),
+    seed: int = typer.Option(0, help="Random seed of the whole proof."),
+    nulls: Optional[int] = typer.Option(None, "--nulls", min=0, help="Null recordings (default max(3 n, 20))."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Processes analysing in parallel."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the score and every case to this JSON file."),
+) -> None:
+    """The blind proof: recordings of random units on the characterize plan with concealed effects, nulls
+    and pairs; the analyser sees only the recordings; prints detection, false alarms, naming, recovery."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from physics.prove import format_report, run_proof
+    from procedures.calibrate import characterize_plan
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+                  TimeRemainingColumn(), console=err_console, transient=False) as bar:
+        task = bar.add_task("prove", total=None, info="")
+
+        def on_progress(done: int, total: int, kind: str) -> None:
+            bar.update(task, completed=done, total=total, info=kind)
+
+        out = run_proof(n, seed, workers, on_progress, plan=characterize_plan(), nulls=nulls)
+    console.print(format_report(out["score"]), markup=False, highlight=False, soft_wrap=True)
+    console.print(f"{len(out['cases'])} recordings in {out['config']['wall_s']:.0f} s", markup=False, highlight=False)
+    if json_out is not None:
+        json_out.write_text(json.dumps(out, indent=1))
+        console.print(f"score and cases written to {json_out}")
 
 
 if __name__ == "__main__":

@@ -123,9 +123,9 @@ class Sample(Base):
     slot: Mapped[int] = mapped_column(Integer)
     t: Mapped[float]
     step: Mapped[str] = mapped_column(String(32))
-    psi_t: Mapped[float]
-    theta_t: Mapped[float]
-    phi_t: Mapped[float]
+    psi_t: Mapped[float | None]  # NULL: a recording without table angles (hand-held, foreign imports)
+    theta_t: Mapped[float | None]
+    phi_t: Mapped[float | None]
     mx: Mapped[float]
     my: Mapped[float]
     mz: Mapped[float]

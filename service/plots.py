@@ -417,3 +417,320 @@ def certificate_pdf(cert: Mapping[str, Any], cal: Calibration, rec: Recording | 
         info = pdf.infodict()
         info["CreationDate"] = datetime.now()
     return out.getvalue()
+
+
+# --------------------------------------------------------------------------- discrepancy analysis
+#
+# Figures of the HTML analysis report (service/report.py), from an analysis's ``result`` (JSON, as
+# stored) and ``series`` (arrays, only right after the analysis ran). Object-oriented API, like the
+# pages above: reports are rendered in worker threads too.
+
+AXIS_NAMES = ("m_x", "m_y", "m_z")
+BEFORE_COLOR, AFTER_COLOR = "#d62728", "#1f77b4"
+
+
+def residual_names(result: Mapping[str, Any]) -> tuple[str, ...]:
+    """Names of an analysis's residual columns: the sensor axes, or for the attitude-free model what
+    its ``residual_columns`` say (the field magnitude first; empty for an unused column)."""
+    if result.get("model") != "attitude_free":
+        return AXIS_NAMES
+    cols = list(result.get("residual_columns") or ["magnitude"])
+    cols += [None] * (3 - len(cols))
+    return tuple({"magnitude": "|m|"}.get(str(c), str(c)) if c else "" for c in cols[:3])
+
+
+def _name(names: Sequence[str], i: int) -> str:
+    return names[i] if i < len(names) and names[i] else f"column {i}"
+
+
+def _residual_columns(series: Mapping[str, Any]) -> list[int]:
+    """The residual columns that hold numbers (the attitude-free model fills column 0 only)."""
+    r = np.asarray(series["residual_before"], dtype=float).reshape(len(series["t"]), -1)
+    return [i for i in range(r.shape[1]) if np.isfinite(r[:, i]).any()]
+
+
+#: Points per scatter panel at most: a longer recording is drawn every k-th sample (the picture is
+#: the same, the report is rendered several times faster).
+MAX_POINTS = 20_000
+
+
+def _thin(n: int) -> np.ndarray:
+    """Indices of the samples a scatter panel draws (every k-th, keeping at most MAX_POINTS)."""
+    return np.arange(0, n, max(1, -(-n // MAX_POINTS)))
+
+
+def _rms(r: np.ndarray) -> np.ndarray:
+    """Per-column rms of the finite values (NaN for a column without any)."""
+    ok = np.isfinite(r)
+    n = ok.sum(axis=0)
+    return np.where(n > 0, np.sqrt(np.where(ok, r * r, 0.0).sum(axis=0) / np.maximum(n, 1)), np.nan)
+
+
+def _step_codes(steps: Any) -> tuple[np.ndarray, list[str]]:
+    """Each sample's step as an integer in order of first appearance, and the step names."""
+    names: dict[str, int] = {}
+    codes = np.array([names.setdefault(str(s), len(names)) for s in np.asarray(steps, dtype=object)], dtype=int)
+    return codes, list(names)
+
+
+def _step_colors(codes: np.ndarray) -> np.ndarray:
+    import matplotlib as mpl
+    cmap = mpl.colormaps["tab20"]
+    return cmap(codes % 20)
+
+
+def residual_time_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_NAMES) -> Figure | None:
+    """Residuals against time, before (left) and after (right) the fitted effects, one row per sensor
+    axis, coloured by step: where in the run the mismatch lives. Points are rasterised inside the SVG
+    (a long run has tens of thousands). None when no residual is finite."""
+    t = np.asarray(series["t"], dtype=float)
+    before = np.asarray(series["residual_before"], dtype=float).reshape(len(t), -1)
+    after = np.asarray(series["residual_after"], dtype=float).reshape(len(t), -1)
+    cols = _residual_columns(series)
+    if not cols:
+        return None
+    codes, steps = _step_codes(series["step"])
+    rms = {"before": _rms(before), "after": _rms(after)}  # of every sample, before thinning
+    keep = _thin(len(t))
+    t, before, after, colors = t[keep], before[keep], after[keep], _step_colors(codes[keep])
+    fig = Figure(figsize=(11, 1.0 + 2.1 * len(cols)))
+    axes = np.asarray(fig.subplots(len(cols), 2, sharex=True, squeeze=False))
+    for row, i in enumerate(cols):
+        lim = np.nanmax(np.abs(np.r_[before[:, i], after[:, i]])) if np.isfinite(before[:, i]).any() else 1.0
+        for col, (r, label) in enumerate(((before, "before"), (after, "after"))):
+            ax = axes[row, col]
+            ax.scatter(t, r[:, i], c=colors, s=2, lw=0, rasterized=True)
+            ax.axhline(0, color="0.5", lw=0.6)
+            ax.set_title(f"{_name(names, i)} {label} the fitted effects (rms {rms[label][i]:.3g} LSB)",
+                         fontsize=9)
+            ax.set_ylim(-1.05 * lim, 1.05 * lim)
+            ax.grid(True, lw=0.4, alpha=0.6)
+            ax.tick_params(labelsize=7)
+            if col == 0:
+                ax.set_ylabel("residual (LSB)", fontsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel("time t (s)", fontsize=8)
+    if len(steps) <= 16:  # a legend of a few steps helps; of fifty it hides the data
+        import matplotlib.lines as mlines
+        handles = [mlines.Line2D([], [], ls="", marker="o", ms=4, color=_step_colors(np.array([k]))[0], label=s)
+                   for k, s in enumerate(steps)]
+        fig.legend(handles=handles, loc="lower center", ncol=min(8, len(steps)), fontsize=7, frameon=False)
+        fig.tight_layout(rect=(0, 0.06 if len(steps) <= 8 else 0.1, 1, 1))
+    else:
+        fig.tight_layout()
+    return fig
+
+
+def residual_angle_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_NAMES) -> Figure | None:
+    """Residuals against each table angle (columns psi_t, theta_t, phi_t), one row per sensor axis,
+    before (red) and after (blue): the harmonics a stage magnet or an axis error leaves. None
+    without table angles."""
+    # heading on [0, 360), the gimbal angles on [-180, 180) as the tilted-pose plots show them
+    angles = [(k, np.asarray(series.get(k, []), dtype=float)) for k in ("psi_t", "theta_t", "phi_t")]
+    angles = [(k, a % 360.0 if k == "psi_t" else (a + 180.0) % 360.0 - 180.0) for k, a in angles]
+    angles = [(k, a) for k, a in angles if len(a) and np.isfinite(a).any() and np.nanmax(a) - np.nanmin(a) > 1e-6]
+    if not angles:
+        return None
+    n = len(series["t"])
+    before = np.asarray(series["residual_before"], dtype=float).reshape(n, -1)
+    after = np.asarray(series["residual_after"], dtype=float).reshape(n, -1)
+    cols = _residual_columns(series)
+    if not cols:
+        return None
+    keep = _thin(n)
+    angles = [(k, a[keep]) for k, a in angles]
+    before, after = before[keep], after[keep]
+    symbols = {"psi_t": "$\\psi_t$", "theta_t": "$\\theta_t$", "phi_t": "$\\varphi_t$"}
+    fig = Figure(figsize=(3.6 * len(angles) + 0.8, 0.8 + 2.0 * len(cols)))
+    axes = np.asarray(fig.subplots(len(cols), len(angles), sharex="col", squeeze=False))
+    for row, i in enumerate(cols):
+        for col, (key, a) in enumerate(angles):
+            ax = axes[row, col]
+            ax.scatter(a, before[:, i], s=2, lw=0, color=BEFORE_COLOR, alpha=0.5, rasterized=True, label="before")
+            ax.scatter(a, after[:, i], s=2, lw=0, color=AFTER_COLOR, alpha=0.7, rasterized=True, label="after")
+            ax.axhline(0, color="0.5", lw=0.6)
+            ax.grid(True, lw=0.4, alpha=0.6)
+            ax.tick_params(labelsize=7)
+            if col == 0:
+                ax.set_ylabel(f"{_name(names, i)} residual (LSB)", fontsize=8)
+            if row == len(cols) - 1:
+                ax.set_xlabel(f"{symbols[key]} (deg)", fontsize=8)
+    axes[0, 0].legend(fontsize=7, loc="best", markerscale=3)
+    fig.suptitle("Residuals against the table angles: red before, blue after the fitted effects", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def _number_list(v: Any) -> np.ndarray | None:
+    """A list (or list of lists) of numbers as a float array; None for anything else."""
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    return a if a.ndim in (1, 2) and a.size else None
+
+
+def _harmonic_rows(harmonics: Mapping[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(against what, orders, amplitudes (orders x axes)) for each entry of ``locate.harmonics`` that
+    holds amplitudes: ``{"psi_t": {"orders": [...], "amplitude_lsb": [[x, y, z], ...]}}`` or a bare
+    list of amplitudes per order (a flat list is one axis)."""
+    out = []
+    for name, entry in harmonics.items():
+        orders, amp = None, None
+        if isinstance(entry, Mapping):
+            for k, v in entry.items():
+                if k.startswith("order") or k in ("k", "n"):
+                    orders = _number_list(v)
+                elif k.startswith("amplitude") or k.startswith("amp"):
+                    amp = _number_list(v)
+        else:
+            amp = _number_list(entry)
+        if amp is None:
+            continue
+        if amp.ndim == 1:
+            amp = amp[:, None]
+        if orders is not None and orders.ndim == 1 and amp.shape[0] != len(orders) and amp.shape[1] == len(orders):
+            amp = amp.T  # axes x orders
+        if orders is None or orders.ndim != 1 or len(orders) != amp.shape[0]:
+            orders = np.arange(1, amp.shape[0] + 1, dtype=float)
+        out.append((str(name), orders, amp))
+    return out
+
+
+def harmonics_figure(harmonics: Mapping[str, Any] | None, names: Sequence[str] = AXIS_NAMES) -> Figure | None:
+    """Harmonic amplitudes of the residual against heading and each gimbal angle (bars per order and
+    axis), from ``result["locate"]["harmonics"]``; None when it holds none."""
+    rows = _harmonic_rows(harmonics or {})
+    if not rows:
+        return None
+    fig = Figure(figsize=(min(3.4 * len(rows) + 0.6, 14), 3.0))
+    axes = np.atleast_1d(fig.subplots(1, len(rows), squeeze=False)[0])
+    colors = ("#1f77b4", "#2ca02c", "#9467bd")
+    for ax, (name, orders, amp) in zip(axes, rows):
+        width = 0.8 / amp.shape[1]
+        for j in range(amp.shape[1]):
+            ax.bar(np.arange(len(orders)) + (j - (amp.shape[1] - 1) / 2) * width, amp[:, j], width,
+                   color=colors[j % 3], label=_name(names, j))
+        ax.set_xticks(np.arange(len(orders)), [f"{o:g}" for o in orders])
+        ax.set_title(f"against {name}", fontsize=9)
+        ax.set_xlabel("harmonic order", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, axis="y", lw=0.4, alpha=0.6)
+    axes[0].set_ylabel("amplitude (LSB)", fontsize=8)
+    axes[0].legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    return fig
+
+
+def by_step_figure(by_step: Sequence[Mapping[str, Any]] | None, noise: Sequence[Any] | None = None,
+                   names: Sequence[str] = AXIS_NAMES) -> Figure | None:
+    """Residual RMS of each step per sensor axis (``result["locate"]["by_step"]``), with the noise
+    floor as dashed lines: the step where the model fails stands out. None without steps."""
+    rows = [r for r in (by_step or []) if isinstance(r, Mapping) and _number_list(r.get("rms_lsb")) is not None]
+    if not rows:
+        return None
+    rms = np.array([np.asarray(r["rms_lsb"], dtype=float).reshape(-1)[:3] for r in rows], dtype=float)
+    cols = [j for j in range(rms.shape[1]) if np.isfinite(rms[:, j]).any()]
+    colors = ("#1f77b4", "#2ca02c", "#9467bd")
+    fig = Figure(figsize=(min(max(6.0, 0.28 * len(rows) * len(cols) + 1.5), 14), 3.4))
+    ax = fig.subplots()
+    width = 0.8 / max(len(cols), 1)
+    x = np.arange(len(rows))
+    for k, j in enumerate(cols):
+        ax.bar(x + (k - (len(cols) - 1) / 2) * width, rms[:, j], width, color=colors[j % 3],
+               label=_name(names, j))
+        if noise is not None:
+            nf = _number_list(noise)
+            if nf is not None and nf.ndim == 1 and j < len(nf) and np.isfinite(nf[j]):
+                ax.axhline(nf[j], color=colors[j % 3], ls="--", lw=0.8)
+    ax.set_xticks(x, [str(r.get("step")) for r in rows], rotation=60 if len(rows) > 6 else 0, ha="right" if len(rows) > 6 else "center",
+                  fontsize=7)
+    ax.set(ylabel="residual rms (LSB)")
+    ax.set_title("Residual rms by step before the fitted effects (dashed: noise floor)", fontsize=9)
+    ax.grid(True, axis="y", lw=0.4, alpha=0.6)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    return fig
+
+
+def fit_summary_figure(result: Mapping[str, Any]) -> Figure:
+    """The fit before and after per sensor axis: in-sample and held-out residual rms, with the noise
+    floor. Held-out bars are the honest ones (each sample predicted by a fit that never saw it)."""
+    names = residual_names(result)
+    held = result.get("heldout") or {}
+    bars = [("in-sample before", result.get("residual_rms_before_lsb"), "#f4a3a3"),
+            ("in-sample after", result.get("residual_rms_after_lsb"), "#9ec5e8"),
+            ("held-out before", held.get("rms_before_lsb"), BEFORE_COLOR),
+            ("held-out after", held.get("rms_after_lsb"), AFTER_COLOR)]
+    vals = [(label, np.asarray([np.nan if v is None else v for v in (x or [])], dtype=float), c) for label, x, c in bars]
+    n_axes = max([len(v) for _, v, _ in vals] + [1])
+    cols = [j for j in range(n_axes) if any(j < len(v) and np.isfinite(v[j]) for _, v, _ in vals)] or [0]
+    fig = Figure(figsize=(max(5.5, 1.6 + 1.9 * len(cols)), 3.2))
+    ax = fig.subplots()
+    width = 0.8 / len(vals)
+    for k, (label, v, color) in enumerate(vals):
+        y = [v[j] if j < len(v) else np.nan for j in cols]
+        ax.bar(np.arange(len(cols)) + (k - (len(vals) - 1) / 2) * width, y, width, color=color, label=label)
+    nf = _number_list([np.nan if v is None else v for v in (result.get("noise_floor_lsb") or [])])
+    if nf is not None and nf.ndim == 1 and result.get("model") != "attitude_free":  # there it is per axis, not per column
+        for k, j in enumerate(cols):
+            if j < len(nf) and np.isfinite(nf[j]):
+                ax.plot([k - 0.45, k + 0.45], [nf[j], nf[j]], color="k", ls="--", lw=1,
+                        label="noise floor" if k == 0 else None)
+    ax.set_xticks(np.arange(len(cols)), [_name(names, j) for j in cols])
+    ax.set(ylabel="residual rms (LSB)")
+    imp = held.get("improvement_pct")
+    ax.set_title("Fit before and after the fitted effects"
+                 + (f"\nheld-out improvement {imp:.1f} %" if isinstance(imp, (int, float)) else ""), fontsize=9)
+    ax.grid(True, axis="y", lw=0.4, alpha=0.6)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    return fig
+
+
+def heldout_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_NAMES) -> Figure | None:
+    """Held-out prediction against time: how much the prediction of each sample (by a model fitted
+    without that sample's fold) changes when the effects are added, per axis, coloured by fold.
+    With the measurement (``series["mag"]``) the held-out residuals before and after instead."""
+    if "heldout_pred_before" not in series or "heldout_pred_after" not in series:
+        return None
+    t = np.asarray(series["t"], dtype=float)
+    n = len(t)
+    pb = np.asarray(series["heldout_pred_before"], dtype=float).reshape(n, -1)
+    pa = np.asarray(series["heldout_pred_after"], dtype=float).reshape(n, -1)
+    fold = np.asarray(series.get("fold", np.zeros(n)), dtype=float).reshape(-1)
+    cols = [i for i in range(pb.shape[1]) if np.isfinite(pb[:, i]).any() and np.isfinite(pa[:, i]).any()]
+    if not cols:
+        return None
+    mag = series.get("mag")
+    keep = _thin(n)
+    t, pb, pa, fold = t[keep], pb[keep], pa[keep], fold[keep]
+    if mag is not None:
+        mag = np.asarray(mag, dtype=float).reshape(n, -1)[keep]
+    fig = Figure(figsize=(11, 0.8 + 1.9 * len(cols)))
+    axes = np.asarray(fig.subplots(len(cols), 1, sharex=True, squeeze=False))[:, 0]
+    import matplotlib as mpl
+    cmap = mpl.colormaps["tab10"]
+    for ax, i in zip(axes, cols):
+        label = _name(names, i)
+        if mag is not None:
+            m = mag[:, i]
+            ax.scatter(t, m - pb[:, i], s=2, lw=0, color=BEFORE_COLOR, alpha=0.5, rasterized=True, label="before")
+            ax.scatter(t, m - pa[:, i], s=2, lw=0, color=AFTER_COLOR, alpha=0.7, rasterized=True, label="after")
+            ax.set_ylabel(f"{label} held-out\nresidual (LSB)", fontsize=8)
+        else:
+            ax.scatter(t, pa[:, i] - pb[:, i], s=2, lw=0, c=cmap(fold.astype(int) % 10), rasterized=True)
+            ax.set_ylabel(f"{label} after - before\n(LSB)", fontsize=8)
+        ax.axhline(0, color="0.5", lw=0.6)
+        ax.grid(True, lw=0.4, alpha=0.6)
+        ax.tick_params(labelsize=7)
+    axes[-1].set_xlabel("time t (s)", fontsize=8)
+    if mag is not None:
+        axes[0].legend(fontsize=7, loc="best", markerscale=3)
+        axes[0].set_title("Held-out residuals (each sample predicted by a fit without its fold): red before, blue after",
+                          fontsize=9)
+    else:
+        axes[0].set_title("What the fitted effects add to the held-out prediction of each sample (colour: fold)",
+                          fontsize=9)
+    fig.tight_layout()
+    return fig

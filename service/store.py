@@ -33,8 +33,8 @@ def insert_samples(session: Session, run_id: int, slot: int, rec: Recording) -> 
     acc = rec.acc if rec.acc is not None else np.full((n, 3), np.nan)
     temp = rec.temp_c if rec.temp_c is not None else np.full(n, np.nan)
     cols = np.column_stack([rec.t, rec.psi_t, rec.theta_t, rec.phi_t, rec.mag, acc, temp]).tolist()
-    rows = [(run_id, slot, c[0], step, c[1], c[2], c[3], c[4], c[5], c[6],
-             *(None if v != v else v for v in c[7:11]))  # NaN (no accelerometer, no temperature) -> NULL
+    rows = [(run_id, slot, c[0], step, *(None if v != v else v for v in c[1:4]), c[4], c[5], c[6],
+             *(None if v != v else v for v in c[7:11]))  # NaN (no table angles, accelerometer, temperature) -> NULL
             for c, step in zip(cols, rec.step.tolist())]
     conn = session.connection()
     if conn.dialect.name == "postgresql":

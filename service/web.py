@@ -30,7 +30,7 @@ from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
 from service import plots
 from service.auth import COOKIE, ROLES, Caller, lookup, require
-from service.db import Batch, Calibration, Device, Limit, Run, Sample, Station
+from service.db import Analysis, Batch, Calibration, Device, Limit, Run, Sample, Station
 from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
@@ -373,9 +373,11 @@ def run_page(request: Request, run_id: int) -> Response:
             percent = float(progress.get("percent") or 0.0)
         snap = row.station_snapshot or {}
         time_scale = float(snap.get("time_scale") or 1.0)
+        from service.analyses import analysis_summary
+        analyses = [analysis_summary(a) for a in s.scalars(select(Analysis).where(Analysis.run_id == run_id).order_by(Analysis.id))]
     return _render(request, who, "run.html", title=f"Run {run_id}", run=run, active=active, units=units,
                    errors=errors, percent=percent, time_scale=time_scale,
-                   left_s=(progress.get("left_s") if active else 0.0))
+                   left_s=(progress.get("left_s") if active else 0.0), analyses=analyses)
 
 
 @router.get("/ui/runs/{run_id}/samples.json")
@@ -392,7 +394,7 @@ def live_samples(request: Request, run_id: int, slot: int = Query(0, ge=0), afte
                          .order_by(Sample.id).limit(LIVE_ROWS)).all()
     last = rows[-1][0] if rows else after
     return JSONResponse({"last": last, "more": len(rows) == LIVE_ROWS,
-                         "rows": [[r[1], *(round(float(v), 4) for v in r[2:])] for r in rows]})
+                         "rows": [[r[1], *(None if v is None else round(float(v), 4) for v in r[2:])] for r in rows]})
 
 
 @router.get("/ui/devices/{serial}", response_class=HTMLResponse)

@@ -204,6 +204,23 @@ def staged_truth_errors(cal: Calibration, unit: Unit, world: World) -> dict[str,
     return {s: float(np.max(np.abs(truth_errors(cal, unit, world, turn, stage=s, true_tilt=True)))) for s in STAGES}
 
 
+def json_safe(x: Any) -> Any:
+    """numpy scalars and arrays to Python, NaN and infinities to None, recursively (for JSON reports)."""
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return json_safe(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    return x
+
+
 def _tolist(v: Any) -> Any:
     if v is None:
         return None
@@ -222,6 +239,6 @@ def _float_or_nan(v: Any) -> float:
 
 
 __all__ = [
-    "Calibration", "FORMAT", "STAGES", "attitude_grid", "deviation5_curve", "level_turn",
+    "Calibration", "FORMAT", "STAGES", "attitude_grid", "deviation5_curve", "json_safe", "level_turn",
     "staged_truth_errors", "truth_errors", "truth_summary", "wrap180",
 ]

@@ -43,7 +43,7 @@ from threadpoolctl import threadpool_limits
 
 from physics import effects as fx
 from physics import errorsep as es
-from physics.calibration import Calibration
+from physics.calibration import Calibration, json_safe
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording
@@ -715,7 +715,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     series = {"t": ctx.t, "step": rec.step, "psi_t": rec.psi_t, "theta_t": rec.theta_t, "phi_t": rec.phi_t, "mag": y_raw,
               "residual_before": r0, "residual_after": r_after, "heldout_pred_before": pred_before,
               "heldout_pred_after": pred_after, "fold": fold}
-    return Analysis(_json_safe(result), series)
+    return Analysis(json_safe(result), series)
 
 
 def _lstsq_cov(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1037,19 +1037,3 @@ def locate(ctx: Context, r0: np.ndarray, sigma: np.ndarray, phi: np.ndarray, eff
     return {"by_axis": {"rms_lsb": rms.tolist(), "dominant": "xyz"[int(np.argmax(rms / sigma))]},
             "by_step": by_step, "harmonics": harmonics, "time": time, "direction": direction, "frame": frame,
             "whiteness": {"per_axis": lb}, "witness": witness}
-
-
-def _json_safe(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json_safe(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x

@@ -64,6 +64,7 @@ import numpy as np
 from scipy import stats
 from scipy.special import eval_legendre
 
+from physics.calibration import json_safe
 from physics.effects import CATALOGUE, PARAMETER_SHIFT, UNEXPLAINED, separating_experiment
 from physics.errorsep import InsufficientData
 from physics.methods import QUADRIC_MIN_THICKNESS, fit_ellipsoid
@@ -1339,7 +1340,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         "fold": fold_full.astype(int),
     }
     report("done", 1.0)
-    return _analysis_class()(result=_json_safe(result), series=series)
+    return _analysis_class()(result=json_safe(result), series=series)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1675,21 +1676,3 @@ def _nominal_json(nom: _Nominal) -> dict[str, Any]:
         out["dip_deg"] = float(np.degrees(nom.dip.I))
         out["accelerometer"] = "own ellipsoid" if nom.acc.calibrated else "normalised only"
     return out
-
-
-def _json_safe(x: Any) -> Any:
-    """numpy scalars/arrays to Python, NaN/inf to None, recursively."""
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json_safe(x.tolist())
-    if isinstance(x, (np.bool_, bool)):
-        return bool(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    return x

@@ -50,6 +50,7 @@ from scipy.optimize import least_squares, minimize
 from scipy.stats import beta, chi2, ncx2
 
 from physics import errorsep as es
+from physics.calibration import json_safe
 from physics.effects import CONCEAL, make_effect
 from physics.recording import Recording
 from physics.sensor import Unit, random_unit
@@ -462,23 +463,7 @@ def run_proof(n: int, seed: int, workers: int = 2, progress: Callable[[int, int,
     config = {"n": n, "seed": seed, "nulls": sum(c.kind == "null" for c in cases),
               "pairs": sum("+" in c.kind for c in cases), "pair_nc": list(pair_nc), "workers": workers, "plan_items": len(plan),
               "analyze_kwargs": dict(analyze_kwargs or {}), "wall_s": time.perf_counter() - t0}
-    return _json_safe({"score": sc, "cases": per_case, "config": config})
-
-
-def _json_safe(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json_safe(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x) if math.isfinite(float(x)) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
+    return json_safe({"score": sc, "cases": per_case, "config": config})
 
 
 # --------------------------------------------------------------------------------------------------
@@ -830,4 +815,3 @@ def format_report(sc: dict[str, Any]) -> str:
         for e in sc["errors"][:10]:
             out.append(f"  {e['kind']} (seed {e['seed']}): {e['error']}")
     return "\n".join(out)
-

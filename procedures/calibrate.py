@@ -91,14 +91,21 @@ class Collected:
         return {slot: concat(parts) for slot, parts in sorted(self.parts.items())}
 
 
-def visit(poses: list[Pose], settle_s: float, data: Collected) -> ProcedureGen:
-    """Move, settle and acquire at each pose in turn, keeping the samples in ``data``."""
-    for pose in poses:
-        yield Move(pose.psi_t, pose.theta_t, pose.phi_t)
-        if settle_s > 0:
-            yield Settle(settle_s)
-        data.add((yield Acquire(pose.samples, pose.step)))
-        yield Checkpoint(pose.step)
+def visit(plan: list[Pose | PlanScan], settle_s: float, data: Collected) -> ProcedureGen:
+    """Run poses (an approach move first when they have one; move, settle, acquire) and scans in turn,
+    with a checkpoint after each, keeping the samples in ``data``."""
+    for item in plan:
+        if isinstance(item, PlanScan):
+            data.add((yield Scan(item.step, item.axis, item.start_deg, item.stop_deg, item.speed_dps,
+                                 item.psi_t, item.theta_t, item.phi_t)))
+        else:
+            if item.approach_deg:
+                yield Move(item.psi_t - item.approach_deg, item.theta_t, item.phi_t)
+            yield Move(item.psi_t, item.theta_t, item.phi_t)
+            if settle_s > 0:
+                yield Settle(settle_s)
+            data.add((yield Acquire(item.samples, item.step)))
+        yield Checkpoint(item.step)
     return Outcome()
 
 
@@ -366,24 +373,6 @@ def plan_seconds(plan: list[Pose | PlanScan], motion: Motion = Motion(),
     return float(plan_timeline(plan, motion, start).duration_s)
 
 
-def run_plan(plan: list[Pose | PlanScan], settle_s: float, data: Collected) -> ProcedureGen:
-    """Run poses (an approach move first when they have one; settle; acquire) and scans, with a
-    checkpoint after each, keeping the samples in ``data``."""
-    for item in plan:
-        if isinstance(item, PlanScan):
-            data.add((yield Scan(item.step, item.axis, item.start_deg, item.stop_deg, item.speed_dps,
-                                 item.psi_t, item.theta_t, item.phi_t)))
-        else:
-            if item.approach_deg:
-                yield Move(item.psi_t - item.approach_deg, item.theta_t, item.phi_t)
-            yield Move(item.psi_t, item.theta_t, item.phi_t)
-            if settle_s > 0:
-                yield Settle(settle_s)
-            data.add((yield Acquire(item.samples, item.step)))
-        yield Checkpoint(item.step)
-    return Outcome()
-
-
 def _holds(rec: Recording) -> Recording:
     """The samples taken at rest (every step but the scans)."""
     keep = np.array([not str(s).startswith("scan_") for s in rec.step])
@@ -397,7 +386,7 @@ def characterize(p: CharacterizeParams) -> ProcedureGen:
     holds; the scans are left to the analysis, since a lag or hysteresis would bias the fit) and the
     discrepancy analysis of the whole recording (physics.discrepancy)."""
     data = Collected()
-    yield from run_plan(characterize_plan(p), p.settle_s, data)
+    yield from visit(characterize_plan(p), p.settle_s, data)
 
     out = Outcome()
     for slot, rec in data.recordings().items():

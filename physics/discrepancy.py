@@ -198,25 +198,19 @@ def whiten_all(X: np.ndarray, sigma: np.ndarray, phi: np.ndarray, segment: np.nd
     return out[:, 0] if flat else out
 
 
-def simulate_ar1(n: int, sigma: np.ndarray, phi: np.ndarray, segment: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """AR(1) noise (N, 3) with these marginal sigmas, restarted at each segment."""
-    e = rng.normal(size=(n, 3))
-    out = np.empty_like(e)
+def simulate_ar1(n: int, sigma: np.ndarray, phi: np.ndarray, segment: np.ndarray, rng: np.random.Generator,
+                 k: int = 1) -> np.ndarray:
+    """``k`` realisations (N, 3, k) of AR(1) noise with these marginal sigmas, restarted at each segment
+    (one filter call per segment for all realisations)."""
+    e = rng.normal(size=(n, 3, k))
     first = np.r_[True, segment[1:] != segment[:-1]]
-    for j in range(3):
-        innov = e[:, j] * sigma[j] * np.sqrt(1 - phi[j] ** 2)
-        innov[first] = e[first, j] * sigma[j]
-        # restart the filter at every segment: zero the carried state by filtering segment by segment
-        out[:, j] = _segment_filter(innov, phi[j], first)
-    return out
-
-
-def _segment_filter(innov: np.ndarray, p: float, first: np.ndarray) -> np.ndarray:
+    innov = e * (sigma * np.sqrt(1 - phi ** 2))[None, :, None]
+    innov[first] = e[first] * sigma[None, :, None]
+    out = np.empty_like(e)
     starts = np.flatnonzero(first)
-    ends = np.r_[starts[1:], len(innov)]
-    out = np.empty_like(innov)
-    for a, b in zip(starts, ends):
-        out[a:b] = signal.lfilter([1.0], [1.0, -p], innov[a:b])
+    for a, b in zip(starts, np.r_[starts[1:], n]):
+        for j in range(3):
+            out[a:b, j] = signal.lfilter([1.0], [1.0, -phi[j]], innov[a:b, j], axis=0)
     return out
 
 
@@ -462,16 +456,18 @@ def chi2_logsf(x: float, df: int) -> float:
 
 def _null_residuals(ctx: Context, sigma: np.ndarray, phi: np.ndarray, Q: np.ndarray, k: int,
                     rng: np.random.Generator) -> np.ndarray:
-    """K whitened null residuals: AR(1) noise simulated at the recording's time stamps, its noise
+    """K whitened null residuals (K, 3N): AR(1) noise simulated at the recording's time stamps, its noise
     re-estimated as the analysis does, whitened with the estimate, the nominal model projected out."""
     n = len(ctx.t)
-    out = np.empty((k, 3 * n))
-    for i in range(k):
-        e = simulate_ar1(n, sigma, phi, ctx.segment, rng)
-        s_hat, p_hat = noise_ar1(e, ctx.segment)
-        z = whiten_all(e, s_hat, p_hat, ctx.segment)
-        out[i] = z - Q @ (Q.T @ z)
-    return out
+    e = simulate_ar1(n, sigma, phi, ctx.segment, rng, k)  # (N, 3, K)
+    s_hat, p_hat = noise_ar1(e, ctx.segment)  # (3, K): the estimate each null would give
+    first = np.r_[True, ctx.segment[1:] != ctx.segment[:-1]]
+    z = np.empty_like(e)
+    z[first] = e[first] / s_hat
+    z[~first] = (e[1:][~first[1:]] - p_hat * e[:-1][~first[1:]]) / (s_hat * np.sqrt(1.0 - p_hat ** 2))
+    Z = z.transpose(1, 0, 2).reshape(3 * n, k)  # axis-major rows, as whiten_all stacks them
+    Z -= Q @ (Q.T @ Z)
+    return Z.T
 
 
 # --- mains: a line in the spectrum -----------------------------------------------------------------

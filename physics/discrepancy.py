@@ -630,6 +630,27 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         resid = z - Q @ (Q.T @ z)
     generic_first = {row["variant"]: row for row in all_tests if row["generic"]}
 
+    # Backward check: forward selection can take a many-parameter effect first that only stands in for
+    # a simpler one chosen after it. Each effect must stay significant given all the others (same
+    # correction as the first round); the weakest that does not is dropped, until all do.
+    final: dict[str, Test] = {}
+    while selected:
+        final = {}
+        for name in selected:
+            others = [candidates[o] for o in selected if o != name]
+            Qo = _orth(np.column_stack([A0, *others]))
+            t = Test(name, _complement(candidates[name], Qo))
+            _score([t], z - Qo @ (Qo.T @ z), null, extra=n_round1 - 1)
+            final[name] = t
+        weakest = max(selected, key=lambda nm: final[nm].log_p)
+        if final[weakest].log_p < np.log(alpha):
+            break
+        selected.remove(weakest)
+        all_tests.append({"effect": weakest.split(":")[0], "variant": weakest, "round": "backward",
+                          "statistic": final[weakest].statistic, "df": final[weakest].df, "bartlett": final[weakest].bartlett,
+                          "p_value": final[weakest].p_value, "p_adjusted": final[weakest].p_adjusted, "selected": False,
+                          "generic": False, "dropped": True})
+
     say("model: refit with the effects", 0.7)
     # final linear fit (whitened) of nominal + selected effects, for parameters and sigmas
     blocks = [A0] + [candidates[s] for s in selected]
@@ -666,7 +687,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         c = coef[offsets[i + 1]:offsets[i + 2]]
         cv = cov[offsets[i + 1]:offsets[i + 2], offsets[i + 1]:offsets[i + 2]]
         contrib = np.einsum("nip,p->ni", raw_cols[i + 1], c)
-        row = [r for r in all_tests if r["selected"]][i]
+        t = final[name]  # the effect's test given every other effect kept
+        row = {"statistic": t.statistic, "df": t.df, "p_value": t.p_value, "p_adjusted": t.p_adjusted}
         confusable = _confusable(name, selected, candidates, A0, z, alpha) if name != "mains_interference" else []
         findings.append(_finding(name, c, cv, eff, row, contrib, nom, ctx, y_raw, confusable, mains_hz))
     for t in unexplained:

@@ -61,6 +61,9 @@ MAX_BIAS_FIELDS = 3.0
 #: Longer recordings are block-averaged to this many samples (a hand-held IMU at 285 Hz) to keep the
 #: analysis within seconds; the note says so.
 MAX_SAMPLES = 20_000
+#: Recording metadata key naming where the table angles come from; anything but "turntable" (e.g. an
+#: optical reference tracking a hand-held unit) makes the table's own effects untestable.
+ATTITUDE_SOURCE_KEY = "attitude_source"
 
 Progress = Callable[[str, float], None]
 
@@ -307,11 +310,14 @@ def effect_columns(ctx: Context, nom: Nominal, temp: np.ndarray | None) -> dict[
     k = np.linalg.norm(nom.M, axis=1)
     n = len(ctx.t)
     tilted = np.any(np.abs(wrap180(ctx.ang[:, 1:])) > 5.0)
+    # angles from an attitude reference (a hand-held unit tracked optically) are not a turntable's
+    source = ctx.rec.meta.get(ATTITUDE_SOURCE_KEY, "turntable")
+    no_table = None if source == "turntable" else f"needs a turntable (the angles come from: {source})"
     out: dict[str, tuple[np.ndarray, list[str], str | None]] = {}
     none = np.zeros((n, 3, 0))
     for stage in fx.STAGES:
         Q = _stage_Q(ctx, stage)
-        why = None if tilted else "needs poses tilted about the inner axes"
+        why = no_table or (None if tilted else "needs poses tilted about the inner axes")
         out[f"stage_hard_iron:{stage}"] = (_through_M(nom, Q), ["m[0]", "m[1]", "m[2]"], why)
         soft = np.stack([np.einsum("nij,jk,nlk,nl->ni", Q, E, Q, h) for E in _SYM], axis=2)
         out[f"stage_soft_iron:{stage}"] = (_through_M(nom, soft), ["Axx", "Ayy", "Azz", "Axy", "Axz", "Ayz"], why)
@@ -349,10 +355,10 @@ def effect_columns(ctx: Context, nom: Nominal, temp: np.ndarray | None) -> dict[
         cols.append((np.einsum("nji,j->ni", Rg, nom.v) @ nom.M.T + nom.b - pred) / 1e-3)
     out["table_axis_error"] = (np.stack(cols, axis=2), ["nonperp_deg[0]", "nonperp_deg[1]", "encoder_zero_deg[0]",
                                                         "encoder_zero_deg[1]"],
-                               None if tilted else "needs poses tilted about the inner axes")
+                               no_table or (None if tilted else "needs poses tilted about the inner axes"))
     grad = [np.einsum("nji,jk,nkl,l->ni", ctx.R, G, ctx.R, e) for G in _GRAD for e in np.eye(3)]
     out["field_gradient"] = (_through_M(nom, np.stack(grad, axis=2)),
-                             [f"G{g}*r{r}" for g in ("xx", "yy", "xy", "xz", "yz") for r in "xyz"], None)
+                             [f"G{g}*r{r}" for g in ("xx", "yy", "xy", "xz", "yz") for r in "xyz"], no_table)
     return out
 
 

@@ -307,6 +307,8 @@ def _read_broad(path: Path, d: dict[str, Any]) -> Recording:
         "sensor": "myon aktos-t IMU; reference: Optitrack optical motion capture",
         "sample_rate_hz": f"{fs:.6g}",
         "mag_unit": MAG_UNIT, "acc_unit": ACC_UNIT, "gyro_unit": GYRO_UNIT,
+        # the analyser reads this key: no turntable, so no stages, table axes or rotation centre
+        "attitude_source": "optical reference",
         "angles": "psi_t, theta_t, phi_t = ZYX Euler angles of the optical reference C_Lb, lab frame L = NED "
                   "(x north of the optical ENU frame, z down), psi_t and phi_t unwrapped",
         "dropped_rows_no_reference": str(int(n - keep.size)),

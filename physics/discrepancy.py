@@ -183,6 +183,15 @@ def noise_ar1(r: np.ndarray, segment: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return np.maximum(sigma, 1e-6), phi
 
 
+def estimate_noise(r: np.ndarray, ctx: "Context") -> tuple[np.ndarray, np.ndarray]:
+    """The noise floor: :func:`noise_ar1` on the static holds when they hold 200 samples or more (the
+    table at rest: nothing but the sensor's noise), else on every contiguous run of samples."""
+    hold = ctx.hold >= 0
+    if hold.sum() - len(np.unique(ctx.hold[hold])) >= 200:
+        return noise_ar1(r[hold], ctx.hold[hold])
+    return noise_ar1(r, ctx.segment)
+
+
 def whiten(x: np.ndarray, axis: int, sigma: np.ndarray, phi: np.ndarray, segment: np.ndarray) -> np.ndarray:
     """Prewhiten rows (N, ...) of one magnetometer axis: (x_t - phi x_{t-1}) / innovation sigma."""
     p, s = phi[axis], sigma[axis]
@@ -466,7 +475,7 @@ def _null_residuals(ctx: Context, sigma: np.ndarray, phi: np.ndarray, Q: np.ndar
     re-estimated as the analysis does, whitened with the estimate, the nominal model projected out."""
     n = len(ctx.t)
     e = simulate_ar1(n, sigma, phi, ctx.segment, rng, k)  # (N, 3, K)
-    s_hat, p_hat = noise_ar1(e, ctx.segment)  # (3, K): the estimate each null would give
+    s_hat, p_hat = estimate_noise(e, ctx)  # (3, K): the estimate each null would give
     first = np.r_[True, ctx.segment[1:] != ctx.segment[:-1]]
     z = np.empty_like(e)
     z[first] = e[first] / s_hat
@@ -571,7 +580,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     temp = rec.temp_c
 
     say("noise floor", 0.15)
-    sigma, phi = noise_ar1(r0, ctx.segment)
+    sigma, phi = estimate_noise(r0, ctx)
     J0 = nominal_columns(ctx, nom)
     eff = effect_columns(ctx, nom, temp)
     gen = generic_columns(ctx, nom, temp)
@@ -596,7 +605,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
             mains_hz = line["alias_hz"]
             Xm = mains_columns(ctx, mains_hz)
             coef_m, *_ = np.linalg.lstsq(Xm.transpose(1, 0, 2).reshape(-1, 6), r0.T.ravel(), rcond=None)
-            sigma, phi = noise_ar1(r0 - np.einsum("nip,p->ni", Xm, coef_m), ctx.segment)
+            sigma, phi = estimate_noise(r0 - np.einsum("nip,p->ni", Xm, coef_m), ctx)
             selected.append("mains_interference")
     else:
         untestable.append({"effect": "mains_interference", "reason": "needs at least 200 samples"})

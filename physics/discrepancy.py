@@ -5,9 +5,10 @@ The method, in the order :func:`analyze` runs it:
 
 1. **Compare.** Fit the nominal model ``raw = M R^T v + b`` (physics/errorsep.py's joint fit) to every
    sample; the residuals are what the twin does not predict.
-2. **Noise.** Estimate each axis's noise as AR(1) (sigma, phi) from first differences of the residual
-   inside contiguous sampling segments: a difference cancels any pose's mean, so holds, slow model
-   errors and drifts do not inflate it. The data and every regressor are prewhitened with it.
+2. **Noise.** Estimate each axis's noise as AR(1) plus white (quantisation) from first differences of
+   the residual inside the static holds (else every contiguous run of samples): a difference cancels
+   any pose's mean, so slow model errors and drifts do not inflate it. The data and every regressor are
+   prewhitened with it (Kalman innovations).
 3. **Linear twin.** Around the nominal fit the twin is linear in everything: the nominal Jacobian J0
    (M, b and two field-direction coordinates) plus, for each catalogue effect (physics/effects.py),
    regressor columns whose coefficients are the effect's parameters in its own units. The same
@@ -166,64 +167,153 @@ def context(rec: Recording) -> Context:
 # Noise: AR(1) per axis, whitening, simulation
 # --------------------------------------------------------------------------------------------------
 
-def noise_ar1(r: np.ndarray, segment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(sigma, phi) per axis of AR(1) noise from first differences inside segments.
+@dataclass
+class NoiseModel:
+    """Each axis's noise: an AR(1) process (marginal ``sigma``, lag-1 coefficient ``phi``) plus white
+    noise (``white``: quantisation, the converter). Arrays of shape (3,) or (3, K) for K nulls.
 
-    For AR(1) noise, d = e_t - e_{t-1} has E[d^2] = 2 sigma^2 (1 - phi) and lag-1 correlation
-    -(1 - phi) / 2, whatever slowly varying signal the residual still carries.
-    """
+    A quantised sensor with strongly coloured noise is not AR(1): the rounding adds white noise that an
+    AR(1) model reads as a lower phi, and whitening with that phi leaves the slow noise correlated, which
+    every slow effect's test would take for a signal."""
+
+    sigma: np.ndarray
+    phi: np.ndarray
+    white: np.ndarray
+
+    @property
+    def floor(self) -> np.ndarray:
+        """Per-sample sigma (AR and white parts together)."""
+        return np.sqrt(self.sigma ** 2 + self.white ** 2)
+
+    def kalman(self) -> tuple[np.ndarray, np.ndarray]:
+        """Steady-state Kalman gain K and innovation sigma of the AR(1)-plus-white model."""
+        s2, p, q = self.sigma ** 2, self.phi, self.white ** 2
+        e2 = s2 * (1.0 - p * p)
+        P = s2
+        for _ in range(200):  # converges geometrically (phi^2 per step at worst)
+            Pm = p * p * P + e2
+            P = Pm * q / np.maximum(Pm + q, 1e-300)
+        Pm = p * p * P + e2
+        return Pm / np.maximum(Pm + q, 1e-300), np.sqrt(Pm + q)
+
+    def spectrum(self, f: np.ndarray, rate_hz: float) -> np.ndarray:
+        """Noise power (arbitrary scale) at frequencies ``f`` per axis: (len(f), 3)."""
+        z = np.exp(-2j * np.pi * f / rate_hz)[:, None]
+        return self.sigma ** 2 * (1 - self.phi ** 2) / np.abs(1.0 - self.phi * z) ** 2 + self.white ** 2
+
+
+#: Lags of the differences' autocovariance that the noise model is fitted to.
+NOISE_LAGS = 12
+
+
+def noise_model(r: np.ndarray, segment: np.ndarray) -> NoiseModel:
+    """AR(1)-plus-white noise per axis (and per trailing column) from first differences inside segments.
+
+    A difference cancels any pose's mean and nearly any slow model error. For x = a + w (a: AR(1) of
+    variance s^2, w: white of variance q), d = x_t - x_{t-1} has autocovariances
+    g(0) = 2 u / (1 - phi) + 2 q, g(1) = -u - q, g(k) = -phi^(k-1) u for k >= 2, with
+    u = s^2 (1 - phi)^2. (u, phi, q) are fitted to the first :data:`NOISE_LAGS` lags by least squares:
+    many lags pin phi near 1 much better than two do, and phi near 1 sets the slow noise every slow
+    effect's test is judged against."""
     same = segment[1:] == segment[:-1]
-    d = np.diff(r, axis=0)[same]
-    pair = same[1:] & same[:-1]
-    d1, d0 = np.diff(r, axis=0)[1:][pair], np.diff(r, axis=0)[:-1][pair]
-    var_d = np.mean(d * d, axis=0)
-    rho = np.sum(d1 * d0, axis=0) / np.maximum(np.sqrt(np.sum(d1 * d1, axis=0) * np.sum(d0 * d0, axis=0)), 1e-300)
-    phi = np.clip(1.0 + 2.0 * rho, -0.5, 0.97)
-    sigma = np.sqrt(var_d / (2.0 * (1.0 - phi)))
-    return np.maximum(sigma, 1e-6), phi
+    d = np.diff(r, axis=0)
+    g = []
+    ok = same.copy()
+    for k in range(NOISE_LAGS + 1):
+        if k:
+            ok = ok[1:] & same[:-k]
+        prod = d[k:] * d[:len(d) - k] if k else d * d
+        g.append(np.mean(prod[ok], axis=0) if ok.any() else np.zeros(d.shape[1:]))
+    g = np.array(g)  # (lags, 3, ...)
+    shape = g.shape[1:]
+    G = g.reshape(len(g), -1)
+    sig, phi, white = np.empty(G.shape[1]), np.empty(G.shape[1]), np.empty(G.shape[1])
+    k = np.arange(len(g))
+    for i in range(G.shape[1]):
+        sig[i], phi[i], white[i] = _fit_difference_acov(G[:, i], k)
+    return NoiseModel(sig.reshape(shape), phi.reshape(shape), white.reshape(shape))
 
 
-def estimate_noise(r: np.ndarray, ctx: "Context") -> tuple[np.ndarray, np.ndarray]:
-    """The noise floor: :func:`noise_ar1` on the static holds when they hold 200 samples or more (the
+def _fit_difference_acov(g: np.ndarray, k: np.ndarray) -> tuple[float, float, float]:
+    """(s, phi, sqrt q) of AR(1)-plus-white noise from its differences' autocovariance g(k)."""
+    from scipy.optimize import least_squares
+
+    g0 = max(g[0], 1e-300)
+    phi1 = float(np.clip(1.0 + 2.0 * g[1] / g0, -0.5, 0.98))  # AR(1) alone, the start
+
+    def model(x: np.ndarray) -> np.ndarray:
+        u, ph, q = x[0] ** 2, x[1], x[2] ** 2
+        m = -u * ph ** np.maximum(k - 1, 0)
+        m[0] = 2 * u / (1 - ph) + 2 * q
+        m[1] -= q
+        return m
+
+    u0 = g0 * (1 - phi1) / 2 * (1 - phi1)
+    sol = least_squares(lambda x: (model(x) - g) / g0, [np.sqrt(max(u0, 1e-300)), phi1, np.sqrt(0.1 * g0)],
+                        bounds=([0.0, -0.5, 0.0], [np.inf, 0.985, np.inf]), x_scale=1.0)
+    u, ph, q = sol.x[0] ** 2, float(sol.x[1]), sol.x[2] ** 2
+    s = float(np.sqrt(max(u, 1e-12)) / (1 - ph))
+    if s * s < 0.02 * q:  # no AR part to speak of: white noise, and its phi means nothing
+        return s, 0.0, float(np.sqrt(q))
+    return s, ph, float(np.sqrt(q))
+
+
+def estimate_noise(r: np.ndarray, ctx: "Context") -> NoiseModel:
+    """The noise floor: :func:`noise_model` on the static holds when they hold 200 samples or more (the
     table at rest: nothing but the sensor's noise), else on every contiguous run of samples."""
     hold = ctx.hold >= 0
     if hold.sum() - len(np.unique(ctx.hold[hold])) >= 200:
-        return noise_ar1(r[hold], ctx.hold[hold])
-    return noise_ar1(r, ctx.segment)
+        return noise_model(r[hold], ctx.hold[hold])
+    return noise_model(r, ctx.segment)
 
 
-def whiten(x: np.ndarray, axis: int, sigma: np.ndarray, phi: np.ndarray, segment: np.ndarray) -> np.ndarray:
-    """Prewhiten rows (N, ...) of one magnetometer axis: (x_t - phi x_{t-1}) / innovation sigma."""
-    p, s = phi[axis], sigma[axis]
-    out = np.empty_like(x, dtype=float)
-    first = np.r_[True, segment[1:] != segment[:-1]]
-    out[first] = x[first] / s
-    out[~first] = (x[1:][~first[1:]] - p * x[:-1][~first[1:]]) / (s * np.sqrt(1.0 - p * p))
-    return out
-
-
-def whiten_all(X: np.ndarray, sigma: np.ndarray, phi: np.ndarray, segment: np.ndarray) -> np.ndarray:
-    """Whiten (N, 3, p) columns (or (N, 3) data) into stacked rows (3N, p) (axis-major)."""
+def whiten_all(X: np.ndarray, noise: NoiseModel, segment: np.ndarray) -> np.ndarray:
+    """Whiten (N, 3, p) columns (or (N, 3) data) into stacked rows (3N, p) (axis-major): the Kalman
+    innovations of the AR(1)-plus-white model, nu_t = x_t - phi x_{t-1} + phi (1 - K) nu_{t-1}, each over
+    its innovation sigma, restarted (from the marginal sigma) at each segment."""
     flat = X.ndim == 2
     X3 = X[:, :, None] if flat else X
-    out = np.concatenate([whiten(X3[:, j, :], j, sigma, phi, segment) for j in range(3)], axis=0)
+    K, S = noise.kalman()
+    first = np.r_[True, segment[1:] != segment[:-1]]
+    starts = np.flatnonzero(first)
+    ends = np.r_[starts[1:], len(segment)]
+    out = np.empty((3, X3.shape[0], X3.shape[2]))
+    for j in range(3):
+        b, a = [1.0, -noise.phi[j]], [1.0, -noise.phi[j] * (1.0 - K[j])]
+        for lo, hi in zip(starts, ends):
+            out[j, lo:hi] = signal.lfilter(b, a, X3[lo:hi, j, :], axis=0)
+        out[j] /= S[j]
+        out[j, first] *= S[j] / noise.floor[j]  # a segment's first sample: nothing to predict it from
+    out = out.reshape(3 * X3.shape[0], X3.shape[2])
     return out[:, 0] if flat else out
 
 
-def simulate_ar1(n: int, sigma: np.ndarray, phi: np.ndarray, segment: np.ndarray, rng: np.random.Generator,
-                 k: int = 1) -> np.ndarray:
-    """``k`` realisations (N, 3, k) of AR(1) noise with these marginal sigmas, restarted at each segment
-    (one filter call per segment for all realisations)."""
+def _whiten_each(e: np.ndarray, noise: NoiseModel, segment: np.ndarray) -> np.ndarray:
+    """Whiten K realisations (N, 3, K), each with its own noise model ((3, K) arrays): a time loop over
+    all realisations at once."""
+    K, S = noise.kalman()
+    c = noise.phi * (1.0 - K)
+    first = np.r_[True, segment[1:] != segment[:-1]]
+    out = np.empty_like(e)
+    nu = np.zeros(e.shape[1:])
+    for t in range(len(e)):
+        nu = e[t] if first[t] else e[t] - noise.phi * e[t - 1] + c * nu
+        out[t] = nu / (noise.floor if first[t] else S)
+    return out
+
+
+def simulate_noise(n: int, noise: NoiseModel, segment: np.ndarray, rng: np.random.Generator, k: int = 1) -> np.ndarray:
+    """``k`` realisations (N, 3, k) of the noise model, the AR part restarted at each segment."""
     e = rng.normal(size=(n, 3, k))
     first = np.r_[True, segment[1:] != segment[:-1]]
-    innov = e * (sigma * np.sqrt(1 - phi ** 2))[None, :, None]
-    innov[first] = e[first] * sigma[None, :, None]
+    innov = e * (noise.sigma * np.sqrt(1 - noise.phi ** 2))[None, :, None]
+    innov[first] = e[first] * noise.sigma[None, :, None]
     out = np.empty_like(e)
     starts = np.flatnonzero(first)
     for a, b in zip(starts, np.r_[starts[1:], n]):
         for j in range(3):
-            out[a:b, j] = signal.lfilter([1.0], [1.0, -phi[j]], innov[a:b, j], axis=0)
-    return out
+            out[a:b, j] = signal.lfilter([1.0], [1.0, -noise.phi[j]], innov[a:b, j], axis=0)
+    return out + rng.normal(size=(n, 3, k)) * noise.white[None, :, None]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -436,6 +526,7 @@ class Test:
     p_value: float = 1.0
     p_adjusted: float = 1.0
     log_p: float = 0.0  # natural log of the corrected p: ranks tests whose p underflows to 0
+    nu: float = 0.0  # degrees of freedom of the calibrated null distribution
 
     @property
     def df(self) -> int:
@@ -443,24 +534,32 @@ class Test:
 
 
 def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: int = 0) -> None:
-    """Statistic, Bartlett-corrected chi-square p and Bonferroni p of every test on whitened residual y.
+    """Statistic, null-calibrated chi-square p and Bonferroni p of every test on whitened residual y.
 
-    ``null`` holds whitened null residuals (K, 3N) from simulations; ``extra`` counts other tests of
-    the same round (the mains line search) in the correction."""
+    ``null`` holds whitened null residuals (K, 3N) from simulations; the statistic's null distribution
+    is taken as c chi2(nu) with the mean and variance of the simulated statistics (Satterthwaite): the
+    scale c is the Bartlett factor, and a smaller nu carries the heavier tail that an uncertain noise
+    estimate gives. ``extra`` counts other tests of the same round (the mains line search) in the
+    correction."""
     m = sum(1 for t in tests if t.df > 0) + extra
     for t in tests:
         if t.df == 0:
             continue
         t.statistic = float(np.sum((t.basis.T @ y) ** 2))
-        if null is not None and len(null):
+        c, nu = 1.0, float(t.df)
+        if null is not None and len(null) >= 20:
             sims = np.sum((null @ t.basis) ** 2, axis=1)
-            t.bartlett = float(max(np.mean(sims) / t.df, 0.5))
-        t.p_value = float(stats.chi2.sf(t.statistic / t.bartlett, t.df))
+            mean, var = float(np.mean(sims)), float(np.var(sims, ddof=1))
+            c = max(var / (2.0 * mean), 0.5)
+            nu = float(np.clip(mean / c, 0.5, 10.0 * t.df))
+            t.bartlett = mean / t.df
+        t.nu = nu
+        t.p_value = float(stats.chi2.sf(t.statistic / c, nu))
         t.p_adjusted = float(min(1.0, t.p_value * m))
-        t.log_p = float(min(0.0, chi2_logsf(t.statistic / t.bartlett, t.df) + np.log(m)))
+        t.log_p = float(min(0.0, chi2_logsf(t.statistic / c, nu) + np.log(m)))
 
 
-def chi2_logsf(x: float, df: int) -> float:
+def chi2_logsf(x: float, df: float) -> float:
     """log of the chi-square tail, finite far beyond where scipy's underflows (Wilson-Hilferty there)."""
     v = float(stats.chi2.logsf(x, df))
     if np.isfinite(v):
@@ -469,17 +568,13 @@ def chi2_logsf(x: float, df: int) -> float:
     return float(stats.norm.logsf(z))
 
 
-def _null_residuals(ctx: Context, sigma: np.ndarray, phi: np.ndarray, Q: np.ndarray, k: int,
-                    rng: np.random.Generator) -> np.ndarray:
-    """K whitened null residuals (K, 3N): AR(1) noise simulated at the recording's time stamps, its noise
-    re-estimated as the analysis does, whitened with the estimate, the nominal model projected out."""
+def _null_residuals(ctx: Context, noise: NoiseModel, Q: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """K whitened null residuals (K, 3N): noise simulated from the model at the recording's time
+    stamps, re-estimated as the analysis does, whitened with that estimate, the nominal model projected
+    out."""
     n = len(ctx.t)
-    e = simulate_ar1(n, sigma, phi, ctx.segment, rng, k)  # (N, 3, K)
-    s_hat, p_hat = estimate_noise(e, ctx)  # (3, K): the estimate each null would give
-    first = np.r_[True, ctx.segment[1:] != ctx.segment[:-1]]
-    z = np.empty_like(e)
-    z[first] = e[first] / s_hat
-    z[~first] = (e[1:][~first[1:]] - p_hat * e[:-1][~first[1:]]) / (s_hat * np.sqrt(1.0 - p_hat ** 2))
+    e = simulate_noise(n, noise, ctx.segment, rng, k)  # (N, 3, K)
+    z = _whiten_each(e, estimate_noise(e, ctx), ctx.segment)
     Z = z.transpose(1, 0, 2).reshape(3 * n, k)  # axis-major rows, as whiten_all stacks them
     Z -= Q @ (Q.T @ Z)
     return Z.T
@@ -487,7 +582,7 @@ def _null_residuals(ctx: Context, sigma: np.ndarray, phi: np.ndarray, Q: np.ndar
 
 # --- mains: a line in the spectrum -----------------------------------------------------------------
 
-def line_search(r: np.ndarray, ctx: Context, phi: np.ndarray) -> dict[str, float]:
+def line_search(r: np.ndarray, ctx: Context, noise: NoiseModel) -> dict[str, float]:
     """Strongest spectral line common to the three axes in residual ``r`` (N, 3).
 
     The Fourier sum over every sample, sum_n r_n exp(-2 pi i f t_n), is exact for any time stamps: each
@@ -509,7 +604,7 @@ def line_search(r: np.ndarray, ctx: Context, phi: np.ndarray) -> dict[str, float
     keep = (f >= lo) & (f < ctx.rate_hz / 2 - 2 * (f[1] - f[0]))
     if keep.sum() < 50:
         return {"statistic": 0.0, "p_value": 1.0, "log_p": 0.0, "alias_hz": float("nan"), "independent": 0}
-    ar = 1.0 / np.abs(1.0 - phi[None, :] * np.exp(-2j * np.pi * f / ctx.rate_hz)[:, None]) ** 2
+    ar = noise.spectrum(f, ctx.rate_hz)
     S = ar * np.column_stack([_running_median(P[:, j] / ar[:, j], 101) for j in range(3)]) / np.log(2.0)
     stat = 2.0 * np.sum(P / np.maximum(S, 1e-300), axis=1)
     stat[~keep] = 0.0
@@ -580,7 +675,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     temp = rec.temp_c
 
     say("noise floor", 0.15)
-    sigma, phi = estimate_noise(r0, ctx)
+    noise = estimate_noise(r0, ctx)
     J0 = nominal_columns(ctx, nom)
     eff = effect_columns(ctx, nom, temp)
     gen = generic_columns(ctx, nom, temp)
@@ -595,7 +690,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     selected: list[str] = []
     mains_hz: float | None = None
     if len(ctx.t) >= 200:
-        line = line_search(r0, ctx, phi)
+        line = line_search(r0, ctx, noise)
         line_p = min(1.0, line["p_value"] * n_round1)
         chosen = line["log_p"] + np.log(n_round1) < np.log(alpha)
         all_tests.append({"effect": "mains_interference", "variant": f"line at {line['alias_hz']:.4f} Hz", "round": 1,
@@ -605,22 +700,22 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
             mains_hz = line["alias_hz"]
             Xm = mains_columns(ctx, mains_hz)
             coef_m, *_ = np.linalg.lstsq(Xm.transpose(1, 0, 2).reshape(-1, 6), r0.T.ravel(), rcond=None)
-            sigma, phi = estimate_noise(r0 - np.einsum("nip,p->ni", Xm, coef_m), ctx)
+            noise = estimate_noise(r0 - np.einsum("nip,p->ni", Xm, coef_m), ctx)
             selected.append("mains_interference")
     else:
         untestable.append({"effect": "mains_interference", "reason": "needs at least 200 samples"})
 
-    A0 = whiten_all(J0, sigma, phi, ctx.segment)
+    A0 = whiten_all(J0, noise, ctx.segment)
     Q0 = _orth(A0)
-    zr = whiten_all(r0, sigma, phi, ctx.segment)
+    zr = whiten_all(r0, noise, ctx.segment)
     z = zr - Q0 @ (Q0.T @ zr)
-    candidates = {name: whiten_all(X, sigma, phi, ctx.segment) for name, (X, _, why) in eff.items() if not why}
+    candidates = {name: whiten_all(X, noise, ctx.segment) for name, (X, _, why) in eff.items() if not why}
     if mains_hz is not None:
-        candidates["mains_interference"] = whiten_all(mains_columns(ctx, mains_hz), sigma, phi, ctx.segment)
-    generic_w = {name: whiten_all(X, sigma, phi, ctx.segment) for name, X in gen.items()}
+        candidates["mains_interference"] = whiten_all(mains_columns(ctx, mains_hz), noise, ctx.segment)
+    generic_w = {name: whiten_all(X, noise, ctx.segment) for name, X in gen.items()}
 
     say("null simulations", 0.35)
-    null = _null_residuals(ctx, sigma, phi, Q0, null_sims, rng) if null_sims > 0 else None
+    null = _null_residuals(ctx, noise, Q0, null_sims, rng) if null_sims > 0 else None
 
     say("tests", 0.55)
     Q = _orth(np.column_stack([A0] + [candidates[s] for s in selected]))
@@ -691,8 +786,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
 
     say("held-out", 0.8)
     fold = _folds(ctx)
-    pred_before = _heldout(ctx, y_raw, nom, [J0], fold, sigma)
-    pred_after = _heldout(ctx, y_raw, nom, raw_cols, fold, sigma)
+    pred_before = _heldout(ctx, y_raw, nom, [J0], fold, noise.floor)
+    pred_after = _heldout(ctx, y_raw, nom, raw_cols, fold, noise.floor)
     rms = lambda r: np.sqrt(np.mean(r * r, axis=0))  # noqa: E731
     ho_before, ho_after = rms(y_raw - pred_before), rms(y_raw - pred_after)
 
@@ -727,8 +822,9 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         "samples": int(len(rec)),
         "duration_s": float(np.ptp(ctx.t)),
         "alpha": alpha,
-        "noise_floor_lsb": sigma.tolist(),
-        "noise_ar1": phi.tolist(),
+        "noise_floor_lsb": noise.floor.tolist(),
+        "noise_ar1": noise.phi.tolist(),
+        "noise_white_lsb": noise.white.tolist(),
         "residual_rms_before_lsb": rms(r0).tolist(),
         "residual_rms_after_lsb": rms(r_after).tolist(),
         "heldout": {"scheme": "4 folds: whole holds (or 1-s chunks with fewer than 8 holds) and 1-s chunks of motion, "
@@ -740,7 +836,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         "findings": findings,
         "tests": all_tests,
         "untestable": untestable,
-        "locate": locate(ctx, r0, sigma, phi, eff, candidates, A0, z, null, generic_first),
+        "locate": locate(ctx, r0, noise.floor, eff, candidates, A0, z, null, generic_first),
         "notes": notes,
     }
     say("done", 1.0)
@@ -996,7 +1092,7 @@ def M_o_angle_change(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
 
 
-def locate(ctx: Context, r0: np.ndarray, sigma: np.ndarray, phi: np.ndarray, eff: dict, candidates: dict,
+def locate(ctx: Context, r0: np.ndarray, sigma: np.ndarray, eff: dict, candidates: dict,
            A0: np.ndarray, z: np.ndarray, null: np.ndarray | None, generic: dict[str, dict]) -> dict[str, Any]:
     """Where the nominal residual lives: axis, step, harmonics against each angle, time, direction, frame,
     whiteness, witness channels."""

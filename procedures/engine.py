@@ -283,7 +283,7 @@ class Engine:
             # keep what did arrive (the other slots' reads and the failed ones' partial samples)
             partial = dict(e.results)
             partial.update({slot: err.samples for slot, err in e.errors.items() if isinstance(err, CompassError)})
-            self._keep(step, partial, before)
+            self._keep(step.step, partial, before)
             timeouts = all(isinstance(err, CompassTimeout) for err in e.errors.values())
             raise (CompassTimeout(str(e)) if timeouts else e) from None
         after = await self.station.table.positions()

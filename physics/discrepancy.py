@@ -549,10 +549,12 @@ def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: int
         c, nu = 1.0, float(t.df)
         if null is not None and len(null) >= 20:
             sims = np.sum((null @ t.basis) ** 2, axis=1)
-            mean, var = float(np.mean(sims)), float(np.var(sims, ddof=1))
-            c = max(var / (2.0 * mean), 0.5)
-            nu = float(np.clip(mean / c, 0.5, 10.0 * t.df))
+            mean = float(np.mean(sims))
             t.bartlett = mean / t.df
+            c = max(t.bartlett, 0.5)
+            if len(null) >= 100:  # enough nulls to measure the spread as well as the scale
+                c = max(float(np.var(sims, ddof=1)) / (2.0 * mean), 0.5)
+                nu = float(np.clip(mean / c, 0.5, 10.0 * t.df))
         t.nu = nu
         t.p_value = float(stats.chi2.sf(t.statistic / c, nu))
         t.p_adjusted = float(min(1.0, t.p_value * m))
@@ -598,7 +600,10 @@ def line_search(r: np.ndarray, ctx: Context, noise: NoiseModel) -> dict[str, flo
         i = np.flatnonzero(ctx.segment == s)
         if len(i) < 2:
             continue
-        X += np.fft.rfft(r[i], nfft, axis=0) * np.exp(-2j * np.pi * f * (ctx.t[i[0]] - ctx.t[0]))[:, None]
+        # each run's own mean removed: a line lives inside the holds, while every slow effect moves
+        # whole holds and would otherwise pass for a low-frequency line
+        x = r[i] - r[i].mean(axis=0)
+        X += np.fft.rfft(x, nfft, axis=0) * np.exp(-2j * np.pi * f * (ctx.t[i[0]] - ctx.t[0]))[:, None]
     P = np.abs(X) ** 2
     lo = 3.0 / max(span, 1e-9)
     keep = (f >= lo) & (f < ctx.rate_hz / 2 - 2 * (f[1] - f[0]))
@@ -729,6 +734,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         for name, t in tests.items():
             if t.df > 0 and t.log_p < best_log:
                 best_name, best_log = name, t.log_p
+        if best_name is not None:
+            best_name = _simplest(best_name, tests, candidates, Q, resid, null, alpha, len(tests) + len(gtests) + 1)
         for name, t in {**tests, **gtests}.items():
             all_tests.append({"effect": name.split(":")[0], "variant": name, "round": round_no + 1,
                               "statistic": t.statistic, "df": t.df, "bartlett": t.bartlett, "p_value": t.p_value,
@@ -845,6 +852,23 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
               "residual_before": r0, "residual_after": r_after, "heldout_pred_before": pred_before,
               "heldout_pred_after": pred_after, "fold": fold}
     return Analysis(json_safe(result), series)
+
+
+def _simplest(best: str, tests: dict[str, "Test"], candidates: dict[str, np.ndarray], Q: np.ndarray, resid: np.ndarray,
+              null: np.ndarray | None, alpha: float, m: int) -> str:
+    """The effect to add: ``best`` (smallest corrected p), unless an effect with fewer parameters is
+    significant too and, once in the model, leaves nothing significant for ``best`` to add; then the
+    simplest such one. Smallest p alone favours the effect with more parameters whenever it contains a
+    simpler one (soft iron on a stage spans a magnet on it at one azimuth)."""
+    simpler = sorted((t.df, t.log_p, name) for name, t in tests.items()
+                     if 0 < t.df < tests[best].df and t.log_p < np.log(alpha))
+    for _, _, name in simpler:
+        Qs = _orth(np.column_stack([Q, candidates[name]]))
+        given = Test(best, _complement(candidates[best], Qs))
+        _score([given], resid - Qs @ (Qs.T @ resid), null, extra=m - 1)
+        if given.df == 0 or given.log_p >= np.log(alpha):
+            return name
+    return best
 
 
 def _lstsq_cov(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -47,7 +47,7 @@ from physics import errorsep as es
 from physics.calibration import Calibration, json_safe
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
-from physics.recording import Recording
+from physics.recording import Recording, RecordingError
 from physics.sensor import split_matrix
 from physics.table import TableGeometry, platform_attitude
 
@@ -62,6 +62,8 @@ MAX_BIAS_FIELDS = 3.0
 #: Longer recordings are block-averaged to this many samples (a hand-held IMU at 285 Hz) to keep the
 #: analysis within seconds; the note says so.
 MAX_SAMPLES = 20_000
+#: Fewer samples cannot estimate the noise, let alone test anything against it.
+MIN_SAMPLES = 200
 #: Recording metadata key naming where the table angles come from; anything but "turntable" (e.g. an
 #: optical reference tracking a hand-held unit) makes the table's own effects untestable.
 ATTITUDE_SOURCE_KEY = "attitude_source"
@@ -665,6 +667,8 @@ def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: fl
 
 def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float, null_sims: int,
                    rng: np.random.Generator | None, progress: Progress | None) -> Analysis:
+    if len(rec) < MIN_SAMPLES:
+        raise RecordingError(f"the analysis needs at least {MIN_SAMPLES} samples (10 s at 20 Hz), got {len(rec)}")
     rng = rng if rng is not None else np.random.default_rng(0)
     say = progress or (lambda stage, frac: None)
     notes: list[str] = []

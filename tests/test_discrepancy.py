@@ -168,3 +168,11 @@ def test_a_platform_magnet_shows_as_a_parameter_shift_against_the_units_calibrat
     assert shift and shift[0]["parameters"]["bias_lsb"][0] == pytest.approx(-60.0, abs=3.0)
     assert analyze(rec, replace(cal, mag=LinearSensor(cal.mag.M_o, cal.mag.k, np.array(nominal["bias"]))),
                    null_sims=0).result["verdict"] == "consistent"
+
+
+def test_too_short_a_recording_is_refused_with_the_reason() -> None:
+    rng = np.random.default_rng(0)
+    rec = simulate_recording(random_unit(rng), [Pose("a", 0.0, 0.0, 0.0, 10), Pose("b", 90.0, 0.0, 0.0, 10)],
+                             World(), rng=rng)
+    with pytest.raises(ValueError, match="at least 200 samples"):
+        analyze(rec)

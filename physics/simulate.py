@@ -65,6 +65,10 @@ class Pose:
     approach_deg: float = 0.0
 
 
+#: The encoder angle each Scan axis turns (psi about z, theta about y, phi about x).
+SCAN_AXES = ("psi", "theta", "phi")
+
+
 @dataclass(frozen=True)
 class Scan:
     """Turn one axis from ``start_deg`` to ``stop_deg`` at ``speed_dps`` while sampling at the compass
@@ -81,10 +85,31 @@ class Scan:
     phi_t: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.axis not in ("psi", "theta", "phi"):
-            raise ValueError(f"axis: expected psi, theta or phi, got {self.axis!r}")
+        if self.axis not in SCAN_AXES:
+            raise ValueError(f"axis: expected one of {', '.join(SCAN_AXES)}, got {self.axis!r}")
         if not self.speed_dps > 0:
-            raise ValueError(f"speed_dps: must be positive, got {self.speed_dps}")
+            raise ValueError(f"speed_dps: must be > 0, got {self.speed_dps}")
+
+    @property
+    def index(self) -> int:
+        """0, 1, 2 for psi, theta, phi."""
+        return SCAN_AXES.index(self.axis)
+
+    def at(self, angle: float) -> tuple[float, float, float]:
+        """The three encoder angles with the scanned axis at ``angle``."""
+        a = [self.psi_t, self.theta_t, self.phi_t]
+        a[self.index] = angle
+        return (a[0], a[1], a[2])
+
+    @property
+    def start_angles(self) -> tuple[float, float, float]:
+        """Where the scan starts."""
+        return self.at(self.start_deg)
+
+    @property
+    def stop_angles(self) -> tuple[float, float, float]:
+        """Where the scan ends."""
+        return self.at(self.stop_deg)
 
 
 @dataclass

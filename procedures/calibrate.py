@@ -18,7 +18,7 @@ from physics.calibration import Calibration
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, evaluate as evaluate_recording, fit
 from physics.recording import Recording, RecordingError, concat
-from physics.simulate import Pose, Scan as PlanScan, plan_timeline
+from physics.simulate import Pose, plan_timeline
 from physics.table import Motion
 from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, ProcedureGen, Scan, Settle
 
@@ -91,13 +91,12 @@ class Collected:
         return {slot: concat(parts) for slot, parts in sorted(self.parts.items())}
 
 
-def visit(plan: list[Pose | PlanScan], settle_s: float, data: Collected) -> ProcedureGen:
+def visit(plan: list[Pose | Scan], settle_s: float, data: Collected) -> ProcedureGen:
     """Run poses (an approach move first when they have one; move, settle, acquire) and scans in turn,
     with a checkpoint after each, keeping the samples in ``data``."""
     for item in plan:
-        if isinstance(item, PlanScan):
-            data.add((yield Scan(item.step, item.axis, item.start_deg, item.stop_deg, item.speed_dps,
-                                 item.psi_t, item.theta_t, item.phi_t)))
+        if isinstance(item, Scan):
+            data.add((yield item))  # a plan's scan is the step itself
         else:
             if item.approach_deg:
                 yield Move(item.psi_t - item.approach_deg, item.theta_t, item.phi_t)
@@ -315,7 +314,7 @@ class CharacterizeParams(_Params):
         return v
 
 
-def characterize_plan(p: CharacterizeParams = CharacterizeParams()) -> list[Pose | PlanScan]:
+def characterize_plan(p: CharacterizeParams = CharacterizeParams()) -> list[Pose | Scan]:
     """The characterize run as poses and scans (physics.simulate types, so the offline simulator runs
     the same plan). With the defaults: 571 s (9.5 min) of table time at the default Motion
     (:func:`plan_seconds`; about 620 s on the simulated station, whose moves also wait for the
@@ -340,14 +339,14 @@ def characterize_plan(p: CharacterizeParams = CharacterizeParams()) -> list[Pose
     # never from an unrecorded overshoot: the analysis follows the table between recorded samples and
     # could not see a detour.
     first = Pose("hold_first", 0.0, 0.0, 0.0, p.long_samples)
-    plan: list[Pose | PlanScan] = [first]
+    plan: list[Pose | Scan] = [first]
     level = [float(a) for a in _turn(360.0 / p.azimuths)]
     plan += [Pose("level_up", a, 0.0, 0.0, p.samples) for a in level]
     # the turns about z come between the two level passes (the table is near +180 there)
     for v in p.z_speeds_dps:
         name = f"{v:g}".replace(".", "p")
-        plan += [PlanScan(f"scan_z_down_{name}", "psi", 180.0, -180.0, v),
-                 PlanScan(f"scan_z_up_{name}", "psi", -180.0, 180.0, v)]
+        plan += [Scan(f"scan_z_down_{name}", "psi", 180.0, -180.0, v),
+                 Scan(f"scan_z_up_{name}", "psi", -180.0, 180.0, v)]
     plan += [Pose("level_down", a, 0.0, 0.0, p.samples) for a in reversed(level)]
     T = p.tilt_deg
     azimuths = [round(float(x), 6) for x in _turn(360.0 / p.tilt_azimuths) + 180.0 / p.tilt_azimuths]
@@ -359,13 +358,13 @@ def characterize_plan(p: CharacterizeParams = CharacterizeParams()) -> list[Pose
     if p.tilt_scan_speed_dps > 0:
         v, psi = p.tilt_scan_speed_dps, azimuths[0]  # neither horizontal body axis along a table axis
         for axis, label in (("theta", "y"), ("phi", "x")):
-            plan += [PlanScan(f"scan_{label}_down", axis, 180.0, -180.0, v, psi_t=psi),
-                     PlanScan(f"scan_{label}_up", axis, -180.0, 180.0, v, psi_t=psi)]
+            plan += [Scan(f"scan_{label}_down", axis, 180.0, -180.0, v, psi_t=psi),
+                     Scan(f"scan_{label}_up", axis, -180.0, 180.0, v, psi_t=psi)]
     plan.append(Pose("hold_closing", first.psi_t, first.theta_t, first.phi_t, first.samples))
     return plan
 
 
-def plan_seconds(plan: list[Pose | PlanScan], motion: Motion = Motion(),
+def plan_seconds(plan: list[Pose | Scan], motion: Motion = Motion(),
                  start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> float:
     """Table seconds of a plan under ``motion``, as the offline simulator lays it out
     (physics.simulate.plan_timeline: moves as trapezoids, a settle before each hold and scan, holds at

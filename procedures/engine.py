@@ -310,7 +310,7 @@ class Engine:
         await asyncio.sleep(0)  # let each collector start listening before the table moves
         t_begin = time.monotonic()
         trace: list[tuple[float, float, float]] = [(t_begin, t_begin, before[i])]  # at rest at the start
-        motion = asyncio.create_task(table.scan(name, step.stop, step.speed_dps, self.station.accel_dps2, trace=trace))
+        motion = asyncio.create_task(table.scan(name, step.stop_deg, step.speed_dps, self.station.accel_dps2, trace=trace))
         aborted = asyncio.create_task(self._aborted.wait())
         error: BaseException | None = None
         try:
@@ -339,7 +339,7 @@ class Engine:
         """Keep the samples of a scan received between its start and its last encoder poll."""
         t_end = trace[-1][1]
         scale = self.station.time_scale
-        encoder = encoder_track(trace, held[step.index], step.stop, step.speed_dps * scale,
+        encoder = encoder_track(trace, held[step.index], step.stop_deg, step.speed_dps * scale,
                                 self.station.accel_dps2 * scale * scale)
         kept: dict[Any, list[CompassSample]] = {}
         angles: dict[Any, np.ndarray] = {}

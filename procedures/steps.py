@@ -15,6 +15,7 @@ from typing import Any, Union
 from pydantic import BaseModel
 
 from physics.recording import Recording
+from physics.simulate import SCAN_AXES, Scan  # noqa: F401  (re-exported: a step of the step language)
 from physics.table import Motion, move_seconds
 
 
@@ -44,54 +45,8 @@ class Acquire:
     step: str
 
 
-#: The encoder angle each Scan axis turns (psi about z, theta about y, phi about x).
-SCAN_AXES = ("psi", "theta", "phi")
-
-
-@dataclass(frozen=True)
-class Scan:
-    """Move to the start (all axes: ``axis`` at ``start``, the others at ``psi``, ``theta``, ``phi``),
-    then turn ``axis`` alone to ``stop`` at ``speed_dps`` while acquiring every sample the compasses
-    stream, each labelled ``step`` and carrying the encoder angles at its instant (interpolated from
-    the encoder polled throughout the turn). The move to the start is not sampled.
-
-    Reply: ``dict[slot, Recording]`` of the scan's samples, like :class:`Acquire`."""
-
-    step: str
-    axis: str  # "psi" | "theta" | "phi"
-    start: float
-    stop: float
-    speed_dps: float
-    psi: float = 0.0
-    theta: float = 0.0
-    phi: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.axis not in SCAN_AXES:
-            raise ValueError(f"axis: expected one of {', '.join(SCAN_AXES)}, got {self.axis!r}")
-        if not self.speed_dps > 0:
-            raise ValueError(f"speed_dps: must be > 0, got {self.speed_dps}")
-
-    @property
-    def index(self) -> int:
-        """0, 1, 2 for psi, theta, phi."""
-        return SCAN_AXES.index(self.axis)
-
-    def at(self, angle: float) -> tuple[float, float, float]:
-        """The three encoder angles with the scanned axis at ``angle``."""
-        a = [self.psi, self.theta, self.phi]
-        a[self.index] = angle
-        return (a[0], a[1], a[2])
-
-    @property
-    def start_angles(self) -> tuple[float, float, float]:
-        """Where the scan starts."""
-        return self.at(self.start)
-
-    @property
-    def stop_angles(self) -> tuple[float, float, float]:
-        """Where the scan ends."""
-        return self.at(self.stop)
+# Scan (turn one axis while acquiring; reply like Acquire) is physics.simulate.Scan: the same object is
+# a step of a procedure and an item of a plan the offline simulator runs.
 
 
 @dataclass(frozen=True)
@@ -175,7 +130,7 @@ def step_seconds(steps: list[Step], motion: Motion = Motion(),
             first = list(s.start_angles)
             turn = Motion(s.speed_dps, motion.max_accel_dps2, motion.settle_s, motion.sample_rate_hz)
             out.append(move_seconds([b - a for a, b in zip(here, first)], motion)
-                       + move_seconds([s.stop - s.start], turn))
+                       + move_seconds([s.stop_deg - s.start_deg], turn))
             here = list(s.stop_angles)
         else:
             out.append(0.0)

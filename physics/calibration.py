@@ -205,7 +205,8 @@ def staged_truth_errors(cal: Calibration, unit: Unit, world: World) -> dict[str,
 
 
 def json_safe(x: Any) -> Any:
-    """numpy scalars and arrays to Python, NaN and infinities to None, recursively (for JSON reports)."""
+    """A JSON-safe copy: numpy scalars and arrays to Python, NaN and infinities to None (PostgreSQL's
+    json refuses NaN), anything else that JSON cannot hold to its text; recursively."""
     if isinstance(x, dict):
         return {str(k): json_safe(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -214,11 +215,13 @@ def json_safe(x: Any) -> Any:
         return json_safe(x.tolist())
     if isinstance(x, (bool, np.bool_)):
         return bool(x)
-    if isinstance(x, np.integer):
+    if isinstance(x, (int, np.integer)):
         return int(x)
     if isinstance(x, (float, np.floating)):
         return float(x) if np.isfinite(x) else None
-    return x
+    if x is None or isinstance(x, str):
+        return x
+    return str(x)
 
 
 def _tolist(v: Any) -> Any:

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from physics.calibration import Calibration as PhysCalibration
+from physics.calibration import Calibration as PhysCalibration, json_safe
 from service.api import unprocessable
 from service.auth import Caller, audit, require
 from service.db import Analysis, Calibration, Device, Run, Sample
@@ -113,7 +113,6 @@ def _plan(s: Session, run_id: int, body: AnalysisIn) -> tuple[Run, dict[int, tup
 def _analyse(sessions: Any, run_id: int, slot: int, cal: dict[str, Any] | None, null_sims: int) -> dict[str, Any]:
     """Load one slot's recording and analyse it (in a worker thread): the result to store."""
     from physics.discrepancy import analyze
-    from service.runs import plain
     from service.store import load_recording
 
     with sessions() as s:
@@ -130,7 +129,7 @@ def _analyse(sessions: Any, run_id: int, slot: int, cal: dict[str, Any] | None, 
         a = analyze(rec, nominal, null_sims=null_sims, rng=np.random.default_rng(seed))
     except ValueError as e:  # the recording cannot support the analysis: say why
         raise HTTPException(409, f"run {run_id} slot {slot} cannot be analysed: {e}") from None
-    return plain({**a.to_json(), "run_id": run_id, "slot": slot, "serial": rec.serial or "",
+    return json_safe({**a.to_json(), "run_id": run_id, "slot": slot, "serial": rec.serial or "",
                   "null_sims": null_sims, "seed": seed})
 
 

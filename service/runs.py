@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import threading
 from collections import OrderedDict
 from collections.abc import AsyncIterator, Callable
@@ -55,7 +54,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from drivers.modbus import BusError, BusURL
 from drivers.turntable import AxisError, Turntable
-from physics.calibration import Calibration as PhysCalibration
+from physics.calibration import Calibration as PhysCalibration, json_safe
 from physics.recording import format_recording
 from procedures.calibrate import PROCEDURES as BASE_PROCEDURES, CalibrateParams, calibrate
 from procedures.engine import Engine, Event, open_station
@@ -134,25 +133,6 @@ def _is_table_error(reason: str | None) -> bool:
     """Whether a run's reason (the engine's "Type: message") is an error of the table's drivers."""
     names = _subclass_names(AxisError, BusError)
     return bool(reason) and reason.split(":", 1)[0].strip() in names
-
-
-def plain(v: Any) -> Any:
-    """JSON-safe copy: numpy to Python, NaN and infinities to None (PostgreSQL's json refuses NaN)."""
-    if isinstance(v, dict):
-        return {str(k): plain(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [plain(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return plain(v.tolist())
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    if v is None or isinstance(v, str):
-        return v
-    return str(v)
 
 
 def _run_in_thread(name: str, fn: Callable[[], Any]) -> asyncio.Future[Any]:
@@ -238,7 +218,7 @@ class ActiveRun:
 
     def add(self, kind: str, data: dict[str, Any]) -> None:
         """Record an event and wake the streams."""
-        data = plain(data)
+        data = json_safe(data)
         self.events.append((kind, data))
         if kind == "prompt":
             if data.get("answered"):
@@ -392,7 +372,7 @@ class RunManager:
             if why:
                 raise HTTPException(409, why)
             run = Run(station_id=row.id, batch_id=batch_id, procedure=proc.name, procedure_version=proc.version,
-                      parameters=plain(params.model_dump()), status="queued", operator=operator,
+                      parameters=json_safe(params.model_dump()), status="queued", operator=operator,
                       station_snapshot=snapshot, serials=given, software_version=self.software_version,
                       meta={"station": row.name, "sample_rate_hz": str(SAMPLE_RATE_HZ), "time_scale": f"{row.time_scale:g}",
                             "parameters": params.model_dump_json()})
@@ -613,14 +593,14 @@ class RunManager:
                         entry["error"] = "the compass reported no serial number; give serials in the request"
                     else:
                         cal.serial = serial
-                        row = store_calibration(s, run, slot, serial, plain(cal.to_json()),
+                        row = store_calibration(s, run, slot, serial, json_safe(cal.to_json()),
                                                 ident[0] if ident else None, ident[2] if ident else None)
                         entry.update(calibration_id=row.id, verdict=row.verdict, status=row.status, reasons=row.reasons,
-                                     heading_error_deg=plain((cal.quality or {}).get("heading_error_deg")))
+                                     heading_error_deg=json_safe((cal.quality or {}).get("heading_error_deg")))
                 elif "error" in res:
                     entry["error"] = str(res["error"])
                 else:
-                    entry["result"] = plain(res)
+                    entry["result"] = json_safe(res)
                 units[str(slot)] = entry
             s.commit()
         return {"units": units, "notes": list(outcome.notes)}
@@ -649,7 +629,7 @@ class RunManager:
             if table_seconds is not None:
                 run.table_seconds = table_seconds
             if fin.summary:
-                run.meta = {**(run.meta or {}), "result": plain(fin.summary)}
+                run.meta = {**(run.meta or {}), "result": json_safe(fin.summary)}
             s.commit()
 
     # ------------------------------------------------------------------------------- batches
@@ -1168,4 +1148,4 @@ async def get_batch(batch_id: int, request: Request, _: Caller = Depends(require
         return _batch_json(s, batch, manager(request))
 
 
-__all__ = ["RunManager", "router", "TRANSITIONS", "PROCEDURES", "BatchCalibrateParams", "run_json", "plain"]
+__all__ = ["RunManager", "router", "TRANSITIONS", "PROCEDURES", "BatchCalibrateParams", "run_json"]

@@ -106,15 +106,32 @@ class Context:
         return self.hold < 0
 
 
+def sample_period(t: np.ndarray) -> float:
+    """The median time between samples (1 when the time stamps do not advance)."""
+    dt = np.diff(t)
+    return float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
+
+
+def runs(t: np.ndarray, step: np.ndarray, gap: float = 1.5) -> np.ndarray:
+    """Index of each sample's contiguous run: a new run starts at a change of step or after a pause of
+    more than ``gap`` sample periods (a move between holds)."""
+    new = np.r_[True, (np.diff(t) > gap * sample_period(t)) | (step[1:] != step[:-1])]
+    return np.cumsum(new) - 1
+
+
+def blocks(run: np.ndarray, k: int) -> np.ndarray:
+    """Index of each sample's block: ``k`` consecutive samples of one run (the last block of a run may
+    be shorter)."""
+    start = np.r_[0, np.flatnonzero(np.diff(run)) + 1]
+    within = np.arange(len(run)) - np.repeat(start, np.diff(np.r_[start, len(run)]))
+    return np.cumsum(np.r_[True, (np.diff(run) != 0) | (np.diff(within // k) != 0)]) - 1
+
+
 def decimate(rec: Recording, k: int) -> Recording:
     """Average every ``k`` consecutive samples of one contiguous run of a step (angles unwrapped)."""
     t = np.asarray(rec.t, float)
-    dt = np.diff(t)
-    rate = 1.0 / np.median(dt[dt > 0])
-    seg = np.cumsum(np.r_[True, (dt > 1.5 / rate) | (rec.step[1:] != rec.step[:-1])]) - 1
-    start = np.r_[0, np.flatnonzero(np.diff(seg)) + 1]
-    within = np.arange(len(t)) - np.repeat(start, np.diff(np.r_[start, len(t)]))
-    group = np.cumsum(np.r_[True, (np.diff(seg) != 0) | (np.diff(within // k) != 0)]) - 1
+    seg = runs(t, rec.step)
+    group = blocks(seg, k)
     n = np.bincount(group)
 
     def avg(x: np.ndarray | None) -> np.ndarray | None:
@@ -143,10 +160,9 @@ def context(rec: Recording) -> Context:
     """Segments, holds and rates of a recording with table angles."""
     t = np.asarray(rec.t, float)
     ang = es.table_angles(rec)
-    dt = np.diff(t)
-    rate_hz = float(1.0 / np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
-    new = np.r_[True, (dt > 1.5 / rate_hz) | (rec.step[1:] != rec.step[:-1])]
-    segment = np.cumsum(new) - 1
+    rate_hz = 1.0 / sample_period(t)
+    segment = runs(t, rec.step)
+    new = np.r_[True, segment[1:] != segment[:-1]]
     key = np.round(ang, 3)
     still = np.r_[False, np.all(key[1:] == key[:-1], axis=1) & ~new[1:]]
     # a hold: a run of samples at one set of encoder angles (at least 3), within one segment
@@ -528,7 +544,6 @@ class Test:
     p_value: float = 1.0
     p_adjusted: float = 1.0
     log_p: float = 0.0  # natural log of the corrected p: ranks tests whose p underflows to 0
-    nu: float = 0.0  # degrees of freedom of the calibrated null distribution
 
     @property
     def df(self) -> int:
@@ -557,7 +572,6 @@ def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: int
             if len(null) >= 100:  # enough nulls to measure the spread as well as the scale
                 c = max(float(np.var(sims, ddof=1)) / (2.0 * mean), 0.5)
                 nu = float(np.clip(mean / c, 0.5, 10.0 * t.df))
-        t.nu = nu
         t.p_value = float(stats.chi2.sf(t.statistic / c, nu))
         t.p_adjusted = float(min(1.0, t.p_value * m))
         t.log_p = float(min(0.0, chi2_logsf(t.statistic / c, nu) + np.log(m)))

@@ -65,6 +65,7 @@ from scipy import stats
 from scipy.special import eval_legendre
 
 from physics.calibration import json_safe
+from physics.discrepancy import Analysis, blocks, runs
 from physics.effects import CATALOGUE, PARAMETER_SHIFT, UNEXPLAINED, separating_experiment
 from physics.errorsep import InsufficientData
 from physics.methods import QUADRIC_MIN_THICKNESS, fit_ellipsoid
@@ -133,26 +134,6 @@ NEEDS_ANGLES = {
 }
 
 
-class _LocalAnalysis:
-    """Stand-in for physics.discrepancy.Analysis while that module does not exist (same fields)."""
-
-    def __init__(self, result: dict[str, Any], series: dict[str, Any]) -> None:
-        self.result, self.series = result, series
-
-    def to_json(self) -> dict[str, Any]:
-        return self.result
-
-
-def _analysis_class() -> Any:
-    try:
-        from physics.discrepancy import Analysis  # the lead's class; imported late (it imports this module)
-    except ModuleNotFoundError as e:
-        if e.name != "physics.discrepancy":
-            raise
-        return _LocalAnalysis
-    return Analysis
-
-
 # --------------------------------------------------------------------------------------------------
 # Data: the recording's columns, and block averaging of long recordings
 # --------------------------------------------------------------------------------------------------
@@ -203,14 +184,8 @@ def _decimate(d: _Data, factor: int) -> tuple[_Data, np.ndarray]:
     n = len(d)
     if factor <= 1:
         return d, np.arange(n)
-    dt = np.diff(d.t)
-    med = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
-    brk = np.r_[True, (d.step[1:] != d.step[:-1]) | (dt > GAP_RATIO * med)]
-    run = np.cumsum(brk) - 1
-    pos = np.arange(n) - np.flatnonzero(brk)[run]
-    new = np.r_[True, (run[1:] != run[:-1]) | (pos[1:] // factor != pos[:-1] // factor)]
-    starts = np.flatnonzero(new)
-    block = np.cumsum(new) - 1
+    block = blocks(runs(d.t, d.step, GAP_RATIO), factor)
+    starts = np.r_[0, np.flatnonzero(np.diff(block)) + 1]
     count = np.diff(np.r_[starts, n]).astype(float)
 
     def mean(a: np.ndarray | None) -> np.ndarray | None:
@@ -1340,7 +1315,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         "fold": fold_full.astype(int),
     }
     report("done", 1.0)
-    return _analysis_class()(result=json_safe(result), series=series)
+    return Analysis(result=json_safe(result), series=series)
 
 
 # --------------------------------------------------------------------------------------------------

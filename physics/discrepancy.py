@@ -712,21 +712,17 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     all_tests: list[dict[str, Any]] = []
     selected: list[str] = []
     mains_hz: float | None = None
-    if len(ctx.t) >= 200:
-        line = line_search(r0, ctx, noise)
-        line_p = min(1.0, line["p_value"] * n_round1)
-        chosen = line["log_p"] + np.log(n_round1) < np.log(alpha)
-        all_tests.append({"effect": "mains_interference", "variant": f"line at {line['alias_hz']:.4f} Hz", "round": 1,
-                          "statistic": line["statistic"], "df": 6, "bartlett": 1.0, "p_value": line["p_value"],
-                          "p_adjusted": line_p, "selected": bool(chosen), "generic": False})
-        if chosen:
-            mains_hz = line["alias_hz"]
-            Xm = mains_columns(ctx, mains_hz)
-            coef_m, *_ = np.linalg.lstsq(Xm.transpose(1, 0, 2).reshape(-1, 6), r0.T.ravel(), rcond=None)
-            noise = estimate_noise(r0 - np.einsum("nip,p->ni", Xm, coef_m), ctx)
-            selected.append("mains_interference")
-    else:
-        untestable.append({"effect": "mains_interference", "reason": "needs at least 200 samples"})
+    line = line_search(r0, ctx, noise)
+    chosen = line["log_p"] + np.log(n_round1) < np.log(alpha)
+    all_tests.append({"effect": "mains_interference", "variant": f"line at {line['alias_hz']:.4f} Hz", "round": 1,
+                      "statistic": line["statistic"], "df": 6, "bartlett": 1.0, "p_value": line["p_value"],
+                      "p_adjusted": min(1.0, line["p_value"] * n_round1), "selected": bool(chosen), "generic": False})
+    if chosen:
+        mains_hz = line["alias_hz"]
+        Xm = mains_columns(ctx, mains_hz)
+        coef_m, *_ = np.linalg.lstsq(Xm.transpose(1, 0, 2).reshape(-1, 6), r0.T.ravel(), rcond=None)
+        noise = estimate_noise(r0 - np.einsum("nip,p->ni", Xm, coef_m), ctx)
+        selected.append("mains_interference")
 
     A0 = whiten_all(J0, noise, ctx.segment)
     Q0 = _orth(A0)
@@ -754,10 +750,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
                 best_name, best_log = name, t.log_p
         if best_name is not None:
             best_name = _simplest(best_name, tests, candidates, Q, resid, null, alpha, len(tests) + len(gtests) + 1)
-        for name, t in {**tests, **gtests}.items():
-            all_tests.append({"effect": name.split(":")[0], "variant": name, "round": round_no + 1,
-                              "statistic": t.statistic, "df": t.df, "bartlett": t.bartlett, "p_value": t.p_value,
-                              "p_adjusted": t.p_adjusted, "selected": name == best_name, "generic": name in gtests})
+        all_tests += [_row(t, round_no + 1, selected=name == best_name, generic=name in gtests)
+                      for name, t in {**tests, **gtests}.items()]
         if best_name is None:
             break
         selected.append(best_name)
@@ -781,33 +775,27 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         if final[weakest].log_p < np.log(alpha):
             break
         selected.remove(weakest)
-        all_tests.append({"effect": weakest.split(":")[0], "variant": weakest, "round": "backward",
-                          "statistic": final[weakest].statistic, "df": final[weakest].df, "bartlett": final[weakest].bartlett,
-                          "p_value": final[weakest].p_value, "p_adjusted": final[weakest].p_adjusted, "selected": False,
-                          "generic": False, "dropped": True})
+        all_tests.append(_row(final[weakest], "backward", dropped=True))
 
     say("model: refit with the effects", 0.7)
     # final linear fit (whitened) of nominal + selected effects, for parameters and sigmas
-    blocks = [A0] + [candidates[s] for s in selected]
-    A = np.column_stack(blocks)
+    parts = [A0] + [candidates[s] for s in selected]
+    A = np.column_stack(parts)
     coef, cov = _lstsq_cov(A, zr)
     raw_cols = [J0] + [(mains_columns(ctx, mains_hz) if s == "mains_interference" else eff[s][0]) for s in selected]
     Xraw = np.concatenate(raw_cols, axis=2)
     fitted = np.einsum("nip,p->ni", Xraw, coef)
     r_after = r0 - fitted
-    offsets = np.cumsum([0] + [b.shape[1] for b in blocks])
+    offsets = np.cumsum([0] + [b.shape[1] for b in parts])
 
     # generic tests again on the final residual: what no catalogue entry explains
-    unexplained = []
+    unexplained = [row for row in generic_first.values() if row["p_adjusted"] < alpha]
     if selected:
         Qf = _orth(A)
         zf = zr - Qf @ (Qf.T @ zr)
-        gt = {name: Test(name, _complement(Xw, Qf)) for name, Xw in generic_w.items()}
-        _score(list(gt.values()), zf, null)
-        unexplained = [t for t in gt.values() if t.df > 0 and t.p_adjusted < alpha]
-    else:
-        unexplained = [Test(name, np.zeros((1, row["df"])), row["statistic"], row["bartlett"], row["p_value"],
-                            row["p_adjusted"]) for name, row in generic_first.items() if row["p_adjusted"] < alpha]
+        gt = [Test(name, _complement(Xw, Qf)) for name, Xw in generic_w.items()]
+        _score(gt, zf, null)
+        unexplained = [_row(t, "final", generic=True) for t in gt if t.df > 0 and t.p_adjusted < alpha]
 
     say("held-out", 0.8)
     fold = _folds(ctx)
@@ -826,11 +814,10 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         row = {"statistic": t.statistic, "df": t.df, "p_value": t.p_value, "p_adjusted": t.p_adjusted}
         confusable = _confusable(name, selected, candidates, A0, z, alpha) if name != "mains_interference" else []
         findings.append(_finding(name, c, cv, eff, row, contrib, nom, ctx, y_raw, confusable, mains_hz))
-    for t in unexplained:
-        findings.append({"effect": fx.UNEXPLAINED, "statistic": t.statistic, "df": t.df, "p_value": t.p_value,
-                         "p_adjusted": t.p_adjusted, "parameters": {}, "sigma": {}, "heading_impact_deg": None,
-                         "where": {"against": t.name},
-                         "explanation": f"unexplained structure against {t.name}: no catalogue entry accounts for it",
+    for row in unexplained:
+        findings.append({"effect": fx.UNEXPLAINED, **{k: row[k] for k in ("statistic", "df", "p_value", "p_adjusted")},
+                         "parameters": {}, "sigma": {}, "heading_impact_deg": None, "where": {"against": row["variant"]},
+                         "explanation": f"unexplained structure against {row['variant']}: no catalogue entry accounts for it",
                          "confusable_with": [], "separating_experiment": ""})
     findings.extend(_parameter_findings(nom, calibration, A0, ctx))
     findings.sort(key=lambda f: (f["effect"] in (fx.UNEXPLAINED, fx.PARAMETER_SHIFT), -(f["heading_impact_deg"] or 0.0)))
@@ -861,7 +848,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         "findings": findings,
         "tests": all_tests,
         "untestable": untestable,
-        "locate": locate(ctx, r0, noise.floor, eff, candidates, A0, z, null, generic_first),
+        "locate": locate(ctx, r0, noise.floor, candidates, Q0, z, null, generic_first),
         "notes": notes,
     }
     say("done", 1.0)
@@ -870,6 +857,13 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
               "residual_before": r0, "residual_after": r_after, "heldout_pred_before": pred_before,
               "heldout_pred_after": pred_after, "fold": fold}
     return Analysis(json_safe(result), series)
+
+
+def _row(t: Test, round_: int | str, selected: bool = False, generic: bool = False, **extra: Any) -> dict[str, Any]:
+    """One test as the report lists it."""
+    return {"effect": t.name.split(":")[0], "variant": t.name, "round": round_, "statistic": t.statistic, "df": t.df,
+            "bartlett": t.bartlett, "p_value": t.p_value, "p_adjusted": t.p_adjusted, "selected": selected,
+            "generic": generic, **extra}
 
 
 def _simplest(best: str, tests: dict[str, "Test"], candidates: dict[str, np.ndarray], Q: np.ndarray, resid: np.ndarray,
@@ -1066,7 +1060,8 @@ def _heldout(ctx: Context, y: np.ndarray, nom: Nominal, cols: list[np.ndarray], 
              sigma: np.ndarray) -> np.ndarray:
     """Each sample predicted by the linear twin fitted to the other folds (axis-weighted least squares)."""
     X = np.concatenate(cols, axis=2)
-    r0 = y - nom.predict(ctx)
+    base = nom.predict(ctx)
+    r0 = y - base
     pred = np.empty_like(y)
     for f in np.unique(fold):
         train = fold != f
@@ -1074,7 +1069,7 @@ def _heldout(ctx: Context, y: np.ndarray, nom: Nominal, cols: list[np.ndarray], 
         b = np.concatenate([r0[train, j] / sigma[j] for j in range(3)])
         coef, _ = _lstsq_cov(A, b)
         test = ~train
-        pred[test] = nom.predict(ctx)[test] + np.einsum("nip,p->ni", X[test], coef)
+        pred[test] = base[test] + np.einsum("nip,p->ni", X[test], coef)
     return pred
 
 
@@ -1134,8 +1129,8 @@ def M_o_angle_change(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
 
 
-def locate(ctx: Context, r0: np.ndarray, sigma: np.ndarray, eff: dict, candidates: dict,
-           A0: np.ndarray, z: np.ndarray, null: np.ndarray | None, generic: dict[str, dict]) -> dict[str, Any]:
+def locate(ctx: Context, r0: np.ndarray, sigma: np.ndarray, candidates: dict, Q0: np.ndarray, z: np.ndarray,
+           null: np.ndarray | None, generic: dict[str, dict]) -> dict[str, Any]:
     """Where the nominal residual lives: axis, step, harmonics against each angle, time, direction, frame,
     whiteness, witness channels."""
     rms = np.sqrt(np.mean(r0 ** 2, axis=0))
@@ -1190,7 +1185,7 @@ def locate(ctx: Context, r0: np.ndarray, sigma: np.ndarray, eff: dict, candidate
     frame = {}
     for name in ("stage_hard_iron:outer", "stage_hard_iron:middle", "field_drift", "temperature_drift"):
         if name in candidates:
-            t = Test(name, _complement(candidates[name], _orth(A0)))
+            t = Test(name, _complement(candidates[name], Q0))
             _score([t], z, null)
             frame[{"stage_hard_iron:outer": "fixed in the outer stage", "stage_hard_iron:middle": "fixed in the middle stage",
                    "field_drift": "drifting in the lab frame", "temperature_drift": "drifting in the sensor frame"}[name]] = {

@@ -1,5 +1,6 @@
-"""Shared fixtures: the service on SQLite and on the machine's PostgreSQL, API keys per role, and a
-simulated station running in its own thread (as a separate station would)."""
+"""Shared fixtures: the service on SQLite and on the machine's PostgreSQL, API keys per role, a fake
+engine that answers procedure steps with the forward model, and a simulated station running in its
+own thread (as a separate station would)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
+
+from physics.recording import Recording
+from physics.simulate import World
+from procedures.calibrate import PROCEDURES
+from procedures.steps import Acquire, Move, Outcome, Scan, Step, drive
 
 PG_URL = "postgresql://postgres@127.0.0.1:5432/test"
 
@@ -86,6 +93,50 @@ def api(db_url: str) -> Iterator[Api]:
         with app.state.sessions() as session:
             keys = {role: create_key(session, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
         yield Api(client, keys)
+
+
+class FakeEngine:
+    """Answers procedure steps like a station, with the physics forward model: Move remembers the
+    angles, Acquire samples there, Scan turns the axis at constant speed sampling at 20 Hz, each sample
+    with its angle (no I/O, no hardware)."""
+
+    def __init__(self, units: list, world: World = World(), seed: int = 0) -> None:
+        self.units, self.world = units, world
+        self.rng = np.random.default_rng(seed)
+        self.angles = (0.0, 0.0, 0.0)
+        self.steps: list[Step] = []
+        self.t = 0.0
+
+    def _record(self, step: str, a: np.ndarray) -> dict[int, Recording]:
+        n = len(a)
+        h_b, f_b = self.world.body_vectors(a[:, 0], a[:, 1], a[:, 2])
+        out = {slot: Recording.from_arrays(
+            t=self.t + np.arange(n) / 20.0, step=[step] * n, psi_t=a[:, 0], theta_t=a[:, 1], phi_t=a[:, 2],
+            mag=u.mag.measure(h_b, self.rng), acc=u.acc.measure(f_b, self.rng), meta={"serial": u.serial})
+            for slot, u in enumerate(self.units)}
+        self.t += n / 20.0 + 1.0  # the move to the next pose
+        return out
+
+    def __call__(self, step: Step) -> object:
+        self.steps.append(step)
+        if isinstance(step, Move):
+            self.angles = (step.psi, step.theta, step.phi)
+        if isinstance(step, Acquire):
+            return self._record(step.step, np.tile(self.angles, (step.samples, 1)))
+        if isinstance(step, Scan):
+            n = int(abs(step.stop_deg - step.start_deg) / step.speed_dps * 20.0) + 1
+            a = np.tile(step.start_angles, (n, 1))
+            a[:, step.index] = np.linspace(step.start_deg, step.stop_deg, n)
+            self.angles = step.stop_angles
+            return self._record(step.step, a)
+        return None
+
+    def run(self, name: str, params: dict | None = None) -> Outcome:
+        proc = PROCEDURES[name]
+        return drive(proc.run(proc.validate(params)), self)
+
+    def kinds(self) -> list[str]:
+        return [type(s).__name__ for s in self.steps]
 
 
 @contextmanager

@@ -26,7 +26,8 @@ from physics.simulate import Pose, Scan as PlanScan, World
 from physics.table import Motion
 from procedures.calibrate import PROCEDURES, CharacterizeParams, characterize_plan, plan_seconds
 from procedures.engine import Engine, Event, RecordingSink, RunState, encoder_track, open_station, run_procedure, sample_clock
-from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, Scan, Settle, Step, drive, step_seconds
+from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, Scan, drive, step_seconds
+from conftest import FakeEngine
 
 ROOT = Path(__file__).parent.parent
 
@@ -93,42 +94,6 @@ def test_a_scan_step_refuses_an_unknown_axis_or_a_speed_that_is_not_positive():
 # --------------------------------------------------------------------------------------------------
 # The procedure on a fake engine (the physics forward model answers)
 # --------------------------------------------------------------------------------------------------
-
-class FakeEngine:
-    """Answers steps like a station: Move remembers the angles, Acquire samples there, Scan turns the
-    axis at constant speed sampling at 20 Hz, each sample with its angle."""
-
-    def __init__(self, units: list, world: World = World(), seed: int = 0) -> None:
-        self.units, self.world = units, world
-        self.rng = np.random.default_rng(seed)
-        self.angles = (0.0, 0.0, 0.0)
-        self.steps: list[Step] = []
-        self.t = 0.0
-
-    def _record(self, step: str, a: np.ndarray) -> dict[int, Recording]:
-        n = len(a)
-        h_b, f_b = self.world.body_vectors(a[:, 0], a[:, 1], a[:, 2])
-        out = {slot: Recording.from_arrays(
-            t=self.t + np.arange(n) / 20.0, step=[step] * n, psi_t=a[:, 0], theta_t=a[:, 1], phi_t=a[:, 2],
-            mag=u.mag.measure(h_b, self.rng), acc=u.acc.measure(f_b, self.rng), meta={"serial": u.serial})
-            for slot, u in enumerate(self.units)}
-        self.t += n / 20.0 + 1.0
-        return out
-
-    def __call__(self, step: Step) -> object:
-        self.steps.append(step)
-        if isinstance(step, Move):
-            self.angles = (step.psi, step.theta, step.phi)
-        if isinstance(step, Acquire):
-            return self._record(step.step, np.tile(self.angles, (step.samples, 1)))
-        if isinstance(step, Scan):
-            n = int(abs(step.stop_deg - step.start_deg) / step.speed_dps * 20.0) + 1
-            a = np.tile(step.start_angles, (n, 1))
-            a[:, step.index] = np.linspace(step.start_deg, step.stop_deg, n)
-            self.angles = step.stop_angles
-            return self._record(step.step, a)
-        return None
-
 
 def test_characterize_on_a_fake_engine_scans_approaches_fits_and_analyses():
     unit = reference_unit(3.0, 4.0)

@@ -8,47 +8,12 @@ import pytest
 from pydantic import ValidationError
 
 from physics.calibration import truth_summary
-from physics.recording import Recording
 from physics.sensor import random_unit, reference_unit
 from physics.simulate import World
 from physics.table import TableGeometry
 from procedures.calibrate import PROCEDURES, calibration_poses, CalibrateParams
-from procedures.steps import Acquire, Checkpoint, Move, Outcome, Settle, Step, drive
-
-
-class FakeEngine:
-    """Answers steps like a station would: Move remembers the angles, Acquire simulates samples there."""
-
-    def __init__(self, units: list, world: World = World(), seed: int = 0) -> None:
-        self.units, self.world = units, world
-        self.rng = np.random.default_rng(seed)
-        self.angles = (0.0, 0.0, 0.0)
-        self.steps: list[Step] = []
-        self.t = 0.0
-
-    def __call__(self, step: Step) -> object:
-        self.steps.append(step)
-        if isinstance(step, Move):
-            self.angles = (step.psi, step.theta, step.phi)
-        if isinstance(step, Acquire):
-            n = step.samples
-            a = np.tile(self.angles, (n, 1))
-            h_b, f_b = self.world.body_vectors(a[:, 0], a[:, 1], a[:, 2])
-            out = {}
-            for slot, u in enumerate(self.units):
-                out[slot] = Recording.from_arrays(
-                    t=self.t + np.arange(n) / 20.0, step=[step.step] * n, psi_t=a[:, 0], theta_t=a[:, 1], phi_t=a[:, 2],
-                    mag=u.mag.measure(h_b, self.rng), acc=u.acc.measure(f_b, self.rng), meta={"serial": u.serial})
-            self.t += n / 20.0
-            return out
-        return None
-
-    def run(self, name: str, params: dict | None = None) -> Outcome:
-        proc = PROCEDURES[name]
-        return drive(proc.run(proc.validate(params)), self)
-
-    def kinds(self) -> list[str]:
-        return [type(s).__name__ for s in self.steps]
+from procedures.steps import Acquire, Checkpoint, Move, Settle
+from conftest import FakeEngine
 
 
 def test_calibrate_emits_the_poses_in_order_then_fits_every_unit():

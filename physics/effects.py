@@ -8,7 +8,7 @@ parameters and meaning:
 - :class:`Effect` subclasses here *conceal* an effect in a simulation, sample by sample in time
   (stages ``geometry``, ``sample_time``, ``body_field``, ``mag_raw``); the simulated station
   (drivers/sim/world.py) and the offline timeline simulator (physics/simulate.py) apply them.
-- physics/discrepancy.py *fits* each effect as a parametric term of the twin, vectorised.
+- physics/discrepancy/ *fits* each effect as a parametric term of the twin, vectorised.
 
 They are written separately on purpose: the blind proof (``compasscal prove``) would not catch a
 mistake that both sides shared.
@@ -51,6 +51,9 @@ class Entry:
     plausible: dict[str, float]  # name -> largest plausible |value| (anything bigger is suspect)
     needs: str  # what a recording must contain for the effect to be identifiable
     separate: dict[str, str] = field(default_factory=dict)  # other id -> experiment that separates them
+    #: where it lives in the analyser's one finding schema: (frame, form, against); frame "stage" is the
+    #: fitted stage's (outer or middle)
+    model: tuple[str, str, str | None] = ("sensor", "offset", None)
 
 
 CATALOGUE: dict[str, Entry] = {e.id: e for e in [
@@ -71,6 +74,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
                              "the stage, an axis error with the geometry",
          "field_gradient": "sweep the inner axes at several azimuths (the characterize plan): a gradient's "
                            "signature turns with the azimuth, a stage magnet's does not"},
+        model=('stage', 'offset', None),
     ),
     Entry(
         "stage_soft_iron", "Magnetisable material on a table stage",
@@ -83,6 +87,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         {"A": 0.05},
         "tilted poses at several azimuths",
         {"stage_hard_iron": "repeat the tilted poses at two azimuths 90 deg apart"},
+        model=('stage', 'linear', None),
     ),
     Entry(
         "nonlinearity", "Output not linear in the field",
@@ -94,6 +99,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         {"c3": 0.02 * 5000},
         "any full turns (third harmonics need at least 8 poses per turn)",
         {"field_gradient": "shift the unit on the platform: a gradient changes, a non-linearity does not"},
+        model=('sensor', 'cubic', None),
     ),
     Entry(
         "temperature_drift", "Bias drifting with temperature",
@@ -106,6 +112,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         {"field_drift": "hold one pose for the warm-up, then repeat the run warm: a field drift does not "
                         "follow the unit's temperature and turns with the table",
          "mains_interference": "log temperature at a constant attitude for several minutes"},
+        model=('sensor', 'offset', 'temp_c'),
     ),
     Entry(
         "field_drift", "Lab field changing during the run",
@@ -117,6 +124,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         "a run long enough for the drift to show, with a repeated closing pose",
         {"temperature_drift": "repeat the run at a constant temperature, or log a reference magnetometer "
                               "fixed in the lab"},
+        model=('lab', 'offset', 'time'),
     ),
     Entry(
         "time_lag", "Sample lags the encoder angle",
@@ -128,6 +136,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         {"lag_s": 0.5},
         "samples taken while the table turns, both ways",
         {"hysteresis": "hold still after each approach: a lag vanishes at rest, hysteresis stays"},
+        model=('sensor', 'lag', 'rate'),
     ),
     Entry(
         "hysteresis", "Output depends on the direction of approach",
@@ -140,6 +149,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         {"offset": 0.01},
         "holds approached from both sides",
         {"time_lag": "hold still longer after each approach: a lag vanishes at rest, hysteresis stays"},
+        model=('platform', 'hysteresis', None),
     ),
     Entry(
         "table_axis_error", "Table axes not ideal",
@@ -153,6 +163,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         {"nonperp_deg": 0.2, "encoder_zero_deg": 0.5},
         "poses tilted about both inner axes at several azimuths",
         {"stage_hard_iron": "repeat with the unit rotated by 90 deg on the platform"},
+        model=('table', 'rotation', None),
     ),
     Entry(
         "field_gradient", "Sensor off the rotation centre in a non-uniform field",
@@ -165,6 +176,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         {"gradient_times_offset": 0.01},
         "full turns about at least two axes",
         {"nonlinearity": "shift the unit on the platform: a gradient changes, a non-linearity does not"},
+        model=('lab', 'gradient', None),
     ),
     Entry(
         "mains_interference", "50/60 Hz pickup aliased into the samples",
@@ -176,6 +188,7 @@ CATALOGUE: dict[str, Entry] = {e.id: e for e in [
         {"amplitude_lsb": 50.0},
         "static holds of several seconds",
         {"temperature_drift": "hold one pose for several minutes and look at the spectrum"},
+        model=('sensor', 'line', 'time'),
     ),
 ]}
 

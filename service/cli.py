@@ -15,7 +15,7 @@ from rich.table import Table
 from physics.calibration import Calibration, staged_truth_errors, truth_summary
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, fit as fit_recording
-from physics.recording import Recording, RecordingError, format_recording, parse_recording
+from physics.recording import Recording, RecordingError, format_recording
 from physics.sensor import random_unit, reference_unit
 from physics.simulate import World, plan_cost, simulate_recording, truth_from_json, truth_json
 from physics.table import TableGeometry
@@ -30,6 +30,10 @@ err_console = Console(stderr=True)  # errors never mix with a command's stdout (
 class UnitKind(str, Enum):
     reference = "reference"
     random = "random"
+
+
+MAPPING_HELP = ("TOML mapping that says how to read a file no built-in reader knows: columns, units, axis signs "
+                "and order, angle convention or attitude quaternion, time base (see examples/mapping.toml).")
 
 
 Method = Enum("Method", {m.replace("-", "_"): m for m in METHODS}, type=str)  # type: ignore[misc]
@@ -71,16 +75,17 @@ def simulate(
 
 @app.command()
 def fit(
-    recording: Path = typer.Argument(..., exists=True, dir_okay=False, help="Recording CSV (RECORDING.md)."),
+    recording: Path = typer.Argument(..., exists=True, dir_okay=False, help="Recording: RECORDING.md CSV, a foreign format the importers read (e.g. .mat, .hdf5), or any file with --mapping."),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="Calibration JSON to write."),
     method: Method = typer.Option(METHODS[0], help="Calibration method."),  # type: ignore[valid-type]
     skip_bad_rows: bool = typer.Option(False, help="Drop malformed rows instead of refusing the file."),
     plot: Optional[Path] = typer.Option(None, help="Write a PNG of the staged heading errors and the residuals."),
     truth: Optional[Path] = typer.Option(None, help="A .truth.json from `simulate`: also score against the true unit."),
+    mapping: Optional[Path] = typer.Option(None, "--mapping", exists=True, dir_okay=False, help=MAPPING_HELP),
 ) -> None:
     """Calibrate from a recording; print the paper's tables, uncertainties and staged heading errors."""
+    rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
     try:
-        rec = parse_recording(recording.read_text(encoding="utf-8"), skip_bad_rows=skip_bad_rows)
         cal = fit_recording(rec, method.value)
     except (RecordingError, InsufficientData, ValueError) as e:
         _fail(f"{recording}: {e}")
@@ -144,17 +149,13 @@ def print_truth(cal: Calibration, truth: dict[str, object]) -> None:
                   + ", ".join(f"{k} {v:.3f}" for k, v in st.items()))
 
 
-def _read_recording(path: Path) -> Recording:
-    """A recording from a file: RECORDING.md CSV or a foreign format (service.imports); errors end
-    the command naming the file and the line or field."""
+def _read_recording(path: Path, mapping: Optional[Path] = None, skip_bad_rows: bool = False) -> Recording:
+    """A recording from a file: RECORDING.md CSV, a foreign format, or any file with a mapping
+    (service.imports); errors end the command naming the file and the line, column or key."""
+    from service.imports import read_recording_file
+
     try:
-        from service.imports import read_recording_file
-    except ImportError:  # only the project's own CSV then
-        read_recording_file = None
-    try:
-        if read_recording_file is not None:
-            return read_recording_file(path)
-        return parse_recording(path.read_text(encoding="utf-8"))
+        return read_recording_file(path, mapping=mapping, skip_bad_rows=skip_bad_rows)
     except (ValueError, OSError) as e:  # RecordingError, undecodable text, unreadable file
         msg = str(e)
         _fail(msg if msg.startswith(f"{path.name}:") else f"{path}: {msg}")  # the importers name the file already
@@ -180,13 +181,14 @@ def _read_calibration(path: Path) -> Calibration:
 
 @app.command()
 def analyze(
-    recording: Path = typer.Argument(..., exists=True, dir_okay=False, help="Recording: RECORDING.md CSV, or a foreign format the importers read (e.g. .mat)."),
+    recording: Path = typer.Argument(..., exists=True, dir_okay=False, help="Recording: RECORDING.md CSV, a foreign format the importers read (e.g. .mat, .hdf5), or any file with --mapping."),
     calibration: Optional[Path] = typer.Option(None, "--calibration", exists=True, dir_okay=False, help="The unit's calibration JSON (from `fit -o`): the nominal model the recording's own fit is compared with (shifted parameters are reported)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the analysis JSON here."),
     html: Optional[Path] = typer.Option(None, "--html", help="Write the HTML report (self-contained, plots inline) here."),
     null_sims: int = typer.Option(200, "--null-sims", min=0, help="Simulated null recordings that calibrate the tests' false-alarm rate."),
     seed: Optional[int] = typer.Option(None, help="Seed of the null simulations (default: the analyser's own fixed seed)."),
     alpha: float = typer.Option(0.01, min=1e-6, max=0.5, help="Significance after correction for the number of tests."),
+    mapping: Optional[Path] = typer.Option(None, "--mapping", exists=True, dir_okay=False, help=MAPPING_HELP),
 ) -> None:
     """Find where a recording departs from the nominal model, name the missing physics, and show the
     fit before and after (held out)."""
@@ -194,7 +196,7 @@ def analyze(
 
     from physics.discrepancy import analyze as run_analysis
 
-    rec = _read_recording(recording)
+    rec = _read_recording(recording, mapping=mapping)
     cal = _read_calibration(calibration) if calibration is not None else None
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
                   TimeElapsedColumn(), console=err_console, transient=True) as bar:
@@ -228,13 +230,15 @@ def print_analysis(result: dict[str, object]) -> None:
     from rich.markup import escape
 
     from service.plots import residual_names
-    from service.report import num, parameter_rows, text
+    from service.report import model_text, num, parameter_rows, text
 
     r: dict[str, Any] = dict(result)
     verdict = str(r.get("verdict"))
     color = "red" if verdict == "discrepancy" else "green"
     console.print(f"verdict: [bold {color}]{escape(verdict)}[/] (model {escape(str(r.get('model')))}, {r.get('samples')} samples "
                   f"over {num(r.get('duration_s'), 5)} s, alpha {num(r.get('alpha'), 3)})")
+    if r.get("summary"):
+        console.print(f"[bold]{escape(text(r.get('summary')))}[/]")
     held = r.get("heldout") or {}
     free = r.get("model") == "attitude_free"
     t = Table(title="Noise floor and fit (LSB)")
@@ -266,6 +270,7 @@ def print_analysis(result: dict[str, object]) -> None:
         console.print(f"[bold]{rank}. {escape(str(f.get('effect')))}[/]: statistic {num(f.get('statistic'))} (df {num(f.get('df'))}), "
                       f"p {num(f.get('p_value'), 3)}, adjusted {num(f.get('p_adjusted'), 3)}; heading impact "
                       f"{num(f.get('heading_impact_deg'), 3)} deg")
+        console.print(f"   model: {escape(model_text(f))}")
         for name, value in parameter_rows(f):
             console.print(f"   {escape(name)} = {escape(value)}")
         if f.get("where"):
@@ -584,19 +589,32 @@ def serve(
 
 @app.command()
 def prove(
-    n: int = typer.Option(10, "--n", min=1, help="Recordings per catalogue effect (non-centrality log-uniform in 3-300)."),
+    n: int = typer.Option(10, "--n", min=0, help="Recordings per catalogue effect (non-centrality log-uniform in 3-300; 0: none)."),
     seed: int = typer.Option(0, help="Random seed of the whole proof."),
     nulls: Optional[int] = typer.Option(None, "--nulls", min=0, help="Null recordings (default max(3 n, 20))."),
+    open_n: int = typer.Option(0, "--open-n", min=0,
+                               help="Out-of-catalogue recordings per open-world kind (0: none; see proof.concealments)."),
+    open_plan: str = typer.Option("calibrate", "--open-plan",
+                                  help="Plan of the open-world cases: calibrate (level turn, calibration sweeps, six "
+                                       "accelerometer poses) or characterize."),
+    open_nulls: int = typer.Option(0, "--open-nulls", min=0,
+                                   help="Null recordings drawn as the open-world cases are (their plan and noise)."),
     workers: int = typer.Option(2, "--workers", min=1, help="Processes analysing in parallel."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the score and every case to this JSON file."),
 ) -> None:
     """The blind proof: recordings of random units on the characterize plan with concealed effects, nulls
-    and pairs; the analyser sees only the recordings; prints detection, false alarms, naming, recovery."""
+    and pairs (and with --open-n, physics outside the catalogue on the calibrate plan); the analyser sees
+    only the recordings; prints detection, false alarms, naming, recovery and the open-world success."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from physics.prove import format_report, run_proof
     from procedures.calibrate import characterize_plan
+    from proof.generator import ordinary_plan
+    from proof.runner import run_proof
+    from proof.score import format_report
 
+    plans = {"calibrate": ordinary_plan, "characterize": characterize_plan}
+    if open_plan not in plans:
+        raise typer.BadParameter(f"expected one of {', '.join(plans)}, got {open_plan!r}", param_hint="--open-plan")
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
                   TimeRemainingColumn(), console=err_console, transient=False) as bar:
         task = bar.add_task("prove", total=None, info="")
@@ -604,7 +622,8 @@ def prove(
         def on_progress(done: int, total: int, kind: str) -> None:
             bar.update(task, completed=done, total=total, info=kind)
 
-        out = run_proof(n, seed, workers, on_progress, plan=characterize_plan(), nulls=nulls)
+        out = run_proof(n, seed, workers, on_progress, plan=characterize_plan(), nulls=nulls, open_n=open_n,
+                        open_plan=plans[open_plan](), open_nulls=open_nulls)
     console.print(format_report(out["score"]), markup=False, highlight=False, soft_wrap=True)
     console.print(f"{len(out['cases'])} recordings in {out['config']['wall_s']:.0f} s", markup=False, highlight=False)
     if json_out is not None:

@@ -479,10 +479,12 @@ def _step_colors(codes: np.ndarray) -> np.ndarray:
     return cmap(codes % 20)
 
 
-def residual_time_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_NAMES) -> Figure | None:
+def residual_time_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_NAMES,
+                         windows: Sequence[Sequence[float]] = ()) -> Figure | None:
     """Residuals against time, before (left) and after (right) the fitted effects, one row per sensor
-    axis, coloured by step: where in the run the mismatch lives. Points are rasterised inside the SVG
-    (a long run has tens of thousands). None when no residual is finite."""
+    axis, coloured by step: where in the run the mismatch lives; ``windows`` (the time segments of the
+    findings) shaded. Points are rasterised inside the SVG (a long run has tens of thousands). None when
+    no residual is finite."""
     t = np.asarray(series["t"], dtype=float)
     before = np.asarray(series["residual_before"], dtype=float).reshape(len(t), -1)
     after = np.asarray(series["residual_after"], dtype=float).reshape(len(t), -1)
@@ -499,6 +501,8 @@ def residual_time_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_
         lim = np.nanmax(np.abs(np.r_[before[:, i], after[:, i]])) if np.isfinite(before[:, i]).any() else 1.0
         for col, (r, label) in enumerate(((before, "before"), (after, "after"))):
             ax = axes[row, col]
+            for a, b in windows:  # when a discovered departure was present
+                ax.axvspan(float(a), float(b), color="#f4c542", alpha=0.25, lw=0)
             ax.scatter(t, r[:, i], c=colors, s=2, lw=0, rasterized=True)
             ax.axhline(0, color="0.5", lw=0.6)
             ax.set_title(f"{_name(names, i)} {label} the fitted effects (rms {rms[label][i]:.3g} LSB)",

@@ -23,7 +23,7 @@ _env = Environment(loader=FileSystemLoader(str(Path(__file__).parent / "template
 
 #: Finding keys shown in their own columns (in this order); any other key goes to "other".
 FINDING_COLUMNS = ("effect", "statistic", "df", "p_value", "p_adjusted", "parameters", "sigma", "heading_impact_deg",
-                   "where", "explanation", "confusable_with", "separating_experiment")
+                   "where", "explanation", "confusable_with", "separating_experiment", "model", "plausible")
 #: Test keys of the contract (columns of the tests table, in this order).
 TEST_COLUMNS = ("effect", "variant", "statistic", "df", "p_value", "p_adjusted", "selected")
 
@@ -107,6 +107,22 @@ def tree(v: Any, depth: int = 0) -> dict[str, Any]:
     return {"kind": "text", "text": text(v) if v not in (None, {}, []) else "-"}
 
 
+def model_text(finding: Mapping[str, Any]) -> str:
+    """A finding's model in one line: form, frame, what it follows and when (the one finding schema)."""
+    m = finding.get("model") or {}
+    if not isinstance(m, Mapping) or not any(m.get(k) for k in ("frame", "form", "against", "segments")):
+        return "-"
+    parts = [str(m.get("form") or "structure"), f"in the {m['frame']} frame" if m.get("frame") else ""]
+    if m.get("against"):
+        parts.append(f"against {m['against']}")
+    segs = m.get("segments") or []
+    if segs:
+        parts.append("during " + ", ".join(f"{num(a, 4)}-{num(b, 4)} s" for a, b in segs))
+    if finding.get("plausible") is False:
+        parts.append("(implausible size)")
+    return " ".join(p for p in parts if p)
+
+
 def per_axis(values: Any, digits: int = 4) -> list[str]:
     """Three per-axis numbers as strings (missing ones "-")."""
     vals = list(values) if isinstance(values, (list, tuple)) else []
@@ -126,9 +142,12 @@ def analysis_figures(result: Mapping[str, Any], series: Mapping[str, Any] | None
          "predicted by a fit that never saw it), with the noise floor estimated from the static holds."),
     ]
     if series is not None and len(series.get("t", [])):
-        out.append(("time", plots.residual_time_figure(series, names),
+        windows = [seg for f in result.get("findings") or [] if isinstance(f, Mapping)
+                   for seg in ((f.get("model") or {}).get("segments") or [])]
+        out.append(("time", plots.residual_time_figure(series, names, windows),
                     "Residuals against time, coloured by step: left with the nominal model, right with the fitted "
-                    "effects. A drift, a jump or one bad step shows here."))
+                    "effects. A drift, a jump or one bad step shows here; the shaded spans are the time windows "
+                    "of the findings (when a discovered departure was present)."))
         out.append(("angles", plots.residual_angle_figure(series, names),
                     "Residuals against each table angle: structure that repeats with an angle (a harmonic) belongs "
                     "to something fixed in a table stage or to the table's geometry."))
@@ -170,7 +189,7 @@ def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, t
             "rank": rank, "effect": str(f.get("effect", "?")), "statistic": num(f.get("statistic")), "df": num(f.get("df")),
             "p_value": num(f.get("p_value"), 3), "p_adjusted": num(f.get("p_adjusted"), 3),
             "parameters": parameter_cells(f), "heading_impact": num(f.get("heading_impact_deg"), 3),
-            "where": tree(f.get("where")), "explanation": text(f.get("explanation") or ""),
+            "where": tree(f.get("where")), "explanation": text(f.get("explanation") or ""), "model": model_text(f),
             "confusable_with": ", ".join(str(x) for x in f.get("confusable_with") or []) or "-",
             "separating_experiment": text(f.get("separating_experiment") or "") or "-",
             "other": tree(extra) if extra else None,
@@ -185,10 +204,10 @@ def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, t
     locate = result.get("locate") or {}
     known = {"verdict", "model", "samples", "duration_s", "alpha", "noise_floor_lsb", "noise_ar1",
              "residual_rms_before_lsb", "residual_rms_after_lsb", "heldout", "heading_error_deg", "findings", "tests",
-             "untestable", "locate", "notes"}
+             "untestable", "locate", "notes", "summary"}
     other = {k: v for k, v in result.items() if k not in known}
     return _env.get_template("analysis_report.html").render(
-        title=title, r=result, verdict=str(result.get("verdict", "?")), model=str(result.get("model", "?")),
+        title=title, r=result, summary_sentence=text(result.get("summary") or ""), verdict=str(result.get("verdict", "?")), model=str(result.get("model", "?")),
         samples=num(result.get("samples")), duration=num(result.get("duration_s"), 5), alpha=num(result.get("alpha"), 3),
         axes=("m_x", "m_y", "m_z"), summary=summary, heldout_scheme=text(held.get("scheme") or "not given"),
         improvement=num(held.get("improvement_pct"), 3), heading_before=num(he.get("before"), 3),
@@ -202,4 +221,4 @@ def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, t
         has_series=series is not None)
 
 
-__all__ = ["analysis_html", "analysis_figures", "num", "text", "tree"]
+__all__ = ["analysis_html", "analysis_figures", "model_text", "num", "text", "tree"]

@@ -1,4 +1,4 @@
-"""The discrepancy analyser (physics/discrepancy.py) on simulated recordings with concealed effects.
+"""The discrepancy analyser (physics/discrepancy/) on simulated recordings with concealed effects.
 
 The recordings come from the time-stepped simulator (physics/simulate.simulate_timeline), which applies
 the catalogue's concealment classes sample by sample; the analyser sees only the recording.
@@ -63,7 +63,7 @@ def test_null_is_consistent_and_the_report_is_complete() -> None:
     assert np.allclose(r["noise_floor_lsb"], 3.0, rtol=0.1)
     assert np.allclose(r["noise_ar1"], 0.5, atol=0.08)
     assert r["untestable"] == []  # the characterize plan makes every entry testable
-    assert {t["effect"] for t in r["tests"] if not t["generic"]} == set(fx.CATALOGUE)
+    assert {t["effect"] for t in r["tests"] if not t["generic"]} == set(fx.CATALOGUE) | {"discovered"}
     assert a.series["residual_before"].shape == (len(rec), 3)
     assert set(np.unique(a.series["fold"])) == {0, 1, 2, 3}
 

@@ -1,4 +1,4 @@
-"""The attitude-free discrepancy analysis (physics/handheld.py) on simulated hand-held recordings and on
+"""The attitude-free discrepancy analysis (physics/discrepancy/attitude_free.py) on simulated hand-held recordings and on
 the third-party recordings in data/real/.
 
 The simulator here is written independently of the analyser: a random unit (physics.sensor.random_unit)
@@ -17,7 +17,7 @@ import pytest
 
 from physics import effects
 from physics.frames import field_direction, rot_x, rot_y, rot_z
-from physics.handheld import analyze_attitude_free
+from physics.discrepancy.attitude_free import analyze_attitude_free
 from physics.recording import Recording
 from physics.sensor import random_unit
 
@@ -120,12 +120,17 @@ def test_null_recordings_are_consistent():
     assert len(alarms) <= 1, alarms
 
 
-def test_concealed_nonlinearity_is_found_and_named():
-    rng = np.random.default_rng(7)
-    unit = random_unit(rng)
+def _nonlinear_recording() -> tuple[Recording, effects.Nonlinearity]:
+    """A hand-held recording of seed 7's unit with a clear cubic term (1 % of full scale)."""
+    unit = random_unit(np.random.default_rng(7))
     k = unit.mag.k
     eff = effects.Nonlinearity(c3=0.01 * k * np.array([1.0, -0.6, 0.8]), k=k, bias=unit.mag.bias)
     rec, _ = simulate_handheld(7, conceal=[eff])
+    return rec, eff
+
+
+def test_concealed_nonlinearity_is_found_and_named():
+    rec, eff = _nonlinear_recording()
     r = analyze_attitude_free(rec, null_sims=100).result
     assert r["verdict"] == "discrepancy"
     assert _names(r)[0] == "nonlinearity", r["findings"]
@@ -227,3 +232,18 @@ def test_real_files_end_to_end(name):
     assert r["samples"] == len(rec) and r["verdict"] in ("consistent", "discrepancy")
     assert a.series["residual_before"].shape == (len(rec), 3)
     assert all(x > 0 for x in r["noise_floor_lsb"])
+
+
+def test_attitude_free_findings_carry_the_one_schema():
+    """Through physics.discrepancy.analyze, the attitude-free model's findings have the same model /
+    plausible fields as the table model's, and the report its plain summary."""
+    from physics.discrepancy import analyze
+
+    rec, _ = _nonlinear_recording()
+    r = analyze(rec, null_sims=60).result
+    f = r["findings"][0]
+    assert f["effect"] == "nonlinearity"
+    assert f["model"] == {"frame": "sensor", "form": "cubic", "against": None, "segments": []}
+    assert isinstance(f["plausible"], bool)
+    assert r["summary"].startswith("The model with")
+    json.dumps(r)

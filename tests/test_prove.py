@@ -1,20 +1,28 @@
-"""The blind proof (physics/prove.py): the generator sets effect sizes by non-centrality, nulls have
-none, the non-centrality is the expected increase of the whitened residual, the scorer counts right,
-and the whole proof runs end to end against the analyser."""
+"""The blind proof (proof/): the generator sets effect sizes by non-centrality, nulls have none, the
+non-centrality is the expected increase of the whitened residual, the out-of-catalogue concealments
+add what their closed form says, the scorer counts right (catalogue and open-world cases), and the
+whole proof runs end to end against the analyser."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from physics import prove
-from physics.effects import CONCEAL, make_effect
-from physics.prove import (EFFECTS, Case, Outcome, clopper_pearson_upper, field_base, format_report, logistic_fit,
-                           make_case, nominal_misfit, proof_tasks, run_proof, score)
-from physics.simulate import Noise, Pose, Scan, simulate_timeline
-from physics.table import Motion
+import proof.runner
+from physics.effects import CONCEAL, make_effect, stage_to_body
+from physics.simulate import Noise, Pose, Scan, World, simulate_timeline
+from physics.sensor import random_unit
+from physics.table import Motion, platform_attitude
+from proof.concealments import OPEN_KINDS, make_open
+from proof.generator import (EFFECTS, INTERMITTENT_GAP, WINDOW_FRAC, Case, draw_windows, equivalent_frames, field_base,
+                             make_case, make_open_case, nominal_misfit, ordinary_plan, recording_span)
+from proof.runner import proof_tasks, run_proof
+from proof.score import (Outcome, clopper_pearson_upper, format_report, judge_open, logistic_fit, merge_segments, score,
+                         score_open)
 
 RATE = Motion().sample_rate_hz
 
@@ -263,9 +271,14 @@ def test_scorer_reports_analyser_errors() -> None:
 # End to end, against the analyser
 # ---------------------------------------------------------------------------------------------------
 
+#: The end-to-end tests check the outcome's structure, not the analyser's power: fewer simulated
+#: nulls (the analyser's default is 200) keep the file within its time budget.
+E2E_ANALYZE = {"null_sims": 60}
+
 def test_run_proof_end_to_end() -> None:
     progress: list[tuple[int, int, str]] = []
-    out = run_proof(1, 5, workers=2, progress=lambda d, t, k: progress.append((d, t, k)), plan=PLAN, nulls=2)
+    out = run_proof(1, 5, workers=2, progress=lambda d, t, k: progress.append((d, t, k)), plan=PLAN, nulls=2,
+                    analyze_kwargs=E2E_ANALYZE)
     json.dumps(out)
     assert len(out["cases"]) == len(EFFECTS) + 2
     assert progress[-1][:2] == (len(EFFECTS) + 2, len(EFFECTS) + 2)
@@ -274,7 +287,7 @@ def test_run_proof_end_to_end() -> None:
     for c in out["cases"]:
         assert c["verdict"] in ("consistent", "discrepancy")
         assert c["seconds"] is not None and c["heldout_ratio"] is not None
-    assert "Detection rate" in prove.format_report(out["score"])
+    assert "Detection rate" in format_report(out["score"])
 
 
 def test_cli_prove_passes_the_characterize_plan_and_prints_the_report(tmp_path, monkeypatch) -> None:  # noqa: ANN001
@@ -286,14 +299,18 @@ def test_cli_prove_passes_the_characterize_plan_and_prints_the_report(tmp_path, 
     seen: dict = {}
 
     def fake_run_proof(n, seed, workers=2, progress=None, *, plan, nulls=None, **kw):  # noqa: ANN001, ANN202
-        seen.update(n=n, seed=seed, workers=workers, plan=plan, nulls=nulls)
+        seen.update(n=n, seed=seed, workers=workers, plan=plan, nulls=nulls, **kw)
         progress(1, 2, "null")
         progress(2, 2, "time_lag")
         cases = [fake_case("null"), fake_case("time_lag", 30.0)]
-        sc = score(cases, [analysis("consistent"), analysis("discrepancy", finding("time_lag"))])
+        results = [analysis("consistent"), analysis("discrepancy", finding("time_lag"))]
+        if kw.get("open_n"):
+            cases.append(open_case("segment_offset_lab", 40.0, [[50.0, 120.0]]))
+            results.append(open_result(found("lab", segments=[[51.0, 119.0]])))
+        sc = score(cases, results)
         return {"score": sc, "cases": [c.summary() for c in cases], "config": {"wall_s": 1.0}}
 
-    monkeypatch.setattr(prove, "run_proof", fake_run_proof)
+    monkeypatch.setattr(proof.runner, "run_proof", fake_run_proof)
     out = tmp_path / "proof.json"
     res = CliRunner().invoke(app, ["prove", "--n", "3", "--seed", "7", "--nulls", "5", "--workers", "1", "--json", str(out)])
     assert res.exit_code == 0, res.output
@@ -301,3 +318,297 @@ def test_cli_prove_passes_the_characterize_plan_and_prints_the_report(tmp_path, 
     assert seen["plan"] == characterize_plan()
     assert "False alarms on nulls: 0/1" in res.output and "Confusion matrix" in res.output
     assert json.loads(out.read_text())["score"]["detection"]["time_lag"]["detected"] == 1
+    assert seen["open_n"] == 0 and seen["open_nulls"] == 0 and "Out-of-catalogue" not in res.output
+
+    res = CliRunner().invoke(app, ["prove", "--n", "0", "--nulls", "0", "--open-n", "2", "--open-nulls", "4", "--workers", "1"])
+    assert res.exit_code == 0, res.output
+    assert (seen["n"], seen["open_n"], seen["open_nulls"]) == (0, 2, 4)
+    assert seen["open_plan"] == ordinary_plan()
+    assert "Out-of-catalogue" in res.output and "segment_offset_lab" in res.output
+    res = CliRunner().invoke(app, ["prove", "--open-n", "1", "--open-plan", "characterize", "--workers", "1"])
+    assert res.exit_code == 0 and seen["open_plan"] == characterize_plan()
+    assert CliRunner().invoke(app, ["prove", "--open-n", "1", "--open-plan", "nope"]).exit_code != 0
+
+
+# ---------------------------------------------------------------------------------------------------
+# Open world (issue 12): concealments against their closed form, sizing, scorer, end to end
+# ---------------------------------------------------------------------------------------------------
+
+OPEN_PLAN = ordinary_plan()
+
+
+def _pair(effect: object, seed: int = 0, world: World | None = None):  # noqa: ANN202
+    """(clean without, clean with) ``effect`` for one random unit on the ordinary plan, and the unit."""
+    unit = random_unit(np.random.default_rng(seed))
+    world = world or World(warmup_c=3.0, warmup_tau_s=80.0)
+    _, c0 = simulate_timeline(unit, OPEN_PLAN, world, effects=(), noise=Noise(0.0, 0.0, False))
+    _, c1 = simulate_timeline(unit, OPEN_PLAN, world, effects=[effect], noise=Noise(0.0, 0.0, False))
+    return c0, c1, unit, world
+
+
+def _inside(t: np.ndarray, segments: list[list[float]]) -> np.ndarray:
+    return np.any([(t >= a) & (t < b) for a, b in segments], axis=0)
+
+
+@pytest.mark.parametrize("kind,segments", [("segment_offset_sensor", [[40.0, 110.0]]),
+                                           ("intermittent_interference", [[10.0, 30.0], [60.0, 75.0], [150.0, 190.0]])])
+def test_sensor_offset_adds_exactly_d_inside_its_windows_and_nothing_outside(kind: str, segments: list) -> None:
+    d = np.array([30.0, -12.0, 7.0])
+    c0, c1, _, _ = _pair(make_open(kind, {"offset": d, "segments": segments}))
+    inside = _inside(c0.t, segments)
+    assert 0 < inside.sum() < len(c0) and len(c0.t[inside]) > 0
+    np.testing.assert_allclose(c1.mag[inside] - c0.mag[inside], np.tile(d, (inside.sum(), 1)), atol=1e-9)
+    np.testing.assert_array_equal(c1.mag[~inside], c0.mag[~inside])
+
+
+@pytest.mark.parametrize("frame", ["lab", "outer", "middle"])
+def test_lab_and_stage_offsets_turn_with_the_table(frame: str) -> None:
+    d = np.array([0.02, -0.01, 0.03])
+    segments = [[0.0, 120.0]]
+    c0, c1, unit, world = _pair(make_open(f"segment_offset_{frame}", {"offset": d, "segments": segments}), 1)
+    inside = _inside(c0.t, segments)
+    if frame == "lab":  # fixed in the lab: seen in body axes through the attitude, C_LP^T d
+        C = platform_attitude(c0.psi_t, c0.theta_t, c0.phi_t, world.geometry)
+        h = np.einsum("nji,j->ni", C, d)
+    else:  # fixed in a stage: Q(theta, phi) d
+        h = np.array([stage_to_body(frame, th, ph) @ d for th, ph in zip(c0.theta_t, c0.phi_t)])
+    expected = h @ unit.mag.M.T
+    np.testing.assert_allclose(c1.mag[inside] - c0.mag[inside], expected[inside], atol=1e-9)
+    np.testing.assert_array_equal(c1.mag[~inside], c0.mag[~inside])
+    # it turns: the added counts differ from pose to pose (unlike the sensor-frame offset)
+    assert np.ptp(expected[inside], axis=0).max() > 0.1 * np.abs(unit.mag.M @ d).max()
+
+
+def test_gain_vs_temp_scales_the_linear_output_with_temperature() -> None:
+    g = np.array([2e-3, -1e-3, 5e-4])
+    unit = random_unit(np.random.default_rng(2))
+    effect = make_open("gain_vs_temp", {"gain_per_c": g, "bias": unit.mag.bias, "t_ref_c": 23.0})
+    c0, c1, unit, world = _pair(effect, 2)
+    assert np.ptp(c0.temp_c) > 2.0
+    expected = g * (c0.temp_c - 23.0)[:, None] * (c0.mag - unit.mag.bias)
+    np.testing.assert_allclose(c1.mag - c0.mag, expected, rtol=1e-9, atol=1e-9)
+    # a gain, not a bias: twice the field, twice the added counts (at the same temperature)
+    early = c0.t < 5.0
+    assert np.abs(expected[early]).max() < 0.5 * np.abs(expected[c0.t > 150.0]).max()
+
+
+def test_misalignment_drift_is_a_rotation_growing_linearly_in_time() -> None:
+    w = np.array([1e-5, -2e-5, 3e-5])
+    unit = random_unit(np.random.default_rng(3))
+    effect = make_open("misalignment_drift", {"rate_rad_per_s": w, "bias": unit.mag.bias, "t_mid": 100.0})
+    c0, c1, unit, _ = _pair(effect, 3)
+    lin = c0.mag - unit.mag.bias
+    expected = np.cross(w * (c0.t - 100.0)[:, None], lin)
+    np.testing.assert_allclose(c1.mag - c0.mag, expected, rtol=1e-9, atol=1e-9)
+    # a rotation: the length of the linear output is kept to first order
+    assert np.abs(np.einsum("ni,ni->n", expected, lin)).max() < 1e-9 * np.abs(lin).max() ** 2
+
+
+def test_windows_are_long_enough_may_touch_either_end_and_keep_apart() -> None:
+    rng = np.random.default_rng(0)
+    span = (0.3, 199.9)
+    dur = span[1] - span[0]
+    starts = ends = 0
+    for _ in range(400):
+        (w,) = draw_windows(rng, span, 1, WINDOW_FRAC)
+        assert WINDOW_FRAC[0] * dur - 1e-9 <= w[1] - w[0] <= WINDOW_FRAC[1] * dur + 1e-9
+        assert span[0] <= w[0] < w[1] <= span[1] and not (w[0] == span[0] and w[1] == span[1])
+        starts += w[0] == span[0]
+        ends += w[1] == span[1]
+    assert 20 < starts < 120 and 20 < ends < 120
+    for k in (2, 3):
+        ws = np.array(draw_windows(rng, span, k, (0.08, 0.15), INTERMITTENT_GAP))
+        assert len(ws) == k and np.all(ws[1:, 0] - ws[:-1, 1] >= INTERMITTENT_GAP * dur - 1e-9)
+
+
+@pytest.mark.parametrize("kind", OPEN_KINDS)
+def test_open_case_is_sized_to_its_non_centrality_and_records_its_truth(kind: str) -> None:
+    target = {0: 8.0, 1: 40.0, 2: 200.0}[OPEN_KINDS.index(kind) % 3]
+    case = make_open_case(kind, np.random.default_rng(OPEN_KINDS.index(kind)), OPEN_PLAN, target)
+    assert case.nc[kind] == pytest.approx(target, rel=0.1) and case.effects == [kind]
+    assert nominal_misfit(case.clean, case.clean.mag, case.noise, RATE, field_base(case.world)) == pytest.approx(
+        case.nc[kind], rel=1e-6)
+    assert case.generator == "open" and case.span_s == recording_span(OPEN_PLAN)
+    assert case.span_s[0] == pytest.approx(case.rec.t[0]) and case.span_s[1] > case.rec.t[-1]
+    np.testing.assert_allclose(case.noise.sigma, 3.0)
+    m = case.model
+    assert m["frame"] in ("sensor", "lab", "outer", "middle") and m["form"] in ("offset", "gain", "rotation")
+    rebuilt = dict(case.params[kind], **({"bias": case.unit.mag.bias} if kind in ("gain_vs_temp", "misalignment_drift") else {}))
+    assert make_open(kind, rebuilt).model() == m  # the truth is what the concealment says of itself
+    dur = case.span_s[1] - case.span_s[0]
+    assert m["frame"] in case.frames
+    if kind.startswith("segment_offset"):
+        assert m["frame"] == kind.rsplit("_", 1)[1] and m["against"] is None and len(m["segments"]) == 1
+        assert m["segments"][0][1] - m["segments"][0][0] >= 0.15 * dur - 1e-9
+        if m["frame"] != "sensor":  # the table turns the frame against the unit within the window
+            assert "sensor" not in case.frames
+            inside = _inside(case.rec.t, m["segments"])
+            assert equivalent_frames(m["frame"], np.column_stack([case.rec.psi_t, case.rec.theta_t, case.rec.phi_t])[inside]) \
+                == case.frames
+    elif kind == "intermittent_interference":
+        assert m["frame"] == "sensor" and 2 <= len(m["segments"]) <= 3
+    else:
+        assert m["segments"] == [] and m["against"] == {"gain_vs_temp": "temp_c", "misalignment_drift": "time"}[kind]
+    if kind == "gain_vs_temp":  # it needs a temperature that moves within the run
+        assert case.world.warmup_c >= 2.0 and 0.3 * dur <= case.world.warmup_tau_s <= 1.0 * case.span_s[1]
+        assert np.ptp(case.rec.temp_c) > 0.5
+
+
+def test_equivalent_frames_are_those_joined_by_gimbal_angles_that_hold_still() -> None:
+    level_turn = np.array([[a, 0.0, 0.0] for a in range(0, 360, 45)])
+    assert equivalent_frames("lab", level_turn) == ["lab"]
+    assert equivalent_frames("outer", level_turn) == ["outer", "middle", "sensor"]  # theta, phi still
+    assert equivalent_frames("sensor", level_turn) == ["outer", "middle", "sensor"]
+    sweep_x = np.array([[315.0, 0.0, a] for a in range(0, 360, 60)])
+    assert equivalent_frames("middle", sweep_x) == ["lab", "outer", "middle"]  # psi, theta still
+    assert equivalent_frames("sensor", sweep_x) == ["sensor"]
+    everything = np.array([[0.0, 0.0, 0.0], [90.0, 30.0, -30.0]])
+    assert [equivalent_frames(f, everything) for f in ("lab", "outer", "middle", "sensor")] == [
+        ["lab"], ["outer"], ["middle"], ["sensor"]]
+
+
+def test_open_tasks_follow_the_catalogue_tasks_unchanged() -> None:
+    base = proof_tasks(2, 3, PLAN)
+    tasks = proof_tasks(2, 3, PLAN, open_n=4, open_nulls=3)
+    assert [(t.kind, t.seed, t.target_nc, t.plan) for t in tasks[:len(base)]] == [
+        (t.kind, t.seed, t.target_nc, t.plan) for t in base]
+    extra = tasks[len(base):]
+    assert all(t.generator == "open" and t.plan == tuple(OPEN_PLAN) for t in extra)
+    assert [t.kind for t in extra] == [k for k in OPEN_KINDS for _ in range(4)] + ["null"] * 3
+    targets = sorted(t.target_nc["gain_vs_temp"] for t in extra if t.kind == "gain_vs_temp")
+    assert 3 <= targets[0] < 10 and 90 < targets[-1] <= 300  # stratified log-uniform, 4 strata
+    assert len({t.seed for t in tasks}) == len(tasks)
+
+
+def test_generator_never_imports_the_analyser() -> None:
+    code = ("import sys, numpy as np; import proof.generator, proof.concealments, proof.score; "
+            "from proof.generator import make_open_case; make_open_case('segment_offset_lab', np.random.default_rng(0)); "
+            "assert not [m for m in sys.modules if m.startswith('physics.discrepancy')], 'analyser imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# --- the open-world scorer on hand-made results (independent of the analyser) ---
+
+def open_case(kind: str, nc: float, segments: list | None = None, span: tuple[float, float] = (0.0, 200.0),
+              frames: list | None = None) -> Case:
+    truth = make_open(kind, {"offset": [1.0, 0.0, 0.0], "segments": segments} if segments else
+                      {"gain_per_c": [1e-4] * 3, "bias": [0.0] * 3, "t_ref_c": 23.0} if kind == "gain_vs_temp" else
+                      {"rate_rad_per_s": [1e-5] * 3, "bias": [0.0] * 3, "t_mid": 100.0}).model()
+    return Case(kind=kind, effects=[kind], params={kind: {}}, target_nc={kind: nc}, nc={kind: nc}, nc_total=nc,
+                nc_floor=0.0, unit=None, world=None, noise=Noise(3.0), generator="open", model=truth,  # type: ignore[arg-type]
+                span_s=span, frames=frames)
+
+
+def found(frame: str, form: str = "offset", against: str | None = None, segments: list | None = None,
+          effect: str = "discovered") -> dict:
+    return {"effect": effect, "model": {"frame": frame, "form": form, "against": against, "segments": segments or []},
+            "plausible": True}
+
+
+def open_result(*findings: dict, after: tuple = (3.3, 3.0, 2.9), floor: tuple = (3.0, 3.0, 3.0),
+                heading: tuple | None = (0.8, 0.3)) -> dict:
+    return {"verdict": "discrepancy" if findings else "consistent", "findings": list(findings),
+            "noise_floor_lsb": list(floor), "residual_rms_before_lsb": [9.0, 9.0, 9.0], "residual_rms_after_lsb": list(after),
+            "heldout": {"rms_before_lsb": [9.0] * 3, "rms_after_lsb": [3.1] * 3, "improvement_pct": 60.0},
+            "heading_error_deg": None if heading is None else {"before": heading[0], "after": heading[1]}}
+
+
+WIN = [[50.0, 120.0]]  # edges within 5 % of 200 s: +-10 s
+
+
+@pytest.mark.parametrize("kind,truth,result,failed", [
+    ("segment_offset_sensor", WIN, open_result(found("sensor", segments=[[52.0, 118.0]])), []),
+    # the unit's own frame under the analyser's other name; a window split at a move is one window
+    ("segment_offset_sensor", WIN, open_result(found("platform", segments=[[51.0, 80.0], [83.0, 125.0]])), []),
+    ("segment_offset_sensor", WIN, open_result(found("lab", segments=[[50.0, 120.0]])), ["frame", "where"]),
+    ("segment_offset_lab", WIN, open_result(found("lab", segments=[[50.0, 131.0]])), ["where"]),  # 11 s > 10 s
+    ("segment_offset_lab", WIN, open_result(found("lab", segments=[[38.0, 120.0]])), ["where"]),
+    ("segment_offset_outer", WIN, open_result(found("outer", segments=WIN), after=(4.0, 3.0, 3.0)), ["residual"]),
+    ("segment_offset_middle", WIN, open_result(found("middle", segments=WIN), heading=(0.5, 0.6)), ["heading"]),
+    ("segment_offset_middle", WIN, open_result(found("middle", segments=WIN), heading=None), []),  # heading unknown
+    ("segment_offset_middle", WIN, open_result(found("middle", segments=WIN), heading=(0.5, None)), []),
+    ("segment_offset_sensor", WIN, open_result(), ["frame", "where"]),  # nothing found, nothing fitted
+    # the unit's bias takes a constant: offset outside the window is the same data as offset inside it
+    ("segment_offset_sensor", [[84.6, 200.0]], open_result(found("sensor", segments=[[0.0, 85.0]])), []),
+    ("segment_offset_lab", WIN, open_result(found("lab", segments=[[0.0, 52.0], [118.0, 200.0]])), []),
+    # a stage's constant is not absorbed: its complement is a different departure
+    ("segment_offset_outer", [[84.6, 200.0]], open_result(found("outer", segments=[[0.0, 85.0]])), ["where"]),
+    ("intermittent_interference", [[20.0, 40.0], [100.0, 130.0]],
+     open_result(found("sensor", segments=[[21.0, 41.0]]), found("sensor", segments=[[99.0, 131.0]])), []),
+    ("intermittent_interference", [[20.0, 40.0], [100.0, 130.0]],
+     open_result(found("sensor", segments=[[21.0, 41.0]])), ["where"]),  # one window of two
+    ("gain_vs_temp", None, open_result(found("sensor", "gain", "temp_c")), []),
+    ("gain_vs_temp", None, open_result(found("sensor", "offset", "temp_c", effect="temperature_drift")), []),  # form not required
+    ("gain_vs_temp", None, open_result(found("sensor", "gain", "time")), ["where"]),
+    ("misalignment_drift", None, open_result(found("platform", "rotation", "time")), []),
+    ("misalignment_drift", None, open_result(found("lab", "offset", "time", effect="field_drift")), ["frame", "where"]),
+])
+def test_open_scorer_judges_frame_windows_input_residual_and_heading(kind: str, truth: list | None, result: dict,
+                                                                     failed: list) -> None:
+    j = judge_open(open_case(kind, 40.0, truth), result)
+    assert j["failed"] == failed and j["success"] == (not failed)
+
+
+def test_open_scorer_accepts_a_frame_the_recording_cannot_tell_from_the_true_one() -> None:
+    case = open_case("segment_offset_outer", 40.0, WIN, frames=["outer", "middle"])  # theta still in the window
+    assert judge_open(case, open_result(found("middle", segments=WIN)))["success"]
+    assert judge_open(case, open_result(found("outer", segments=WIN)))["success"]
+    assert judge_open(case, open_result(found("sensor", segments=WIN)))["failed"] == ["frame", "where"]
+    assert judge_open(case, open_result(found("platform", segments=WIN)))["failed"] == ["frame", "where"]
+
+
+def test_open_scorer_reports_per_kind_and_the_target() -> None:
+    ok = open_result(found("lab", segments=WIN))
+    bad = open_result(found("sensor", segments=WIN))
+    cases = [open_case("segment_offset_lab", nc, WIN) for nc in (4.0, 10.0, 30.0, 60.0, 200.0)]
+    cases += [open_case("gain_vs_temp", 50.0), open_case("gain_vs_temp", 5.0)]
+    results = [bad, bad, ok, ok, bad, open_result(found("sensor", "gain", "temp_c"), heading=(0.4, 0.5)),
+               Outcome(None, None, 0.2, "ValueError: boom")]
+    so = score_open(cases, [Outcome(r, None, 2.0) if isinstance(r, dict) else r for r in results])
+    lab = so["by_kind"]["segment_offset_lab"]
+    assert lab["bins"] == [[0, 1], [0, 1], [1, 1], [1, 1], [0, 1]] and lab["success"] == 2
+    assert lab["frame_right"] == pytest.approx(0.4) and lab["residual_ratio_median"] == pytest.approx(1.1)
+    assert (lab["heading_before_median"], lab["heading_after_median"], lab["heading_better"]) == (0.8, 0.3, 1.0)
+    gain = so["by_kind"]["gain_vs_temp"]
+    assert gain["cases"] == 2 and gain["success"] == 0 and gain["where_right"] == 0.5
+    at = so["at_target"]  # lambda >= 25: 30, 60, 200 (lab), 50 (gain)
+    assert (at["cases"], at["success"], at["rate"]) == (4, 2, 0.5)
+    assert at["failed"] == {"frame": 1, "where": 1, "residual": 0, "heading": 1}
+    assert so["overall"]["cases"] == 7 and [e["error"] for e in so["errors"]] == ["ValueError: boom"]
+    assert so["seconds"]["median"] == 2.0
+    assert merge_segments([[5, 8], [0, 2], [2.5, 4]], 0.5) == [[0.0, 4.0], [5.0, 8.0]]
+
+    # mixed with catalogue cases: the catalogue figures do not see them, the report prints both
+    mixed = [fake_case("time_lag", 30.0), fake_case("null"), *cases]
+    sc = score(mixed, [analysis("discrepancy", finding("time_lag")), analysis("consistent"),
+                       *[Outcome(r, None, 2.0) if isinstance(r, dict) else r for r in results]])
+    assert sc["detection"]["time_lag"]["cases"] == 1 and sc["false_alarms"]["nulls"] == 1
+    assert sc["seconds"]["analyses"] == 0 and sc["open"]["at_target"]["success"] == 2
+    assert len(sc["errors"]) == 1
+    text = format_report(sc)
+    assert "Detection rate" in text and "Out-of-catalogue" in text and "success at lambda >= 25: 2/4 = 50%" in text
+    assert "MISSED" in text
+    json.dumps(sc)
+    # open-world cases alone: no empty catalogue tables
+    only = format_report(score(cases, [Outcome(r, None, 2.0) if isinstance(r, dict) else r for r in results]))
+    assert "Detection rate" not in only and "Out-of-catalogue" in only and "Analyses that raised: 1" in only
+
+
+def test_open_world_end_to_end_through_the_analyser() -> None:
+    """Three open-world cases through the real analyser: every outcome has the structure the scorer
+    reads (not success: the analyser's discovery is being built alongside)."""
+    kinds = ("segment_offset_sensor", "segment_offset_lab", "gain_vs_temp")
+    out = run_proof(0, 11, workers=2, plan=PLAN, nulls=1, pairs=0, open_n=1, open_kinds=kinds, analyze_kwargs=E2E_ANALYZE)
+    json.dumps(out)
+    assert [c["kind"] for c in out["cases"]] == ["null", *kinds]
+    assert not out["score"]["errors"], out["score"]["errors"]
+    for c in out["cases"][1:]:
+        assert c["generator"] == "open" and c["model"]["frame"] in ("sensor", "lab") and c["seconds"] is not None
+        assert c["verdict"] in ("consistent", "discrepancy") and 3.0 * 0.9 <= c["nc"][c["kind"]] <= 300 * 1.1
+        j = c["judgement"]
+        assert set(j) >= {"success", "failed", "frame_right", "where_right", "residual_ratio"}
+        assert j["residual_ratio"] is not None and j["residual_ratio"] > 0.5
+    so = out["score"]["open"]
+    assert set(so["by_kind"]) == set(kinds) and so["overall"]["cases"] == 3
+    assert out["config"]["open_n"] == 1 and out["config"]["open_plan_items"] == len(OPEN_PLAN)
+    assert "Out-of-catalogue" in format_report(out["score"])

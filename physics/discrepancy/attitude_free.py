@@ -14,7 +14,7 @@ not depend on the attitude:
   two triads plus the dip angle I are fitted. Residual ``kbar (dip - I)`` (radians times kbar: the LSB a
   field-direction change of that angle moves the reading by).
 
-Everything else follows the table analyser's contract (physics/discrepancy.py; spec: result/series
+Everything else follows the table analyser's contract (physics/discrepancy/; spec: result/series
 schema, model ``"attitude_free"``). The steps:
 
 1. **Compare**: fit the nominal model (algebraic ellipsoid of physics.methods.fit_ellipsoid, refined by
@@ -65,7 +65,8 @@ from scipy import stats
 from scipy.special import eval_legendre
 
 from physics.calibration import json_safe
-from physics.discrepancy import Analysis, blocks, runs
+from physics.discrepancy.schema import Analysis
+from physics.discrepancy.twin import blocks, runs
 from physics.effects import CATALOGUE, PARAMETER_SHIFT, UNEXPLAINED, separating_experiment
 from physics.errorsep import InsufficientData
 from physics.methods import QUADRIC_MIN_THICKNESS, fit_ellipsoid

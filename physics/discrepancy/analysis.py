@@ -1,0 +1,737 @@
+"""The table model's analysis: compare, locate, name, model, fall back (physics/discrepancy/__init__.py)."""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+from scipy import stats
+from threadpoolctl import threadpool_limits
+
+from physics import effects as fx
+from physics.calibration import Calibration, json_safe
+from physics.discrepancy.discovery import MAX_BLOCKS, Dictionary, Found, discovered_finding, merge_windows, rebuild, rows_of
+from physics.discrepancy.lrt import (Test, _complement, _null_residuals, _orth, _score, line_search,
+                                     mains_columns)
+from physics.discrepancy.noise import NoiseModel, estimate_noise, whiten_all
+from physics.discrepancy.schema import Analysis, summary, with_schema
+from physics.discrepancy.twin import (_SYM, Context, Nominal, context, decimate, effect_columns, fit_nominal,
+                                      generic_columns, nominal_columns)
+from physics.frames import SPECIFIC_FORCE_L, field_angles
+from physics.heading import magnetic_heading, wrap180
+from physics.recording import Recording, RecordingError
+from physics.sensor import split_matrix
+
+#: At most this many catalogue effects are added to one recording's model.
+MAX_EFFECTS = 3
+#: The catalogue's share of alpha in each round (the dictionary of generic blocks has the rest).
+CATALOGUE_SHARE = 2.0 / 3.0
+#: Plausibility limits on the nominal fit: beyond these a unit is not what it claims to be.
+MAX_MISALIGNMENT_DEG = 10.0
+MAX_K_MISMATCH = 0.25
+MAX_BIAS_FIELDS = 3.0
+#: Longer recordings are block-averaged to this many samples (a hand-held IMU at 285 Hz) to keep the
+#: analysis within seconds; the note says so.
+MAX_SAMPLES = 20_000
+#: Fewer samples cannot estimate the noise, let alone test anything against it.
+MIN_SAMPLES = 200
+
+Progress = Callable[[str, float], None]
+
+
+
+# --------------------------------------------------------------------------------------------------
+# The analysis
+# --------------------------------------------------------------------------------------------------
+
+def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: float = 0.01, null_sims: int = 200,
+            rng: np.random.Generator | None = None, progress: Progress | None = None) -> Analysis:
+    """Locate, name and model where ``rec`` departs from the nominal twin (module docstring).
+
+    ``calibration`` (optional) is the unit's calibration as the nominal model: its parameters are
+    compared with this recording's fit ("parameter_shift"). ``null_sims`` simulated nulls calibrate
+    the tests; ``alpha`` is the family-wise false-alarm rate of the verdict.
+    """
+    # many small matrix products: several BLAS threads fight over the cores and run 5-10x slower
+    with threadpool_limits(1):
+        if not rec.has_angles:
+            from physics.discrepancy.attitude_free import analyze_attitude_free
+            a = analyze_attitude_free(rec, alpha=alpha, null_sims=null_sims, rng=rng, progress=progress)
+        else:
+            a = _analyze_table(rec, calibration, alpha, null_sims, rng, progress)
+    a.result["findings"] = with_schema(a.result.get("findings", []))
+    a.result.setdefault("summary", summary(a.result))
+    return a
+
+
+def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float, null_sims: int,
+                   rng: np.random.Generator | None, progress: Progress | None) -> Analysis:
+    if len(rec) < MIN_SAMPLES:
+        raise RecordingError(f"the analysis needs at least {MIN_SAMPLES} samples (10 s at 20 Hz), got {len(rec)}")
+    rng = rng if rng is not None else np.random.default_rng(0)
+    say = progress or (lambda stage, frac: None)
+    notes: list[str] = []
+    if len(rec) > MAX_SAMPLES:
+        k = int(np.ceil(len(rec) / MAX_SAMPLES))
+        rec = decimate(rec, k)
+        notes.append(f"{k} consecutive samples averaged into one ({len(rec)} left) to keep the analysis fast")
+    say("compare: nominal fit", 0.0)
+    ctx = context(rec)
+    y_raw = np.asarray(rec.mag, float)
+    nom = fit_nominal(ctx, y_raw)
+    r0 = y_raw - nom.predict(ctx)
+    temp = rec.temp_c
+
+    say("noise floor", 0.15)
+    noise = estimate_noise(r0, ctx)
+    eff = effect_columns(ctx, nom, temp)
+    gen = generic_columns(ctx, nom, temp)
+    untestable = [{"effect": name.split(":")[0], "reason": why} for name, (_, _, why) in eff.items() if why]
+    untestable = [dict(t) for t in {(u["effect"], u["reason"]): u for u in untestable}.values()]
+    n_round1 = len([1 for X, _, why in eff.values() if not why]) + len(gen) + 1
+
+    # Mains first: a line hides under the smooth effects' tests but biases the noise estimate they rely
+    # on, so once found it is fitted and the noise re-estimated without it.
+    say("spectral lines", 0.25)
+    all_tests: list[dict[str, Any]] = []
+    selected: list[str] = []
+    mains_hz: float | None = None
+    line = line_search(r0, ctx, noise)
+    chosen = line["log_p"] + np.log(n_round1) < np.log(alpha * CATALOGUE_SHARE)  # the catalogue's share
+    all_tests.append({"effect": "mains_interference", "variant": f"line at {line['alias_hz']:.4f} Hz", "round": 1,
+                      "statistic": line["statistic"], "df": 6, "bartlett": 1.0, "p_value": line["p_value"],
+                      "p_adjusted": min(1.0, line["p_value"] * n_round1), "selected": bool(chosen), "generic": False})
+    if chosen:
+        mains_hz = line["alias_hz"]
+        Xm = mains_columns(ctx, mains_hz)
+        coef_m, *_ = np.linalg.lstsq(Xm.transpose(1, 0, 2).reshape(-1, 6), r0.T.ravel(), rcond=None)
+        noise = estimate_noise(r0 - np.einsum("nip,p->ni", Xm, coef_m), ctx)
+        selected.append("mains_interference")
+
+    r0, J0, A0, Q0, zr, z, raw_of, candidates = _linearise(ctx, y_raw, nom, eff, noise, mains_hz)
+    generic_w = {name: whiten_all(X, noise, ctx.segment) for name, X in gen.items()}
+
+    say("null simulations", 0.35)
+    null = _null_residuals(ctx, noise, Q0, null_sims, rng) if null_sims > 0 else None
+
+    say("tests", 0.55)
+    always = list(selected)  # the mains line, found first
+    gated: set[str] = set()  # catalogue variants refused: their fitted parameters are implausible
+    generic_first: dict[str, dict[str, Any]] = {}
+    found: list[Found] = []
+    # the dictionary of generic blocks competes with the catalogue in every round of the forward selection
+    dic = Dictionary(ctx, nom, temp, noise, Q0)
+    discovery_untestable = dic.untestable
+    for attempt in range(3):
+        selected = list(always)
+        found = []
+        rows = _forward(selected, found, candidates, eff, generic_w, dic, A0, z, zr, null, alpha, gated, say)
+        all_tests += rows
+        if attempt == 0:
+            generic_first = {row["variant"]: row for row in rows if row["generic"]}
+        terms = {**{s: candidates[s] for s in selected}, **{f.name: f.Xw for f in found}}
+        final = _backward(terms, A0, z, null, alpha, n_round1, all_tests)
+        selected = [s for s in selected if s in terms]
+        found = [f for f in found if f.name in terms]
+        coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
+        refused = [s for i, s in enumerate(terms) if s in selected and s != "mains_interference"
+                   and _implausible(s, coef[offsets[i + 1]:offsets[i + 2]], eff)]
+        if not refused:
+            break
+        for s in refused:  # the structure it stood in for goes to discovery on the next pass
+            gated.add(s)
+            all_tests.append({**_row(final[s], "joint fit"), "rejected": "implausible parameters"})
+
+    say("model: refit with the effects", 0.7)
+    raw_of.update({f.name: f.X for f in found})
+    nom0, J00, r00 = nom, J0, r0  # the nominal model alone: the "before" of every figure
+    if terms:
+        # Relinearise: the twin is linear around a nominal fit that the departures themselves pulled. Refit
+        # the nominal model on the readings with the fitted effects taken out and check every term again
+        # around it (a large departure otherwise leaves second-order residue that passes for more blocks).
+        coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
+        contrib = sum(np.einsum("nip,p->ni", raw_of[s], coef[offsets[i + 1]:offsets[i + 2]]) for i, s in enumerate(terms))
+        nom = fit_nominal(ctx, y_raw - contrib)
+        eff = effect_columns(ctx, nom, temp)
+        r0, J0, A0, Q0, zr, z, raw_of, candidates = _linearise(ctx, y_raw, nom, eff, noise, mains_hz)
+        found = [rebuild(f, ctx, nom, temp, noise) for f in found]
+        raw_of.update({f.name: f.X for f in found})
+        terms = {**{s: candidates[s] for s in selected}, **{f.name: f.Xw for f in found}}
+        final = _backward(terms, A0, z, null, alpha, n_round1, all_tests)
+        selected = [s for s in selected if s in terms]
+        found = [f for f in found if f.name in terms]
+    fold = _folds(ctx)
+    pred_before = _heldout(ctx, y_raw, nom0, [J00], fold, noise.floor)
+    rms = lambda r: np.sqrt(np.mean(r * r, axis=0))  # noqa: E731
+    ho_before = rms(y_raw - pred_before)
+    # The final model is never worse held-out than the nominal one: an effect whose removal improves the
+    # held-out fit goes, the worst first, until the model does no harm.
+    while True:
+        pred_after = _heldout(ctx, y_raw, nom, [J0] + [raw_of[s] for s in terms], fold, noise.floor)
+        ho_after = rms(y_raw - pred_after)
+        if not terms or ho_after.mean() <= ho_before.mean():
+            break
+        trial = {s: rms(y_raw - _heldout(ctx, y_raw, nom, [J0] + [raw_of[o] for o in terms if o != s], fold,
+                                          noise.floor)).mean() for s in terms}
+        worst = min(trial, key=trial.get)
+        notes.append(f"{worst} left out: with it the model predicted held-out data worse than without")
+        del terms[worst]
+    selected = [s for s in selected if s in terms]
+    found = [f for f in found if f.name in terms]
+    coef, cov, offsets = _fit_terms(A0, list(terms.values()), zr)
+    raw_cols = [J0] + [raw_of[s] for s in terms]
+    Xraw = np.concatenate(raw_cols, axis=2)
+    fitted = np.einsum("nip,p->ni", Xraw, coef)
+    r_after = r0 - fitted
+
+    # generic tests again on the final residual: what neither the catalogue nor discovery explains
+    unexplained = [row for row in generic_first.values() if row["p_adjusted"] < alpha]
+    if terms:
+        Qf = _orth(np.column_stack([A0, *terms.values()]))
+        zf = zr - Qf @ (Qf.T @ zr)
+        gt = [Test(name, _complement(Xw, Qf)) for name, Xw in generic_w.items()]
+        _score(gt, zf, null)
+        unexplained = [_row(t, "final", generic=True) for t in gt if t.df > 0 and t.p_adjusted < alpha]
+
+    say("name and rank", 0.9)
+    findings = []
+    by_name = {f.name: f for f in found}
+    for i, name in enumerate(terms):
+        c = coef[offsets[i + 1]:offsets[i + 2]]
+        cv = cov[offsets[i + 1]:offsets[i + 2], offsets[i + 1]:offsets[i + 2]]
+        contrib = np.einsum("nip,p->ni", raw_cols[i + 1], c)
+        t = final.get(name) or Test(name, np.zeros((len(zr), 0)))  # the test given every other effect kept
+        row = {"statistic": t.statistic, "df": t.df, "p_value": t.p_value, "p_adjusted": t.p_adjusted}
+        if name in by_name:
+            findings.append(discovered_finding(by_name[name], c, cv, contrib, row, nom, ctx,
+                                               _heading_impact(ctx, y_raw, nom, contrib)))
+            continue
+        confusable = _confusable(name, selected, candidates, A0, z, alpha) if name != "mains_interference" else []
+        findings.append(_finding(name, c, cv, eff, row, contrib, nom, ctx, y_raw, confusable, mains_hz))
+    findings = merge_windows(findings)
+    for row in unexplained:
+        findings.append({"effect": fx.UNEXPLAINED, **{k: row[k] for k in ("statistic", "df", "p_value", "p_adjusted")},
+                         "parameters": {}, "sigma": {}, "heading_impact_deg": None, "where": {"against": row["variant"]},
+                         "explanation": f"unexplained structure against {row['variant']}: neither the catalogue nor "
+                                        "the dictionary of generic blocks accounts for it",
+                         "confusable_with": [], "separating_experiment": ""})
+    findings.extend(_parameter_findings(nom, calibration, A0, ctx))
+    findings.sort(key=lambda f: (f["effect"] in (fx.UNEXPLAINED, fx.PARAMETER_SHIFT), -(f["heading_impact_deg"] or 0.0)))
+
+    heading_before = _heading_error(ctx, y_raw, nom0)
+    # after: the nominal parameters as refitted together with the effects, on readings with the
+    # fitted effects taken out (what a compass that also corrected them would report)
+    v_after = nom.v + coef[12:14] @ nom.basis
+    nom_after = Nominal(nom.M + coef[:9].reshape(3, 3), nom.b + coef[9:12], v_after / np.linalg.norm(v_after), nom.basis)
+    heading_after = _heading_error(ctx, y_raw - (fitted - np.einsum("nip,p->ni", J0, coef[:14])), nom_after)
+    result: dict[str, Any] = {
+        "verdict": "discrepancy" if findings else "consistent",
+        "model": "table",
+        "samples": int(len(rec)),
+        "duration_s": float(np.ptp(ctx.t)),
+        "alpha": alpha,
+        "noise_floor_lsb": noise.floor.tolist(),
+        "noise_ar1": noise.phi.tolist(),
+        "noise_white_lsb": noise.white.tolist(),
+        "residual_rms_before_lsb": rms(r00).tolist(),
+        "residual_rms_after_lsb": rms(r_after).tolist(),
+        "heldout": {"scheme": "4 folds: whole holds (or 1-s chunks with fewer than 8 holds) and 1-s chunks of motion, "
+                           "interleaved in time",
+                    "rms_before_lsb": ho_before.tolist(), "rms_after_lsb": ho_after.tolist(),
+                    "improvement_pct": float(100.0 * (1.0 - ho_after.mean() / max(ho_before.mean(), 1e-300)))},
+        "heading_error_deg": {"before": heading_before, "after": heading_after},
+        "nominal": _nominal_json(nom),
+        "findings": findings,
+        "tests": all_tests,
+        "untestable": untestable + discovery_untestable,
+        "locate": locate(ctx, r00, noise.floor, candidates, Q0, z, null, generic_first),
+        "notes": notes,
+    }
+    result["summary"] = summary(result)
+    say("done", 1.0)
+    # the rows analysed (the recording's, or their block averages when it was decimated)
+    series = {"t": ctx.t, "step": rec.step, "psi_t": rec.psi_t, "theta_t": rec.theta_t, "phi_t": rec.phi_t, "mag": y_raw,
+              "residual_before": r00, "residual_after": r_after, "heldout_pred_before": pred_before,
+              "heldout_pred_after": pred_after, "fold": fold}
+    return Analysis(json_safe(result), series)
+
+
+def _row(t: Test, round_: int | str, selected: bool = False, generic: bool = False, **extra: Any) -> dict[str, Any]:
+    """One test as the report lists it."""
+    return {"effect": t.name.split(":")[0], "variant": t.name, "round": round_, "statistic": t.statistic, "df": t.df,
+            "bartlett": t.bartlett, "p_value": t.p_value, "p_adjusted": t.p_adjusted, "selected": selected,
+            "generic": generic, **extra}
+
+
+class _Twin(NamedTuple):
+    """The linear twin around one nominal fit: residual, nominal columns (raw and whitened), the whitened
+    data (and with the nominal model projected out), and every testable effect's columns."""
+
+    r0: np.ndarray
+    J0: np.ndarray
+    A0: np.ndarray
+    Q0: np.ndarray
+    zr: np.ndarray
+    z: np.ndarray
+    raw_of: dict[str, np.ndarray]
+    candidates: dict[str, np.ndarray]
+
+
+def _linearise(ctx: Context, y: np.ndarray, nom: Nominal, eff: dict, noise: NoiseModel, mains_hz: float | None) -> _Twin:
+    """The twin linearised around ``nom`` and whitened with ``noise`` (the mains line's columns too, when
+    one was found): once around the first fit, once again around the fit without the effects."""
+    r0 = y - nom.predict(ctx)
+    J0 = nominal_columns(ctx, nom)
+    A0 = whiten_all(J0, noise, ctx.segment)
+    Q0 = _orth(A0)
+    zr = whiten_all(r0, noise, ctx.segment)
+    raw_of = {name: X for name, (X, _, why) in eff.items() if not why}
+    if mains_hz is not None:
+        raw_of["mains_interference"] = mains_columns(ctx, mains_hz)
+    candidates = {name: whiten_all(X, noise, ctx.segment) for name, X in raw_of.items()}
+    return _Twin(r0, J0, A0, Q0, zr, zr - Q0 @ (Q0.T @ zr), raw_of, candidates)
+
+
+def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.ndarray], eff: dict,
+             generic_w: dict[str, np.ndarray], dic: Dictionary, A0: np.ndarray, z: np.ndarray, zr: np.ndarray,
+             null: np.ndarray | None, alpha: float, gated: set[str], say: Progress) -> list[dict[str, Any]]:
+    """Forward selection (in place on ``selected`` catalogue effects and ``found`` discovered blocks);
+    returns the test rows of every round.
+
+    Each round the best catalogue effect (Bonferroni over the catalogue's tests) and the best dictionary
+    block (Bonferroni over the dictionary, its window search corrected on the nulls) compete: the smaller
+    corrected p joins the model while below alpha. A catalogue effect, tested against fewer
+    alternatives, wins when it explains the structure as well; a generic block wins when it explains it
+    better. Plausibility is a gate: a significant catalogue effect whose fitted parameters (given the
+    model so far) exceed the catalogue's plausible range is refused (added to ``gated``) and the next
+    one is considered, so that the structure it would stand in for is left to discovery."""
+    rows: list[dict[str, Any]] = []
+    # alpha is shared between the two families (weighted Bonferroni): the smaller p of either family joins
+    # the model, so each is held to its share and the round's false-alarm rate stays alpha
+    a_cat, a_dic = alpha * CATALOGUE_SHARE, alpha * (1.0 - CATALOGUE_SHARE)
+    for round_no in range(MAX_EFFECTS + MAX_BLOCKS):
+        say(f"tests: round {round_no + 1}", min(0.55 + 0.03 * round_no, 0.69))
+        Q = _orth(np.column_stack([A0] + [candidates[s] for s in selected] + [f.Xw for f in found]))
+        resid = z - Q @ (Q.T @ z)
+        tests: dict[str, Test] = {}
+        gtests: dict[str, Test] = {}
+        best_name = None
+        if sum(1 for s in selected if s != "mains_interference") < MAX_EFFECTS:
+            tests = {name: Test(name, _complement(Xw, Q)) for name, Xw in candidates.items()
+                     if name not in selected and name not in gated}
+            gtests = {name: Test(name, _complement(Xw, Q)) for name, Xw in generic_w.items()} if round_no == 0 else {}
+            # round 1's family also holds the line search
+            _score(list(tests.values()) + list(gtests.values()), resid, null, extra=1 if round_no == 0 else 0)
+            for name in sorted((n for n, t in tests.items() if t.df > 0 and t.log_p < np.log(a_cat)),
+                               key=lambda n: tests[n].log_p):
+                if name != "mains_interference":
+                    coef, _, off = _fit_terms(A0, [candidates[s] for s in selected] + [f.Xw for f in found]
+                                              + [candidates[name]], zr)
+                    if _implausible(name, coef[off[-2]:off[-1]], eff):
+                        gated.add(name)
+                        rows.append({**_row(tests[name], round_no + 1), "rejected": "implausible parameters"})
+                        continue
+                best_name = name
+                break
+            if best_name is not None:
+                best_name = _simplest(best_name, {n: t for n, t in tests.items() if n not in gated}, candidates, Q,
+                                      resid, null, a_cat, len(tests) + len(gtests) + 1)
+        disc, cands = None, []
+        if len(found) < MAX_BLOCKS:
+            cands = dic.round(Q, resid, null, a_dic)
+            disc = dic.choose(cands, Q, resid, null, a_dic)
+        # compared on the same scale: each p over its family's share of alpha
+        cat_log_p = tests[best_name].log_p - np.log(CATALOGUE_SHARE) if best_name is not None else 0.0
+        if disc is not None and best_name is not None and cat_log_p <= disc.test.log_p - np.log(1.0 - CATALOGUE_SHARE):
+            disc = None  # the catalogue explains it as well, against fewer alternatives
+        elif disc is not None:
+            best_name = None
+        rows += [_row(t, round_no + 1, selected=name == best_name, generic=name in gtests)
+                 for name, t in {**tests, **gtests}.items() if name not in gated]
+        rows += rows_of(cands, f"{round_no + 1} (dictionary)", disc)
+        if best_name is not None:
+            selected.append(best_name)
+        elif disc is not None:
+            found.append(disc)
+        else:
+            break
+    return rows
+
+
+def _backward(terms: dict[str, np.ndarray], A0: np.ndarray, z: np.ndarray, null: np.ndarray | None, alpha: float,
+              m: int, rows: list[dict[str, Any]]) -> dict[str, Test]:
+    """Backward check (in place on ``terms``): forward selection can take a many-parameter effect first
+    that only stands in for a simpler one chosen after it, or a catalogue effect that stands in for a
+    discovered block. Each term must stay significant given all the others (corrected over ``m``
+    tests); the weakest that does not is dropped, until all do. Returns each kept term's test."""
+    final: dict[str, Test] = {}
+    while terms:
+        final = {}
+        for name in terms:
+            others = [Xw for o, Xw in terms.items() if o != name]
+            Qo = _orth(np.column_stack([A0, *others]))
+            t = Test(name, _complement(terms[name], Qo))
+            _score([t], z - Qo @ (Qo.T @ z), null, extra=m - 1)
+            final[name] = t
+        weakest = max(terms, key=lambda nm: final[nm].log_p)
+        if final[weakest].log_p < np.log(alpha):
+            break
+        del terms[weakest]
+        rows.append(_row(final[weakest], "backward", dropped=True))
+    return final
+
+
+def _fit_terms(A0: np.ndarray, parts: list[np.ndarray], zr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whitened least squares of the nominal columns and ``parts``: coefficients, covariance, and the
+    offset of each part's coefficients (part i: offsets[i + 1]:offsets[i + 2])."""
+    coef, cov = _lstsq_cov(np.column_stack([A0] + parts), zr)
+    return coef, cov, np.cumsum([0, A0.shape[1]] + [p.shape[1] for p in parts])
+
+
+def _catalogue_params(name: str, c: np.ndarray, labels: list[str]) -> dict[str, Any]:
+    """A catalogue effect's parameters by name, from its coefficients and their labels."""
+    effect = name.split(":")[0]
+    if effect == "stage_soft_iron":
+        return {"A": _sym(c).tolist()}
+    if effect == "field_gradient":
+        return {"gradient_times_offset": c.tolist(), "labels": labels}
+    groups: dict[str, list[int]] = {}
+    for i, lab in enumerate(labels):
+        groups.setdefault(lab.split("[")[0], []).append(i)
+    return {key: (c[idx].tolist() if len(idx) > 1 or "[" in labels[idx[0]] else float(c[idx[0]]))
+            for key, idx in groups.items()}
+
+
+def _implausible(name: str, c: np.ndarray, eff: dict) -> list[str]:
+    """The parameters of catalogue effect ``name`` (coefficients ``c``) beyond its plausible range."""
+    entry = fx.CATALOGUE[name.split(":")[0]]
+    params = _catalogue_params(name, c, eff[name][1])
+    return [k for k, lim in entry.plausible.items()
+            if k in params and np.max(np.abs(np.asarray(params[k], float))) > lim]
+
+
+def _simplest(best: str, tests: dict[str, "Test"], candidates: dict[str, np.ndarray], Q: np.ndarray, resid: np.ndarray,
+              null: np.ndarray | None, alpha: float, m: int) -> str:
+    """The effect to add: ``best`` (smallest corrected p), unless an effect with fewer parameters is
+    significant too and, once in the model, leaves nothing significant for ``best`` to add; then the
+    simplest such one. Smallest p alone favours the effect with more parameters whenever it contains a
+    simpler one (soft iron on a stage spans a magnet on it at one azimuth)."""
+    simpler = sorted((t.df, t.log_p, name) for name, t in tests.items()
+                     if 0 < t.df < tests[best].df and t.log_p < np.log(alpha))
+    for _, _, name in simpler:
+        Qs = _orth(np.column_stack([Q, candidates[name]]))
+        given = Test(best, _complement(candidates[best], Qs))
+        _score([given], resid - Qs @ (Qs.T @ resid), null, extra=m - 1)
+        if given.df == 0 or given.log_p >= np.log(alpha):
+            return name
+    return best
+
+
+def _lstsq_cov(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares on whitened data with the coefficients' covariance. A combination the design
+    cannot determine (e.g. an effect's component the nominal model absorbs) gets the minimum-norm
+    estimate and infinite variance on every coefficient it involves."""
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    An = A / scale
+    U, s, Vt = np.linalg.svd(An, full_matrices=False)
+    keep = s > 1e-9 * s[0]
+    inv = np.zeros_like(s)
+    inv[keep] = 1.0 / s[keep]
+    coef = (Vt.T * inv) @ (U.T @ y) / scale
+    cov = (Vt.T * inv ** 2) @ Vt / np.outer(scale, scale)
+    if not keep.all():
+        lost = np.max(np.abs(Vt[~keep]), axis=0) > 0.05
+        cov[lost, :] = cov[:, lost] = 0.0
+        cov[lost, lost] = np.inf
+    return coef, cov
+
+
+def _confusable(name: str, selected: list[str], candidates: dict[str, np.ndarray], A0: np.ndarray, z: np.ndarray,
+                alpha: float) -> list[str]:
+    """Other effects that, put in the model instead, leave ``name`` insignificant while being
+    significant themselves: this recording cannot tell them apart."""
+    out = []
+    others = [s for s in selected if s != name]
+    base = np.column_stack([A0] + [candidates[s] for s in others]) if others else A0
+    Qb = _orth(base)
+    zb = z - Qb @ (Qb.T @ z)
+    own = Test(name, _complement(candidates[name], Qb))
+    _score([own], zb, None)
+    for other, Xw in candidates.items():
+        if other in selected or other.split(":")[0] == name.split(":")[0] or other == "mains_interference":
+            continue
+        alone = Test(other, _complement(Xw, Qb))
+        if alone.df == 0:
+            continue
+        _score([alone], zb, None)
+        if alone.p_value > alpha / 10:
+            continue
+        Qo = _orth(np.column_stack([base, Xw]))
+        given = Test(name, _complement(candidates[name], Qo))
+        _score([given], z - Qo @ (Qo.T @ z), None)
+        if given.df == 0 or given.p_value > alpha:
+            out.append(other.split(":")[0])
+    return sorted(set(out))
+
+
+def _finding(name: str, c: np.ndarray, cv: np.ndarray, eff: dict, row: dict, contrib: np.ndarray, nom: Nominal,
+             ctx: Context, y: np.ndarray, confusable: list[str], mains_hz: float | None) -> dict[str, Any]:
+    effect, _, stage = name.partition(":")
+    entry = fx.CATALOGUE[effect]
+    sd = np.sqrt(np.maximum(np.diag(cv), 0.0))  # inf: not determined by this recording (absorbed)
+    params: dict[str, Any] = {}
+    sigma: dict[str, Any] = {}
+    if effect == "mains_interference":
+        # a cos(w t + phase) = a cos(phase) cos(w t) - a sin(phase) sin(w t); one phase for the pickup
+        # direction, signed amplitudes per axis
+        a = np.hypot(c[0::2], c[1::2])
+        ph = np.arctan2(-c[1::2], c[0::2])
+        ref = float(ph[np.argmax(a)])
+        signed = a * np.sign(np.cos(ph - ref))
+        params = {"amplitude_lsb": signed.tolist(), "alias_hz": mains_hz, "phase_rad": ref}
+        sigma = {"amplitude_lsb": np.sqrt((sd[0::2] ** 2 + sd[1::2] ** 2) / 2).tolist()}
+    else:
+        params = _catalogue_params(name, c, eff[name][1])
+        sd_params = _catalogue_params(name, sd, eff[name][1])
+        sigma = {k: v for k, v in sd_params.items() if k != "labels"}
+        if stage:
+            params["stage"] = stage
+    impact = _heading_impact(ctx, y, nom, contrib)
+    plausible = {k: v for k, v in entry.plausible.items() if k in params}
+    implausible = [k for k, lim in plausible.items() if np.max(np.abs(np.asarray(params[k], float))) > lim]
+    where = _where(effect, stage, ctx, contrib)
+    explanation = f"{entry.title}: {entry.description} Signature: {entry.signature}."
+    if np.isinf(sd).any():
+        labels = eff[name][1] if name in eff else []
+        lost = [labels[i] for i in np.flatnonzero(np.isinf(sd))] if labels else []
+        explanation += (f" This recording cannot determine {', '.join(lost)} (the nominal model absorbs that part; "
+                        f"sigma null): {entry.needs}.")
+    if implausible:
+        explanation += f" The fitted {', '.join(implausible)} exceed what is plausible for this effect."
+    return {"effect": effect, "statistic": row["statistic"], "df": row["df"], "p_value": row["p_value"],
+            "p_adjusted": row["p_adjusted"], "parameters": params, "sigma": sigma, "heading_impact_deg": impact,
+            "where": where, "explanation": explanation, "confusable_with": confusable, "plausible": not implausible,
+            "separating_experiment": "; ".join(fx.separating_experiment(effect, o) for o in confusable)}
+
+
+def _sym(a6: np.ndarray) -> np.ndarray:
+    """3x3 symmetric from (xx, yy, zz, xy, xz, yz), infinities allowed (undetermined sigmas)."""
+    return sum(x * E for x, E in zip(a6, _SYM)) if np.all(np.isfinite(a6)) else np.array(
+        [[a6[0], a6[3], a6[4]], [a6[3], a6[1], a6[5]], [a6[4], a6[5], a6[2]]])
+
+
+def _where(effect: str, stage: str, ctx: Context, contrib: np.ndarray) -> dict[str, Any]:
+    """Where the fitted effect acts: axis, steps, frame, and for motion effects the direction of travel."""
+    rms_axis = np.sqrt(np.mean(contrib ** 2, axis=0))
+    steps = {}
+    for s in np.unique(ctx.rec.step):
+        m = ctx.rec.step == s
+        steps[str(s)] = float(np.sqrt(np.mean(contrib[m] ** 2)))
+    frame = fx.CATALOGUE[effect].model[0]
+    frame = f"{stage} stage" if frame == "stage" else frame
+    out: dict[str, Any] = {"axis": "xyz"[int(np.argmax(rms_axis))], "rms_lsb": rms_axis.tolist(),
+                           "steps": dict(sorted(steps.items(), key=lambda kv: -kv[1])[:5]), "frame": frame}
+    if effect == "time_lag" and ctx.moving.any():
+        w = ctx.rate[:, 0] if np.ptp(ctx.rate[:, 0]) > 0 else ctx.rate.sum(axis=1)
+        out["direction"] = {"positive_rate_rms_lsb": float(np.sqrt(np.mean(contrib[w > 1] ** 2))) if np.any(w > 1) else None,
+                            "negative_rate_rms_lsb": float(np.sqrt(np.mean(contrib[w < -1] ** 2))) if np.any(w < -1) else None}
+    return out
+
+
+def _level(ctx: Context) -> np.ndarray:
+    return (np.abs(wrap180(ctx.ang[:, 1])) < 0.01) & (np.abs(wrap180(ctx.ang[:, 2])) < 0.01)
+
+
+def _corrected_heading(raw: np.ndarray, nom: Nominal, R: np.ndarray) -> np.ndarray:
+    """Heading with the nominal calibration, levelled with the table's attitude R."""
+    if np.linalg.cond(nom.M) > 1e8:  # attitudes that cannot determine M (e.g. one pose): no heading
+        return np.full(len(raw), np.nan)
+    h = np.linalg.solve(nom.M, (raw - nom.b).T).T
+    return magnetic_heading(h, np.einsum("nji,j->ni", R, SPECIFIC_FORCE_L))
+
+
+def _heading_impact(ctx: Context, y: np.ndarray, nom: Nominal, contrib: np.ndarray) -> float | None:
+    """Largest heading change the fitted effect makes, over the recording's attitudes within 60 deg of level."""
+    ok = np.all(np.abs(wrap180(ctx.ang[:, 1:])) <= 60.0, axis=1)
+    if not ok.any():
+        return 0.0
+    d = wrap180(_corrected_heading(y[ok], nom, ctx.R[ok]) - _corrected_heading(y[ok] - contrib[ok], nom, ctx.R[ok]))
+    return float(np.max(np.abs(d))) if np.isfinite(d).all() else None
+
+
+def _heading_error(ctx: Context, y: np.ndarray, nom: Nominal) -> float | None:
+    """Max level heading error of hold means, with the nominal calibration, against the table."""
+    lev = _level(ctx) & (ctx.hold >= 0)
+    if not lev.any():
+        return None
+    g = ctx.hold[lev]
+    n = np.bincount(g)
+    keep = n > 0
+    mean = np.column_stack([np.bincount(g, y[lev][:, j])[keep] / n[keep] for j in range(3)])
+    first = np.flatnonzero(lev)[[np.flatnonzero(g == i)[0] for i in np.flatnonzero(keep)]]
+    _, dec = field_angles(nom.v)
+    err = wrap180(_corrected_heading(mean, nom, ctx.R[first]) - (ctx.ang[first, 0] - dec))
+    return float(np.max(np.abs(err))) if np.isfinite(err).all() else None
+
+
+def _folds(ctx: Context) -> np.ndarray:
+    """Fold of each sample: whole holds interleaved (a hold is predicted from the others), motion in
+    1-s chunks; a recording of fewer than 8 holds is cut into 1-s chunks throughout."""
+    chunk = np.floor((ctx.t - ctx.t[0]) / 1.0).astype(int)
+    if ctx.hold.max() < 7:
+        return chunk % 4
+    fold = np.empty(len(ctx.t), int)
+    h = ctx.hold >= 0
+    fold[h] = ctx.hold[h] % 4
+    fold[~h] = (chunk[~h] + 1) % 4
+    return fold
+
+
+def _heldout(ctx: Context, y: np.ndarray, nom: Nominal, cols: list[np.ndarray], fold: np.ndarray,
+             sigma: np.ndarray) -> np.ndarray:
+    """Each sample predicted by the linear twin fitted to the other folds (axis-weighted least squares)."""
+    X = np.concatenate(cols, axis=2)
+    base = nom.predict(ctx)
+    r0 = y - base
+    pred = np.empty_like(y)
+    for f in np.unique(fold):
+        train = fold != f
+        A = np.concatenate([X[train, j, :] / sigma[j] for j in range(3)], axis=0)
+        b = np.concatenate([r0[train, j] / sigma[j] for j in range(3)])
+        coef, _ = _lstsq_cov(A, b)
+        test = ~train
+        pred[test] = base[test] + np.einsum("nip,p->ni", X[test], coef)
+    return pred
+
+
+def _nominal_json(nom: Nominal) -> dict[str, Any]:
+    M_o, k = split_matrix(nom.M)
+    inc, dec = field_angles(nom.v)
+    return {"M_o": M_o.tolist(), "k": k.tolist(), "bias": nom.b.tolist(), "inclination_deg": inc,
+            "declination_deg": dec}
+
+
+def _parameter_findings(nom: Nominal, cal: Calibration | None, A0: np.ndarray, ctx: Context) -> list[dict[str, Any]]:
+    """Absorbed effects show as implausible nominal parameters, or as shifts from the unit's calibration."""
+    if np.linalg.matrix_rank(A0 / np.maximum(np.linalg.norm(A0, axis=0), 1e-300), tol=1e-6) < A0.shape[1]:
+        return []  # the attitudes cannot determine M, b and the field: nothing to judge them by
+    M_o, k = split_matrix(nom.M)
+    problems: dict[str, Any] = {}
+    mis = np.degrees(np.arccos(np.clip(np.abs(np.diag(M_o)), -1, 1)))
+    if mis.max() > MAX_MISALIGNMENT_DEG:
+        problems["misalignment_deg"] = mis.tolist()
+    if np.ptp(k) / np.median(k) > MAX_K_MISMATCH:
+        problems["k_mismatch"] = float(np.ptp(k) / np.median(k))
+    if np.max(np.abs(nom.b) / k) > MAX_BIAS_FIELDS:
+        problems["bias_in_fields"] = (np.abs(nom.b) / k).tolist()
+    shifts: dict[str, Any] = {}
+    if cal is not None:
+        _, cov0 = _lstsq_cov(A0, np.zeros(A0.shape[0]))
+        sd_b = np.sqrt(np.maximum(np.diag(cov0)[9:12], 0.0))
+        cal_sd_b = np.asarray(cal.sigma.get("bias", np.zeros(3)) if cal.sigma.get("bias") is not None else np.zeros(3), float)
+        db = nom.b - cal.mag.bias
+        z_b = db / np.sqrt(sd_b ** 2 + cal_sd_b ** 2 + 1.0)  # +1 LSB^2: quantisation of the stored numbers
+        dk = k / cal.mag.k - 1.0
+        dang = M_o_angle_change(M_o, cal.mag.M_o)
+        if np.any(np.abs(z_b) > 5) and np.max(np.abs(db)) > 5:
+            shifts["bias_lsb"] = db.tolist()
+        if np.max(np.abs(dk)) > 0.005:
+            shifts["k_relative"] = dk.tolist()
+        if np.max(dang) > 0.2:
+            shifts["axis_change_deg"] = dang.tolist()
+    if not problems and not shifts:
+        return []
+    what = []
+    if "bias_lsb" in shifts or "bias_in_fields" in problems:
+        what.append("a magnet on the platform or near the unit, or a temperature offset, moves the bias")
+    if {"k_relative", "axis_change_deg", "k_mismatch", "misalignment_deg"} & (shifts.keys() | problems.keys()):
+        what.append("soft iron on the platform, or a changed mounting, moves the matrix M")
+    return [{"effect": fx.PARAMETER_SHIFT, "statistic": None, "df": None, "p_value": None, "p_adjusted": None,
+             "parameters": {**problems, **shifts}, "sigma": {}, "heading_impact_deg": None,
+             "where": {"frame": "platform (absorbed by the nominal model)"},
+             "explanation": "The nominal model absorbs this completely, so it shows as parameters, not residuals: "
+                            + "; ".join(what) + ".",
+             "confusable_with": [], "separating_experiment":
+                 "calibrate again with the suspected part removed, or compare with the unit's calibration on another station"}]
+
+
+def M_o_angle_change(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (deg) between corresponding sensor axes of two M_o."""
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+
+
+def locate(ctx: Context, r0: np.ndarray, sigma: np.ndarray, candidates: dict, Q0: np.ndarray, z: np.ndarray,
+           null: np.ndarray | None, generic: dict[str, dict]) -> dict[str, Any]:
+    """Where the nominal residual lives: axis, step, harmonics against each angle, time, direction, frame,
+    whiteness, witness channels."""
+    rms = np.sqrt(np.mean(r0 ** 2, axis=0))
+    by_step = []
+    for s in dict.fromkeys(ctx.rec.step.tolist()):
+        m = ctx.rec.step == s
+        by_step.append({"step": str(s), "samples": int(m.sum()), "rms_lsb": np.sqrt(np.mean(r0[m] ** 2, axis=0)).tolist(),
+                        "mean_lsb": r0[m].mean(axis=0).tolist()})
+    harmonics: dict[str, Any] = {}
+    for j, name in enumerate(("psi_t", "theta_t", "phi_t")):
+        if np.ptp(ctx.ang[:, j]) < 30.0:
+            continue
+        a = np.radians(ctx.ang[:, j])
+        amp = []
+        for m in (1, 2, 3, 4):
+            F = np.column_stack([np.cos(m * a), np.sin(m * a), np.ones_like(a)])
+            coef, *_ = np.linalg.lstsq(F, r0, rcond=None)
+            amp.append(np.hypot(coef[0], coef[1]).tolist())
+        harmonics[name] = {"orders": [1, 2, 3, 4], "amplitude_lsb": amp}
+    time: dict[str, Any] = {}
+    tt = ctx.t - ctx.t.mean()
+    slope = (tt @ r0) / max(tt @ tt, 1e-300)
+    time["trend_lsb_per_min"] = (60.0 * slope).tolist()
+    hold_keys = {}
+    for h in np.unique(ctx.hold[ctx.hold >= 0]):
+        i = np.flatnonzero(ctx.hold == h)
+        hold_keys.setdefault(tuple(np.round(ctx.ang[i[0]], 2)), []).append(i)
+    repeats = [v for v in hold_keys.values() if len(v) >= 2]
+    if repeats:
+        first, last = repeats[0][0], repeats[0][-1]
+        time["repeated_pose"] = {"angles": list(np.round(ctx.ang[first[0]], 2)), "dt_s": float(ctx.t[last[0]] - ctx.t[first[0]]),
+                                 "difference_lsb": (r0[last].mean(axis=0) - r0[first].mean(axis=0)).tolist()}
+    hm = ctx.hold >= 0
+    if hm.sum() > 10:
+        g = ctx.hold[hm]
+        n = np.bincount(g)
+        ok = n > 0
+        means = np.column_stack([np.bincount(g, r0[hm][:, j])[ok] / n[ok] for j in range(3)])
+        c = np.cumsum(means - means.mean(axis=0), axis=0)
+        k = int(np.argmax(np.sum(c ** 2, axis=1)))
+        t_hold = np.bincount(g, ctx.t[hm])[ok] / n[ok]
+        time["change_point_t_s"] = float(t_hold[k])
+    direction: dict[str, Any] = {}
+    if ctx.moving.sum() >= 20:
+        w = ctx.rate
+        for j, name in enumerate(("psi", "theta", "phi")):
+            pos, neg = ctx.moving & (w[:, j] > 1), ctx.moving & (w[:, j] < -1)
+            if pos.any() and neg.any():
+                direction[name] = {"positive_mean_lsb": r0[pos].mean(axis=0).tolist(),
+                                   "negative_mean_lsb": r0[neg].mean(axis=0).tolist(),
+                                   "speeds_dps": sorted({float(np.round(abs(x), 0)) for x in w[ctx.moving, j] if abs(x) > 1})[:6]}
+    frame = {}
+    for name in ("stage_hard_iron:outer", "stage_hard_iron:middle", "field_drift", "temperature_drift"):
+        if name in candidates:
+            t = Test(name, _complement(candidates[name], Q0))
+            _score([t], z, null)
+            frame[{"stage_hard_iron:outer": "fixed in the outer stage", "stage_hard_iron:middle": "fixed in the middle stage",
+                   "field_drift": "drifting in the lab frame", "temperature_drift": "drifting in the sensor frame"}[name]] = {
+                "statistic": t.statistic, "df": t.df, "p_value": t.p_value}
+    zz = z.reshape(3, -1)
+    lb = []
+    for j in range(3):
+        x = zz[j] - zz[j].mean()
+        ac = np.array([x[k:] @ x[:-k] for k in range(1, 11)]) / max(x @ x, 1e-300)
+        n = len(x)
+        q = n * (n + 2) * np.sum(ac ** 2 / (n - np.arange(1, 11)))
+        lb.append({"ljung_box_q": float(q), "lags": 10, "p_value": float(stats.chi2.sf(q, 10))})
+    witness = {name: {"statistic": row["statistic"], "df": row["df"], "p_value": row["p_value"]}
+               for name, row in generic.items()}
+    return {"by_axis": {"rms_lsb": rms.tolist(), "dominant": "xyz"[int(np.argmax(rms / sigma))]},
+            "by_step": by_step, "harmonics": harmonics, "time": time, "direction": direction, "frame": frame,
+            "whiteness": {"per_axis": lb}, "witness": witness}

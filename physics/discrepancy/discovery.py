@@ -1,0 +1,859 @@
+"""Discovery beyond the catalogue (issue 12): a dictionary of generic, physically meaningful building
+blocks, searched for the sparsest one that explains structure no catalogue entry does.
+
+A block is *frame* x *form* x *dependence*:
+
+- frame: where the departure is fixed. ``sensor`` (the magnetometer's own axes, in counts), ``platform``
+  (the body axes, through the unit's matrix M), ``outer`` / ``middle`` (a table stage, through the
+  stage's rotation), ``lab`` (the room: turns with the whole table).
+- form: what it does to the field seen in that frame: ``offset`` (hard iron, 3 parameters), ``gain`` (per
+  axis, 3), ``rotation`` (a small rotation, 3), ``linear`` (a full 3x3 map, 9). A linear map of the lab's
+  constant field is just an offset, so the lab frame has offsets only; platform offsets and linear maps
+  are the sensor's through M, so the platform has gains and rotations only.
+- dependence: ``segments`` (constant within a time window found by a change-point search: something
+  appears at t0 and disappears at t1), linear in ``time``, or in an input: ``temp_c`` (the
+  temperature), ``rate`` (the table's rate of turn), ``acc`` (the accelerometer's direction), ``psi_t`` /
+  ``theta_t`` / ``phi_t`` (harmonics 1-2 of a table angle). :func:`allowed` keeps the combinations
+  with a physical cause.
+
+Every block becomes regressor columns of the linear twin (N, 3, p) exactly like a catalogue effect, so
+the same nested likelihood-ratio tests on prewhitened data apply. A fixed block is one test
+(null-calibrated by lrt._score). A windowed block is a search over every window of a time grid: its
+statistic for each window comes from prefix sums of the bin-masked columns' Gram matrix (so all
+windows cost one Gram matrix), the simulated nulls are searched the same way, and the maximum's
+p-value is corrected by the effective number of windows measured on those nulls. Every p is then
+Bonferroni-corrected over the whole dictionary: discovery adds no false alarms beyond alpha.
+
+Pure numpy/scipy, no I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from physics.discrepancy.lrt import Test, _complement, _orth, _score, chi2_logsf
+from physics.discrepancy.noise import NoiseModel, whiten_all
+from physics.discrepancy.twin import ATTITUDE_SOURCE_KEY, Context, Nominal, _stage_Q
+
+FRAMES = ("sensor", "platform", "outer", "middle", "lab")
+FORMS = ("offset", "gain", "rotation", "linear")
+#: Which forms each frame has (the rest are the same span as another frame's, see module docstring).
+FRAME_FORMS = {"sensor": FORMS, "platform": ("gain", "rotation"), "outer": FORMS, "middle": FORMS, "lab": ("offset",)}
+#: Forms searched in time windows (a full linear map per window costs 9 parameters per window and a
+#: Gram matrix 9x larger; a change of the unit's whole matrix shows as its gain and rotation parts).
+WINDOW_FORMS = ("offset", "gain", "rotation")
+#: Time grid of the change-point search: window edges fall on these bins, then are refined to the samples.
+N_BINS = 40
+#: The shortest window searched, in bins (shorter ones fit the edges of a larger departure).
+MIN_BINS = 2
+#: How far (in bins) the refinement looks for each edge.
+REFINE_BINS = 3
+#: A window direction counts as determined only if it keeps this share of its energy once the
+#: current model is projected out (the rest the nominal model absorbs).
+KEEP_SHARE = 1e-4
+#: At most this many discovered blocks join one recording's model.
+MAX_BLOCKS = 4
+DEPENDENCES = ("segments", "time", "temp_c", "rate", "acc", "psi_t", "theta_t", "phi_t")
+
+
+@dataclass(frozen=True)
+class Block:
+    """One dictionary entry: a form fixed in a frame, with a dependence."""
+
+    frame: str
+    form: str
+    dependence: str
+
+    @property
+    def name(self) -> str:
+        return f"discovered:{self.frame}/{self.form}/{self.dependence}"
+
+    @property
+    def windowed(self) -> bool:
+        return self.dependence == "segments"
+
+
+@dataclass
+class Found:
+    """A block's best columns on one residual (raw (N, 3, p) and whitened (3N, p)), its window, and its
+    test (p corrected for any search): a candidate of a round, or a block that joined the model."""
+
+    block: Block
+    X: np.ndarray
+    Xw: np.ndarray
+    labels: list[str]
+    test: Test
+    segments: list[list[float]] = field(default_factory=list)
+    m_eff: float = 1.0
+    alike: list[str] = field(default_factory=list)  # blocks this recording cannot tell from this one
+
+    @property
+    def name(self) -> str:
+        seg = "".join(f"[{a:.1f},{b:.1f})" for a, b in self.segments)
+        return self.block.name + (f"@{seg}" if seg else "")
+
+
+# --------------------------------------------------------------------------------------------------
+# The dictionary's columns
+# --------------------------------------------------------------------------------------------------
+
+def _cross_cols(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): column k is e_k x v (a small rotation about axis k applied to v)."""
+    out = np.zeros(v.shape + (3,))
+    for k in range(3):
+        out[:, :, k] = np.cross(np.eye(3)[k][None, :], v)
+    return out
+
+
+def form_columns(v: np.ndarray, form: str) -> tuple[np.ndarray, list[str]]:
+    """Change of a vector ``v`` (N, 3) seen in a frame per unit of each parameter of ``form``: (N, 3, p)."""
+    n = len(v)
+    if form == "offset":
+        return np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), ["d[0]", "d[1]", "d[2]"]
+    if form == "gain":
+        return np.eye(3)[None] * v[:, None, :], ["g[0]", "g[1]", "g[2]"]
+    if form == "rotation":
+        return _cross_cols(v), ["w[0]", "w[1]", "w[2]"]
+    if form == "linear":
+        cols = np.zeros((n, 3, 9))
+        for i in range(3):
+            for j in range(3):
+                cols[:, i, 3 * i + j] = v[:, j]
+        return cols, [f"A[{i}{j}]" for i in range(3) for j in range(3)]
+    raise ValueError(f"form: expected one of {FORMS}, got {form!r}")
+
+
+def frame_rotation(ctx: Context, frame: str) -> np.ndarray:
+    """Q (N, 3, 3) taking a vector fixed in ``frame`` to body axes (platform: identity)."""
+    if frame == "platform":
+        return np.broadcast_to(np.eye(3), (len(ctx.t), 3, 3))
+    if frame in ("outer", "middle"):
+        return _stage_Q(ctx, frame)
+    if frame == "lab":
+        return np.transpose(ctx.R, (0, 2, 1))  # body_field = R^T v
+    raise ValueError(f"frame: expected one of {FRAMES[1:]}, got {frame!r}")
+
+
+def base_columns(ctx: Context, nom: Nominal, frame: str, form: str) -> tuple[np.ndarray, list[str]]:
+    """Raw-count columns (N, 3, p) of ``form`` fixed in ``frame``, constant in time. Sensor-frame offsets
+    are in counts; every other parameter acts on the field in lab-field units (offsets) or is
+    dimensionless (gains, linear maps) or in radians (rotations)."""
+    h = nom.body_field(ctx)
+    if frame == "sensor":
+        cols, labels = form_columns(h @ nom.M.T, form)  # the linear output M h, counts
+        return cols, labels
+    Q = frame_rotation(ctx, frame)
+    hF = np.einsum("nji,nj->ni", Q, h)  # the field seen in that frame: Q^T h
+    dF, labels = form_columns(hF, form)
+    return np.einsum("ij,njk,nkp->nip", nom.M, Q, dF), labels
+
+
+def dependence_functions(ctx: Context, dependence: str, temp: np.ndarray | None) -> tuple[np.ndarray, list[str]] | str:
+    """Scalar functions (N, q) a block's parameters follow, with labels; or why this recording cannot test it."""
+    if dependence == "time":
+        # first order, as for the temperature: the sparsest smooth dependence (a second order doubles the
+        # parameters, and a drift in one run is nearly linear); a warm-up that follows time and time itself
+        # then compete with the same number of parameters, and the better fit wins
+        x = 2.0 * (ctx.t - ctx.t[0]) / max(np.ptp(ctx.t), 1e-9) - 1.0
+        return x[:, None], ["P1(t)"]
+    if dependence == "temp_c":
+        if temp is None or not np.all(np.isfinite(temp)) or np.ptp(temp) < 0.2:
+            return "needs temp_c that changes during the run"
+        x = 2.0 * (temp - temp.min()) / np.ptp(temp) - 1.0
+        return x[:, None], ["P1(T)"]
+    if dependence == "rate":
+        if ctx.moving.sum() < 20:
+            return "needs samples taken while the table turns"
+        w = np.linalg.norm(ctx.rate, axis=1) / 30.0
+        return w[:, None], ["|rate|/30"]
+    if dependence == "acc":
+        acc = ctx.rec.acc
+        if acc is None or not np.all(np.isfinite(acc)):
+            return "needs the accelerometer"
+        a = acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-9)
+        return a - a.mean(axis=0), ["acc_x", "acc_y", "acc_z"]
+    if dependence in ("psi_t", "theta_t", "phi_t"):
+        j = ("psi_t", "theta_t", "phi_t").index(dependence)
+        if np.ptp(ctx.ang[:, j]) < 30.0:
+            return f"needs {dependence} to turn"
+        a = np.radians(ctx.ang[:, j])
+        return (np.column_stack([g(m * a) for m in (1, 2) for g in (np.cos, np.sin)]),
+                [f"{g}({m}{dependence})" for m in (1, 2) for g in ("cos", "sin")])
+    raise ValueError(f"dependence: expected one of {DEPENDENCES[1:]}, got {dependence!r}")
+
+
+def allowed(frame: str, form: str, dependence: str) -> bool:
+    """Whether a block is in the dictionary: physically meaningful, and not the same span as another.
+
+    Every block costs power (the Bonferroni factor grows with the dictionary), so each dependence keeps
+    the frames and forms with a physical cause: anything can appear or disappear for a while; the unit's
+    response (sensor, platform) drifts in time or follows its temperature (a stage's iron or the room
+    does not follow the unit's temperature, and a stage's iron or magnet does not drift in a run); a field that
+    grows with the table's rate, follows the tilt or the angle of one axis is an offset on the unit or in
+    the room (a cable, eddy currents, a motor)."""
+    if form not in FRAME_FORMS[frame]:
+        return False
+    if dependence == "segments":
+        return form in WINDOW_FORMS
+    if dependence == "time":
+        return frame in ("sensor", "platform") or (frame == "lab" and form == "offset")
+    if dependence == "temp_c":
+        return frame in ("sensor", "platform")
+    return form == "offset" and frame in ("sensor", "lab")
+
+
+def dictionary() -> list[Block]:
+    """Every block, simplest forms first (the order breaks ties towards the simpler block)."""
+    return [Block(frame, form, dep) for dep in DEPENDENCES for form in FORMS for frame in FRAMES
+            if allowed(frame, form, dep)]
+
+
+def block_columns(ctx: Context, nom: Nominal, block: Block, temp: np.ndarray | None,
+                  base: dict[tuple[str, str], tuple[np.ndarray, list[str]]]) -> tuple[np.ndarray, list[str]] | str:
+    """Columns (N, 3, p*q) of a fixed block, or why it cannot be tested."""
+    f = dependence_functions(ctx, block.dependence, temp)
+    if isinstance(f, str):
+        return f
+    g, glab = f
+    B, blab = base[(block.frame, block.form)]
+    X = (B[:, :, :, None] * g[:, None, None, :]).reshape(len(ctx.t), 3, -1)
+    return X, [f"{b}*{q}" for b in blab for q in glab]
+
+
+# --------------------------------------------------------------------------------------------------
+# The change-point search
+# --------------------------------------------------------------------------------------------------
+
+@dataclass
+class WindowSearch:
+    """The best window of one windowed block on the current residual, with its null-corrected p."""
+
+    a: int
+    b: int  # bins [a, b)
+    statistic: float
+    df: int
+    log_p_single: float
+    m_eff: float
+    log_p: float  # corrected for the search (not yet for the dictionary)
+    second: tuple[int, int] | None = None  # a second window with the same parameters (bins), if that won
+
+
+def _bins(ctx: Context, n_bins: int) -> np.ndarray:
+    """Time bin of each sample (equal spans of the recording's time)."""
+    span = max(np.ptp(ctx.t), 1e-9)
+    return np.minimum(((ctx.t - ctx.t[0]) / span * n_bins).astype(int), n_bins - 1)
+
+
+def _window_stats(c: np.ndarray, w: np.ndarray, V: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Statistic c^T G^+ c for each window (last axis of c: p), using G's kept eigen-pairs."""
+    proj = np.einsum("wpk,...wp->...wk", V, c)
+    return np.sum(np.where(keep, proj ** 2 / np.where(keep, w, 1.0), 0.0), axis=-1)
+
+
+def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray,
+                   null: np.ndarray | None, n_bins: int = N_BINS) -> WindowSearch | None:
+    """The window [a, b) of the time grid whose indicator times ``X`` (N, 3, p) best explains ``y``
+    (whitened, orthogonal to span ``Q``), with a p-value corrected for the search.
+
+    Every window's statistic is chi-square(rank) under the null, scaled by the noise estimate's
+    inflation (Bartlett factor, the mean over the nulls and windows); the smallest single p over the
+    windows is corrected by the effective number of independent windows m_eff, measured on the
+    simulated nulls searched the same way (the more conservative of the fits at their median and
+    their 10 % quantile: 1 - (1 - p)^m_eff is the chance that the best of m_eff independent windows
+    reaches p)."""
+    n, _, p = X.shape
+    b_of = _bins(ctx, n_bins)
+    masked = np.zeros((n, 3, n_bins * p))
+    for k in range(n_bins):
+        m = b_of == k
+        masked[m, :, k * p:(k + 1) * p] = X[m]
+    W = whiten_all(masked, noise, ctx.segment)  # (3N, G p)
+    diag0 = np.array([W[:, k * p:(k + 1) * p].T @ W[:, k * p:(k + 1) * p] for k in range(n_bins)])
+    Wp = W - Q @ (Q.T @ W)
+    G = (Wp.T @ Wp).reshape(n_bins, p, n_bins, p)
+    S = np.zeros((n_bins + 1, p, n_bins + 1, p))
+    S[1:, :, 1:, :] = np.cumsum(np.cumsum(G, axis=0), axis=2)
+    c = (Wp.T @ y).reshape(n_bins, p)
+    C = np.vstack([np.zeros((1, p)), np.cumsum(c, axis=0)])
+    D0 = np.concatenate([np.zeros((1, p, p)), np.cumsum(diag0, axis=0)])
+    a_idx, b_idx = np.triu_indices(n_bins + 1, k=MIN_BINS)
+    # the whole run is the block held constant: a catalogue effect's (or absorbed), not a window
+    whole = (a_idx == 0) & (b_idx == n_bins)
+    a_idx, b_idx = a_idx[~whole], b_idx[~whole]
+    GW = (S[b_idx, :, b_idx, :] - S[a_idx, :, b_idx, :] - S[b_idx, :, a_idx, :] + S[a_idx, :, a_idx, :])
+    GW = 0.5 * (GW + np.transpose(GW, (0, 2, 1)))
+    w, V = np.linalg.eigh(GW)
+    scale = np.trace(D0[b_idx] - D0[a_idx], axis1=1, axis2=2) / p
+    keep = w > KEEP_SHARE * np.maximum(scale, 1e-300)[:, None]
+    df = keep.sum(axis=1)
+    ok = df > 0
+    if not ok.any():
+        return None
+    stat = _window_stats(C[b_idx] - C[a_idx], w, V, keep)
+    c_scale, m_eff, p_ref = 1.0, float(ok.sum()), 0.5
+    if null is not None and len(null) >= 20:
+        cn = (null @ Wp).reshape(len(null), n_bins, p)
+        Cn = np.concatenate([np.zeros((len(null), 1, p)), np.cumsum(cn, axis=1)], axis=1)
+        sn = _window_stats(Cn[:, b_idx] - Cn[:, a_idx], w, V, keep)[:, ok]  # (K, windows)
+        c_scale = max(float(np.mean(sn / df[ok])), 0.5)
+        lp = stats.chi2.logsf(sn / c_scale, df[ok][None, :])
+        m_eff, p_ref = _m_eff(np.exp(np.min(lp, axis=1)), ok.sum())
+    lps = np.full(len(stat), np.inf)
+    lps[ok] = [chi2_logsf(s / c_scale, d) for s, d in zip(stat[ok], df[ok])]
+    i = int(np.argmin(lps))
+    single = WindowSearch(int(a_idx[i]), int(b_idx[i]), float(stat[i]), int(df[i]), float(lps[i]), m_eff,
+                          _search_log_p(float(lps[i]), m_eff, stat[i] / c_scale, int(df[i]), p_ref, 2))
+    # Two windows with the same parameters: something that came and went twice (a relay, a motor, a
+    # tool put back). The second window is searched given the best single one, on the data and on each
+    # null alike, and the better of the two searches pays for both (+log 2).
+    windows = _Windows(a_idx, b_idx, S, GW, scale)
+    pair = windows.pair(i, C[b_idx] - C[a_idx])
+    if pair is None:
+        return WindowSearch(**{**single.__dict__, "log_p": min(single.log_p + float(np.log(2.0)), 0.0)})
+    j, stat2, df2 = pair
+    lp2 = chi2_logsf(stat2 / c_scale, df2)
+    m_eff2, p_ref2 = m_eff * m_eff, p_ref
+    if null is not None and len(null) >= 20:
+        CWn = Cn[:, b_idx] - Cn[:, a_idx]
+        lp_all = np.full((len(null), len(stat)), np.inf)
+        lp_all[:, ok] = lp
+        first = np.argmin(lp_all, axis=1)
+        min_p2 = np.ones(len(null))
+        for i1 in np.unique(first):
+            rows = np.flatnonzero(first == i1)
+            st = windows.pair_stats(int(i1), CWn[rows])
+            if st is not None:
+                sn2, dfn2 = st
+                min_p2[rows] = np.exp(np.min(stats.chi2.logsf(sn2 / c_scale, np.maximum(dfn2, 1)), axis=1))
+        m_eff2, p_ref2 = _m_eff(min_p2, len(stat) ** 2)
+    log_p2 = _search_log_p(lp2, m_eff2, stat2 / c_scale, df2, p_ref2, 4)
+    if log_p2 < single.log_p:
+        best = WindowSearch(int(a_idx[i]), int(b_idx[i]), float(stat2), int(df2), lp2, m_eff2, log_p2,
+                            (int(a_idx[j]), int(b_idx[j])))
+    else:
+        best = single
+    return WindowSearch(**{**best.__dict__, "log_p": min(best.log_p + float(np.log(2.0)), 0.0)})
+
+
+def _search_log_p(lp1: float, m_eff: float, x: float, df: int, p_ref: float, dims: int) -> float:
+    """log p of the best of a search whose single best p is ``exp(lp1)`` (statistic ``x``, already
+    scaled): 1 - (1 - p1)^m with m the effective number of independent tries, ``m_eff`` as measured on
+    the nulls at their min-p ``p_ref``. For a search over a ``dims``-dimensional family (a window's two
+    edges, a pair's four) the expected number of tries that reach a level grows like x^(dims/2) (the
+    Euler-characteristic heuristic of random fields), so m is scaled up from the nulls' level to x:
+    extrapolating a constant m into the far tail would understate p."""
+    x_ref = float(stats.chi2.isf(min(max(p_ref, 1e-300), 0.999), df))
+    m = m_eff * max(x / max(x_ref, 1e-9), 1.0) ** (dims / 2.0)
+    p1 = float(np.exp(lp1))
+    return min(float(np.log(-np.expm1(m * np.log1p(-p1)))) if p1 > 1e-12 else lp1 + float(np.log(m)), 0.0)
+
+
+def _m_eff(min_p: np.ndarray, most: float) -> tuple[float, float]:
+    """The effective number of independent tries from the smallest p of each null search (the more
+    conservative of the fits at the median and the 10 % quantile), and the level (p) it was fitted at."""
+    fits = []
+    for q in (0.5, 0.1):
+        pq = float(np.clip(np.quantile(min_p, q), 1e-12, 1 - 1e-12))
+        fits.append((np.log1p(-q) / np.log1p(-pq), pq))
+    m, pq = max(fits)
+    return float(np.clip(m, 1.0, most)), pq
+
+
+@dataclass
+class _Windows:
+    """The grid's windows and their Gram matrices (from the prefix sums), for pairs of windows."""
+
+    a: np.ndarray
+    b: np.ndarray
+    S: np.ndarray
+    GW: np.ndarray
+    scale: np.ndarray
+
+    def _pair_gram(self, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        a1, b1 = int(self.a[i1]), int(self.b[i1])
+        other = np.flatnonzero((self.a >= b1 + 1) | (self.b <= a1 - 1))  # apart by a bin at least
+        if not len(other):
+            return None
+        S, a, b = self.S, self.a[other], self.b[other]
+        cross = S[b1, :, b, :] - S[a1, :, b, :] - S[b1, :, a, :] + S[a1, :, a, :]  # sum over W1 x W2
+        GU = self.GW[i1][None] + self.GW[other] + cross + np.transpose(cross, (0, 2, 1))
+        w, V = np.linalg.eigh(0.5 * (GU + np.transpose(GU, (0, 2, 1))))
+        keep = w > KEEP_SHARE * np.maximum(self.scale[i1] + self.scale[other], 1e-300)[:, None]
+        return other, w, V, keep
+
+    def pair_stats(self, i1: int, cw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Statistics (K, pairs) and ranks of window ``i1`` tied with every window apart from it, for the
+        window sums ``cw`` (K, windows, p) of K realisations."""
+        g = self._pair_gram(i1)
+        if g is None:
+            return None
+        other, w, V, keep = g
+        cu = cw[:, i1][:, None, :] + cw[:, other]
+        return _window_stats(cu, w, V, keep), keep.sum(axis=1)[None, :].repeat(len(cw), axis=0)
+
+    def pair(self, i1: int, cw: np.ndarray) -> tuple[int, float, int] | None:
+        """The window that, tied with ``i1``, explains most of the data (window sums ``cw`` (windows, p))."""
+        g = self._pair_gram(i1)
+        if g is None:
+            return None
+        other, w, V, keep = g
+        st = _window_stats(cw[i1][None, :] + cw[other], w, V, keep)
+        df = keep.sum(axis=1)
+        if not np.any(df > 0):
+            return None
+        k = int(np.argmax(np.where(df > 0, st, -np.inf)))
+        return int(other[k]), float(st[k]), int(df[k])
+
+
+def _edge_candidates(ctx: Context, lo_t: float, hi_t: float, limit: int = 60) -> np.ndarray:
+    """Possible edge times between ``lo_t`` and ``hi_t``: midpoints between consecutive samples."""
+    t = ctx.t
+    mids = 0.5 * (t[1:] + t[:-1])
+    cand = mids[(mids >= lo_t) & (mids <= hi_t) & (np.diff(t) > 0)]
+    if len(cand) > limit:  # keep the gaps (moves between holds) and an even spread of the rest
+        gaps = np.diff(t)[(mids >= lo_t) & (mids <= hi_t) & (np.diff(t) > 0)]
+        order = np.argsort(-gaps)
+        keep = set(order[:limit // 2].tolist()) | set(np.linspace(0, len(cand) - 1, limit // 2).astype(int).tolist())
+        cand = cand[sorted(keep)]
+    return cand
+
+
+def window_statistic(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray,
+                     t0: float, t1: float, other: np.ndarray | None = None) -> float:
+    """The LRT statistic of ``X`` present in [t0, t1) only (and where ``other``, a second window with
+    the same parameters), given span Q."""
+    m = (ctx.t >= t0) & (ctx.t < t1)
+    if other is not None:
+        m = m | other
+    Xw = whiten_all(X * m[:, None, None], noise, ctx.segment)
+    B = _complement(Xw, Q)
+    return float(np.sum((B.T @ y) ** 2)) if B.shape[1] else 0.0
+
+
+def refine_window(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray, a: int, b: int,
+                  n_bins: int = N_BINS, other: np.ndarray | None = None) -> tuple[float, float]:
+    """Edges (s) of a window found on the grid, refined to the samples: each edge in turn moves to the
+    gap between samples within ``REFINE_BINS`` bins of it that maximises the statistic, keeping the
+    window at least ``MIN_BINS`` long (an edge that falls in a move between holds, where nothing was
+    recorded, lands in the middle of that gap)."""
+    span = max(np.ptp(ctx.t), 1e-9)
+    t_of = lambda k: ctx.t[0] + span * k / n_bins  # noqa: E731
+    shortest = MIN_BINS * span / n_bins * 0.999
+    t0 = ctx.t[0] - 1e-9 if a == 0 else t_of(a)
+    t1 = ctx.t[-1] + 1e-9 if b == n_bins else t_of(b)
+    best = window_statistic(X, ctx, noise, Q, y, t0, t1, other)
+    for _ in range(2):
+        if a > 0:
+            for e in _edge_candidates(ctx, t_of(max(a - REFINE_BINS, 0)), min(t_of(a + REFINE_BINS), t1 - shortest)):
+                v = window_statistic(X, ctx, noise, Q, y, e, t1, other)
+                if v > best:
+                    best, t0 = v, float(e)
+        if b < n_bins:
+            for e in _edge_candidates(ctx, max(t_of(b - REFINE_BINS), t0 + shortest), t_of(min(b + REFINE_BINS, n_bins))):
+                v = window_statistic(X, ctx, noise, Q, y, t0, e, other)
+                if v > best:
+                    best, t1 = v, float(e)
+    return t0, t1
+
+
+def _absorbed_when_constant(X: np.ndarray, noise: NoiseModel, ctx: Context, Q0: np.ndarray) -> bool:
+    """True when the block held constant over the whole run adds nothing to the nominal model (then a
+    window and its complement describe the same departure)."""
+    return _complement(whiten_all(X, noise, ctx.segment), Q0).shape[1] == 0
+
+
+def segments_of(ctx: Context, t0: float, t1: float, complement: bool) -> list[list[float]]:
+    """The window [t0, t1) (or its complement within the recording) as [[start, end], ...] in t."""
+    lo, hi = float(ctx.t[0]), float(ctx.t[-1])
+    t0, t1 = max(t0, lo), min(t1, hi)
+    if not complement:
+        return [[t0, t1]]
+    return [[s, e] for s, e in ((lo, t0), (t1, hi)) if e - s > 0]
+
+
+def _mask(ctx: Context, segments: list[list[float]]) -> np.ndarray:
+    m = np.zeros(len(ctx.t), bool)
+    last = ctx.t[-1]
+    for s, e in segments:
+        m |= (ctx.t >= s) & ((ctx.t < e) | ((e >= last) & (ctx.t <= e)))
+    return m
+
+
+# --------------------------------------------------------------------------------------------------
+# Forward search over the dictionary
+# --------------------------------------------------------------------------------------------------
+
+class Dictionary:
+    """The dictionary's blocks on one recording: fixed blocks' columns (raw and whitened), windowed
+    blocks' base columns, and the blocks this recording cannot test. :meth:`round` scores them all
+    against the current residual; :meth:`choose` picks the sparsest adequate one."""
+
+    def __init__(self, ctx: Context, nom: Nominal, temp: np.ndarray | None, noise: NoiseModel, Q0: np.ndarray) -> None:
+        self.ctx, self.noise = ctx, noise
+        self.base: dict[tuple[str, str], tuple[np.ndarray, list[str]]] = {
+            (frame, form): base_columns(ctx, nom, frame, form) for frame in FRAMES for form in FRAME_FORMS[frame]}
+        self.fixed: dict[Block, tuple[np.ndarray, np.ndarray, list[str]]] = {}
+        self.windowed: list[Block] = []
+        self.absorbed: dict[tuple[str, str], bool] = {}
+        untestable: dict[str, str] = {}
+        source = ctx.rec.meta.get(ATTITUDE_SOURCE_KEY, "turntable")
+        for blk in dictionary():
+            if source != "turntable" and blk.frame in ("outer", "middle"):
+                untestable[f"{blk.frame} stage"] = f"needs a turntable (the angles come from: {source})"
+                continue
+            if blk.windowed:
+                self.windowed.append(blk)
+                X = self.base[(blk.frame, blk.form)][0]
+                self.absorbed[(blk.frame, blk.form)] = _absorbed_when_constant(X, noise, ctx, Q0)
+                continue
+            cols = block_columns(ctx, nom, blk, temp, self.base)
+            if isinstance(cols, str):
+                untestable[blk.dependence] = cols
+                continue
+            self.fixed[blk] = (cols[0], whiten_all(cols[0], noise, ctx.segment), cols[1])
+        self.untestable = [{"effect": "discovered", "reason": f"blocks {'in the' if 'stage' in dep else 'against'} {dep}: {why}"}
+                           for dep, why in untestable.items()]
+
+    @property
+    def family(self) -> int:
+        """The number of tests each round (the Bonferroni factor of every dictionary p)."""
+        return len(self.fixed) + len(self.windowed)
+
+    def round(self, Q: np.ndarray, y: np.ndarray, null: np.ndarray | None, alpha: float,
+              refine: int = 3) -> list[Found]:
+        """Every block scored on residual ``y`` (whitened, orthogonal to span Q), p corrected for the
+        dictionary (and for its window search). The ``refine`` best windowed blocks get their edges
+        refined to the samples; the others keep their grid windows."""
+        ctx, noise, family = self.ctx, self.noise, self.family
+        cands: list[Found] = []
+        tests = {blk: Test(blk.name, _complement(Xw, Q)) for blk, (X, Xw, lab) in self.fixed.items()}
+        _score(list(tests.values()), y, null, extra=len(self.windowed))
+        for blk, t in tests.items():
+            if t.df > 0:
+                X, Xw, lab = self.fixed[blk]
+                cands.append(Found(blk, X, Xw, lab, t))
+        searched = []
+        for blk in self.windowed:
+            ws = search_windows(self.base[(blk.frame, blk.form)][0], ctx, noise, Q, y, null)
+            if ws is not None:
+                searched.append((blk, ws))
+        searched.sort(key=lambda bw: bw[1].log_p)
+        span = np.ptp(ctx.t)
+        for i, (blk, ws) in enumerate(searched):
+            X, lab = self.base[(blk.frame, blk.form)]
+            grid = lambda a, b: (ctx.t[0] + span * a / N_BINS if a else ctx.t[0] - 1e-9,  # noqa: E731
+                                 ctx.t[0] + span * b / N_BINS if b < N_BINS else ctx.t[-1] + 1e-9)
+            windows = [(ws.a, ws.b)] + ([ws.second] if ws.second else [])
+            edges = [grid(a, b) for a, b in windows]
+            if i < refine and ws.log_p + np.log(family) < np.log(alpha):
+                for k, (a, b) in enumerate(windows):  # each window in turn, the other held
+                    others = [e for n, e in enumerate(edges) if n != k]
+                    other = _mask(ctx, [list(e) for e in others]) if others else None
+                    edges[k] = refine_window(X, ctx, noise, Q, y, a, b, other=other)
+            if len(edges) == 1:
+                t0, t1 = edges[0]
+                comp = self.absorbed[(blk.frame, blk.form)] and (min(t1, ctx.t[-1]) - max(t0, ctx.t[0])) > 0.5 * span
+                segs = segments_of(ctx, t0, t1, comp)
+            else:
+                segs = sorted(seg for e in edges for seg in segments_of(ctx, e[0], e[1], False))
+            Xs = X * _mask(ctx, segs)[:, None, None]
+            Xw = whiten_all(Xs, noise, ctx.segment)
+            t = Test(blk.name, _complement(Xw, Q))
+            t.statistic = float(np.sum((t.basis.T @ y) ** 2))
+            t.p_value = float(np.exp(ws.log_p))
+            t.log_p = float(min(0.0, ws.log_p + np.log(family)))
+            t.p_adjusted = float(min(1.0, t.p_value * family))
+            cands.append(Found(blk, Xs, Xw, lab, t, segs, ws.m_eff))
+        return cands
+
+    def choose(self, cands: list[Found], Q: np.ndarray, y: np.ndarray, null: np.ndarray | None,
+               alpha: float) -> Found | None:
+        """The block to add: the smallest corrected p below alpha, or a simpler significant block that
+        leaves it nothing to add, in the likeliest of the frames the recording cannot tell apart."""
+        best = min(cands, key=lambda c: c.test.log_p, default=None)
+        if best is None or best.test.log_p >= np.log(alpha):
+            return None
+        chosen, alike = _likeliest(_simplest(best, cands, Q, y, null, alpha, self.family), cands, alpha)
+        return replace(chosen, alike=alike)
+
+
+def rebuild(f: Found, ctx: Context, nom: Nominal, temp: np.ndarray | None, noise: NoiseModel) -> Found:
+    """A found block's columns again around another nominal fit (same block, window and test)."""
+    blk = f.block
+    if blk.windowed:
+        X = base_columns(ctx, nom, blk.frame, blk.form)[0] * _mask(ctx, f.segments)[:, None, None]
+    else:
+        cols = block_columns(ctx, nom, blk, temp, {(blk.frame, blk.form): base_columns(ctx, nom, blk.frame, blk.form)})
+        assert not isinstance(cols, str)  # it was testable around the first fit
+        X = cols[0]
+    return replace(f, X=X, Xw=whiten_all(X, noise, ctx.segment))
+
+
+def rows_of(cands: list[Found], round_: str, chosen: Found | None) -> list[dict[str, Any]]:
+    """The dictionary's tests of one round as the report lists them."""
+    return [{"effect": "discovered", "variant": c.block.name, "round": round_, "statistic": c.test.statistic,
+             "df": c.test.df, "bartlett": c.test.bartlett, "p_value": c.test.p_value, "p_adjusted": c.test.p_adjusted,
+             "selected": chosen is not None and c.block == chosen.block and c.segments == chosen.segments,
+             "generic": False, "segments": c.segments, "effective_windows": c.m_eff if c.segments else None}
+            for c in cands]
+
+
+#: When the recording cannot tell frames apart (e.g. no roll inside a window: the middle stage moves with
+#: the unit), the likelier one, in this order: something on the unit is commoner than on the room, and
+#: that commoner than on a stage.
+FRAME_PREFERENCE = ("sensor", "platform", "lab", "outer", "middle")
+#: Statistics closer than this (log-likelihood 1) count as the same evidence.
+SAME_EVIDENCE = 2.0
+
+
+#: Between slow inputs the recording cannot tell apart (a warm-up follows time), the likelier cause per
+#: form: a sensitivity or an offset has a temperature coefficient; axes that turn do so by mechanical
+#: creep, which follows time.
+SLOW_PREFERENCE = {"gain": ("temp_c", "time"), "offset": ("temp_c", "time"), "rotation": ("time", "temp_c"),
+                   "linear": ("temp_c", "time")}
+
+
+def _describe(b: Block) -> str:
+    return f"{b.form} in the {b.frame} frame" + ("" if b.windowed else f" against {b.dependence}")
+
+
+#: How much more (in the statistic, twice the log-likelihood) a rare cause must explain than a common one
+#: of the same size to be named: a permeability change of iron on a table stage is rarer than a magnet
+#: put down or a unit that moved (prior odds of about 20 to 1).
+RARER = {("outer", "gain"): 6.0, ("outer", "rotation"): 6.0, ("middle", "gain"): 6.0, ("middle", "rotation"): 6.0}
+
+
+def _likeliest(chosen: Found, cands: list[Found], alpha: float) -> tuple[Found, list[str]]:
+    """Among the significant candidates of ``chosen``'s size, in any frame and form, against the same
+    input (or the other slow input: time or temperature), those whose statistic (less :data:`RARER` for a
+    rare cause) is within :data:`SAME_EVIDENCE` of the largest explain the residual equally well; the
+    likeliest of them, and the descriptions of the others, which this recording cannot tell apart from
+    it. (The statistic, not the p-value, decides: at large statistics the null-calibrated scale of each
+    test moves p a lot.)"""
+    slow = ("time", "temp_c")
+    b0 = chosen.block
+    deps = set(slow) if b0.dependence in slow else {b0.dependence}
+    group = [c for c in cands if c.test.df == chosen.test.df and c.block.dependence in deps
+             and c.test.log_p < np.log(alpha)] or [chosen]
+    score = {id(c): c.test.statistic - RARER.get((c.block.frame, c.block.form), 0.0) for c in group}
+    top = max(score.values())
+    alike = [c for c in group if score[id(c)] >= top - SAME_EVIDENCE]
+    pick = min(alike, key=lambda c: (FRAME_PREFERENCE.index(c.block.frame), FORMS.index(c.block.form),
+                                     SLOW_PREFERENCE[c.block.form].index(c.block.dependence)
+                                     if c.block.dependence in slow else 0))
+    return pick, [_describe(c.block) for c in alike if c.block != pick.block]
+
+
+def _simplest(best: Found, cands: list[Found], Q: np.ndarray, y: np.ndarray, null: np.ndarray | None,
+              alpha: float, family: int) -> Found:
+    """``best``, unless a significant candidate with fewer parameters leaves it nothing significant to
+    add; then the simplest such one (the sparsest adequate block)."""
+    simpler = sorted((c for c in cands if 0 < c.test.df < best.test.df and c.test.log_p < np.log(alpha)),
+                     key=lambda c: (c.test.df, c.test.log_p))
+    for c in simpler:
+        Qs = _orth(np.column_stack([Q, c.Xw]))
+        given = Test(best.block.name, _complement(best.Xw, Qs))
+        _score([given], y - Qs @ (Qs.T @ y), null, extra=family - 1)
+        if given.df == 0 or given.log_p >= np.log(alpha):
+            return c
+    return best
+
+
+# --------------------------------------------------------------------------------------------------
+# Findings in a technician's words
+# --------------------------------------------------------------------------------------------------
+
+FRAME_TEXT = {"sensor": "fixed in the sensor frame", "platform": "fixed in the unit's body axes",
+              "outer": "fixed in the outer (azimuth) stage of the table", "middle": "fixed in the middle (pitch) stage of the table",
+              "lab": "fixed in the lab frame"}
+FORM_TEXT = {"offset": "an offset", "gain": "a change of sensitivity", "rotation": "a small rotation",
+             "linear": "a linear distortion (3x3)"}
+AGAINST_TEXT = {"time": "drifting smoothly in time", "temp_c": "following the temperature",
+                "rate": "growing with the table's rate of turn", "acc": "following the accelerometer (the unit's tilt)",
+                "psi_t": "varying with the azimuth angle psi_t", "theta_t": "varying with the pitch angle theta_t",
+                "phi_t": "varying with the roll angle phi_t"}
+
+
+#: The cause of a departure that came and went with the same size.
+INTERMITTENT = ("with the same size each time: something switched on and off (a relay, a motor, a device nearby) "
+                "or put back more than once")
+
+
+def _cause(block: Block) -> str:
+    """The likeliest physical cause of a block, in a technician's words."""
+    f, form, dep = block.frame, block.form, block.dependence
+    if dep == "segments":
+        if form == "offset":
+            return {"sensor": "a magnetised object attached to the unit (or a current in its cable) for that time",
+                    "platform": "a magnetised object attached to the unit for that time",
+                    "lab": "a steel or magnetised object set down near the table (or the room's field changed) for that time",
+                    }.get(f, f"something magnetised placed on the {f} stage of the table for that time")
+        if f in ("sensor", "platform"):
+            return ("the sensor's sensitivity changed for that time (supply voltage, range, a set/reset of the sensing "
+                    "element)" if form == "gain" else "the unit moved in its fixture for that time (knocked or re-seated)")
+        if f == "lab":
+            return "the room's field changed for that time"
+        return f"magnetisable material on the {f} stage for that time"
+    if dep == "temp_c":
+        return ("the sensitivity follows the temperature: the sensing element's scale factor has a temperature "
+                "coefficient" if form == "gain" else "the unit's response follows its temperature")
+    if dep == "time":
+        if form == "rotation":
+            return "the unit's axes turn slowly against the platform: the mount creeping (adhesive, clamp, thermal settling)"
+        if f == "lab":
+            return "the lab field drifts (a nearby instrument, vehicles, the daily variation)"
+        return "the unit's response drifts slowly (warm-up without a logged temperature, supply, ageing)"
+    if dep == "rate":
+        return "eddy currents in conducting parts, or a motor's field that grows with speed"
+    if dep == "acc":
+        return "a current that changes with tilt (a cable moving), or a sensitivity to acceleration"
+    return f"a field that depends on {dep} (a cable or slip ring dragged by that axis, or a part whose position depends on it)"
+
+
+def _experiment(block: Block, segments: list[list[float]]) -> str:
+    """The experiment that would confirm a discovered block."""
+    dep = block.dependence
+    if dep == "segments":
+        when = ", ".join(f"{a:.1f} s and {b:.1f} s" for a, b in segments)
+        return (f"check the station log for what changed at {when}; repeat poses from inside and outside that time "
+                "with the suspected object removed and compare")
+    return {"temp_c": "calibrate at two temperatures (or hold one pose through the warm-up) and compare the sensitivities",
+            "time": "repeat the first poses at the end of the run (a closing hold), with the unit re-seated firmly",
+            "rate": "turn at two speeds in both directions and compare the residuals",
+            "acc": "repeat the tilted poses with the cable strain-relieved"}.get(
+        dep, "repeat the turn with the cable routed differently and the nearby parts removed")
+
+
+def _fmt(v: np.ndarray, s: np.ndarray | None = None, spec: str = ".3g") -> str:
+    if s is None:
+        return "(" + ", ".join(format(float(x), spec) for x in v) + ")"
+    return "(" + ", ".join(f"{float(x):{spec}} +- {float(e):.2g}" for x, e in zip(v, s)) + ")"
+
+
+def ut_per_count(meta: dict[str, str]) -> float | None:
+    """Microtesla per count from the recording's ``mag_unit`` ("0.01 uT per count"), when it says."""
+    text = str(meta.get("mag_unit", ""))
+    parts = text.split()
+    try:
+        if len(parts) >= 2 and parts[1].lower() in ("ut", "µt"):
+            return float(parts[0])
+        if len(parts) >= 2 and parts[1].lower() == "nt":
+            return float(parts[0]) / 1000.0
+    except ValueError:
+        return None
+    return None
+
+
+def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndarray, row: dict[str, Any],
+                       nom: Nominal, ctx: Context, impact: float | None) -> dict[str, Any]:
+    """A discovered block as a finding of the one schema (effect "discovered")."""
+    blk = f.block
+    sd = np.sqrt(np.maximum(np.diag(cv), 0.0))
+    k = float(np.mean(np.linalg.norm(nom.M, axis=1)))  # LSB per lab-field unit
+    uc = ut_per_count(ctx.rec.meta)
+    params: dict[str, Any] = {"labels": f.labels, "values": c.tolist()}
+    sigma: dict[str, Any] = {"values": [None if not np.isfinite(x) else float(x) for x in sd]}
+    plausible = True
+    if blk.windowed and blk.form == "offset":
+        lsb = c if blk.frame == "sensor" else c * k
+        lsb_sd = sd if blk.frame == "sensor" else sd * k
+        params["offset_lsb"] = lsb.tolist()
+        sigma["offset_lsb"] = lsb_sd.tolist()
+        params["offset_field_units"] = (lsb / k).tolist()
+        if uc is not None:
+            params["offset_ut"] = (lsb * uc).tolist()
+            sigma["offset_ut"] = (lsb_sd * uc).tolist()
+        size = f"{_fmt(lsb, lsb_sd)} LSB" + (f" = {_fmt(lsb * uc)} uT" if uc is not None else
+                                           f" ({100 * np.linalg.norm(lsb) / k:.2g} % of the field)")
+        plausible = bool(np.linalg.norm(lsb) < 2.0 * k)
+    elif blk.windowed:
+        params[blk.form] = c.tolist()
+        sigma[blk.form] = sd.tolist()
+        unit = "rad" if blk.form == "rotation" else "relative"
+        size = f"{_fmt(c, sd)} {unit}"
+        plausible = bool(np.max(np.abs(c)) < 0.2)
+    else:
+        span = np.ptp(contrib, axis=0)
+        params["span_lsb"] = span.tolist()
+        plausible = bool(np.max(span) < 2.0 * k)
+        size = f"{_fmt(span)} LSB over the run"
+        x = {"time": ctx.t, "temp_c": ctx.rec.temp_c}.get(blk.dependence)
+        if x is not None:  # the first-order (P1) coefficients as a rate per unit of the input
+            q = len(f.labels) // (9 if blk.form == "linear" else 3)
+            per = 2.0 / max(float(np.ptp(x)), 1e-12)
+            slope, slope_sd = c.reshape(-1, q)[:, 0] * per, sd.reshape(-1, q)[:, 0] * per
+            unit = {"offset": "LSB" if blk.frame == "sensor" else "field", "gain": "", "rotation": "rad",
+                    "linear": ""}[blk.form]
+            per_what = "s" if blk.dependence == "time" else "degC"
+            key = f"{blk.form}_per_{per_what}"
+            params[key], sigma[key] = slope.tolist(), slope_sd.tolist()
+            if blk.form == "gain":
+                size = f"{_fmt(100 * slope, 100 * slope_sd)} % per {per_what} ({_fmt(span)} LSB over the run)"
+            elif blk.form == "rotation":
+                size = (f"{_fmt(np.degrees(slope) * 60, np.degrees(slope_sd) * 60)} deg per min about the sensor axes"
+                        if per_what == "s" else f"{_fmt(np.degrees(slope), np.degrees(slope_sd))} deg per degC")
+            else:
+                size = f"{_fmt(slope, slope_sd)} {unit} per {per_what} ({_fmt(span)} LSB over the run)"
+    segs = f.segments
+    when = ""
+    if segs:
+        when = ", present " + " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
+    dep = "" if blk.windowed else f", {AGAINST_TEXT.get(blk.dependence, blk.dependence)}"
+    cause = (INTERMITTENT if len(segs) > 1 else _cause(blk))
+    explanation = (f"{FORM_TEXT[blk.form]} of {size} {FRAME_TEXT[blk.frame]}{dep}{when}: {cause}. "
+                   "Found by the search over generic building blocks (no catalogue entry explains it).")
+    if not plausible:
+        explanation += " Its size is beyond what such a cause plausibly makes: treat it as a stand-in for something larger."
+    experiment = _experiment(blk, segs)
+    if f.alike:
+        explanation += (f" This recording cannot tell it from a {' or a '.join(f.alike)}; the one named is the "
+                        "likelier cause.")
+        experiment += ("; to tell them apart, turn about every table axis during that time (a stage-fixed part turns "
+                       "with its stage, one fixed to the unit with the unit, a lab-fixed one with neither), and hold "
+                       "the temperature steady or change it out of step with time")
+    return {"effect": "discovered", "statistic": row["statistic"], "df": row["df"], "p_value": row["p_value"],
+            "p_adjusted": row["p_adjusted"], "parameters": params, "sigma": sigma, "heading_impact_deg": impact,
+            "where": {"frame": blk.frame, "rms_lsb": np.sqrt(np.mean(contrib ** 2, axis=0)).tolist()},
+            "model": {"frame": blk.frame, "form": blk.form, "against": None if blk.windowed else blk.dependence,
+                      "segments": [[float(a), float(b)] for a, b in segs]},
+            "plausible": plausible, "explanation": explanation,
+            "confusable_with": list(f.alike), "separating_experiment": experiment, "effective_windows": f.m_eff if segs else None}
+
+
+def merge_windows(findings: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Discovered windows of the same frame and form as one finding with several segments (something that
+    came and went more than once); the parameters of each window are kept in ``per_segment``."""
+    out: list[dict[str, Any]] = []
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for f in findings:
+        m = f.get("model") or {}
+        if f.get("effect") == "discovered" and m.get("segments") and m.get("against") is None:
+            groups.setdefault((m["frame"], m["form"]), []).append(f)
+        else:
+            out.append(f)
+    for (frame, form), fs in groups.items():
+        if len(fs) == 1:
+            out.append(fs[0])
+            continue
+        fs = sorted(fs, key=lambda f: f["model"]["segments"][0][0])
+        main = dict(max(fs, key=lambda f: f["statistic"] or 0.0))
+        vals = [np.asarray(f["parameters"]["values"], float) for f in fs]
+        sds = [np.asarray([np.inf if s is None else s for s in f["sigma"]["values"]], float) for f in fs]
+        same = all(np.all(np.abs(v - vals[0]) <= 3.0 * np.sqrt(s ** 2 + sds[0] ** 2)) for v, s in zip(vals, sds))
+        segs = [s for f in fs for s in f["model"]["segments"]]
+        main["model"] = {**main["model"], "segments": segs}
+        main["parameters"] = {**main["parameters"], "per_segment": [f["parameters"] for f in fs]}
+        main["heading_impact_deg"] = max((f["heading_impact_deg"] or 0.0) for f in fs)
+        main["plausible"] = all(f["plausible"] for f in fs)
+        when = " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
+        main["explanation"] = (f"{FORM_TEXT[form]} {FRAME_TEXT[frame]}, present {when}"
+                               + (" " + INTERMITTENT if same else
+                                  ", a different size each time") + ". Each window: "
+                               + "; ".join(f["explanation"].split(":")[0] for f in fs) + ".")
+        main["separating_experiment"] = _experiment(Block(frame, form, "segments"), segs)
+        out.append(main)
+    return out

@@ -1,0 +1,173 @@
+"""Nested likelihood-ratio tests on the whitened linear twin, calibrated on simulated nulls, and the
+spectral line search."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import special, stats
+
+from physics.discrepancy.noise import NoiseModel, _whiten_each, estimate_noise, simulate_noise
+from physics.discrepancy.twin import Context
+
+
+
+# --------------------------------------------------------------------------------------------------
+# Tests on the whitened linear twin
+# --------------------------------------------------------------------------------------------------
+
+def _orth(A: np.ndarray, rcond: float = 1e-9) -> np.ndarray:
+    """Orthonormal basis of the column space of A (rank-revealing)."""
+    if A.shape[1] == 0:
+        return A
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    return U[:, s > rcond * max(s[0], 1e-300)] if s.size else U[:, :0]
+
+
+def _complement(X: np.ndarray, Q: np.ndarray, rcond: float = 1e-6) -> np.ndarray:
+    """Orthonormal basis of what X adds beyond span(Q) (Q orthonormal). Directions that are mostly in
+    span(Q) (kept fraction below sqrt(rcond)) count as absorbed."""
+    if X.shape[1] == 0:
+        return X
+    norm = np.linalg.norm(X, axis=0)
+    Xn = X[:, norm > 0] / norm[norm > 0]
+    Xp = Xn - Q @ (Q.T @ Xn)
+    U, s, _ = np.linalg.svd(Xp, full_matrices=False)
+    return U[:, s > 1e-3]
+
+
+@dataclass
+class Test:
+    """One nested test: what the columns add to the current model."""
+
+    name: str
+    basis: np.ndarray  # (3N, df) orthonormal, orthogonal to the current model
+    statistic: float = 0.0
+    bartlett: float = 1.0
+    p_value: float = 1.0
+    p_adjusted: float = 1.0
+    log_p: float = 0.0  # natural log of the corrected p: ranks tests whose p underflows to 0
+
+    @property
+    def df(self) -> int:
+        return int(self.basis.shape[1])
+
+
+def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: int = 0) -> None:
+    """Statistic, null-calibrated chi-square p and Bonferroni p of every test on whitened residual y.
+
+    ``null`` holds whitened null residuals (K, 3N) from simulations; the statistic's null distribution
+    is taken as c chi2(nu) with the mean and variance of the simulated statistics (Satterthwaite): the
+    scale c is the Bartlett factor, and a smaller nu carries the heavier tail that an uncertain noise
+    estimate gives. ``extra`` counts other tests of the same round (the mains line search) in the
+    correction."""
+    m = sum(1 for t in tests if t.df > 0) + extra
+    for t in tests:
+        if t.df == 0:
+            continue
+        t.statistic = float(np.sum((t.basis.T @ y) ** 2))
+        c, nu = 1.0, float(t.df)
+        if null is not None and len(null) >= 20:
+            sims = np.sum((null @ t.basis) ** 2, axis=1)
+            mean = float(np.mean(sims))
+            t.bartlett = mean / t.df
+            c = max(t.bartlett, 0.5)
+            if len(null) >= 100:  # enough nulls to measure the spread as well as the scale
+                c = max(float(np.var(sims, ddof=1)) / (2.0 * mean), 0.5)
+                nu = float(np.clip(mean / c, 0.5, 10.0 * t.df))
+        t.p_value = float(stats.chi2.sf(t.statistic / c, nu))
+        t.p_adjusted = float(min(1.0, t.p_value * m))
+        t.log_p = float(min(0.0, chi2_logsf(t.statistic / c, nu) + np.log(m)))
+
+
+def chi2_logsf(x: float, df: float) -> float:
+    """log of the chi-square tail, finite far beyond where scipy's underflows. There it is the asymptotic
+    series of the upper incomplete gamma function, log Gamma(a, y) ~ (a - 1) log y - y + log(1 + (a - 1) / y
+    + (a - 1)(a - 2) / y^2), a = df / 2, y = x / 2: exact in its leading terms, so tests with different
+    degrees of freedom still rank correctly (a normal approximation compresses the far tail, and far
+    more for few degrees of freedom than for many)."""
+    v = float(stats.chi2.logsf(x, df))
+    if np.isfinite(v):
+        return v
+    a, y = df / 2.0, x / 2.0
+    series = 1.0 + (a - 1.0) / y + (a - 1.0) * (a - 2.0) / (y * y)
+    return float((a - 1.0) * np.log(y) - y + np.log(max(series, 1e-300)) - special.gammaln(a))
+
+
+def _null_residuals(ctx: Context, noise: NoiseModel, Q: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """K whitened null residuals (K, 3N): noise simulated from the model at the recording's time
+    stamps, re-estimated as the analysis does, whitened with that estimate, the nominal model projected
+    out."""
+    n = len(ctx.t)
+    e = simulate_noise(n, noise, ctx.segment, rng, k)  # (N, 3, K)
+    z = _whiten_each(e, estimate_noise(e, ctx), ctx.segment)
+    Z = z.transpose(1, 0, 2).reshape(3 * n, k)  # axis-major rows, as whiten_all stacks them
+    Z -= Q @ (Q.T @ Z)
+    return Z.T
+
+
+# --- mains: a line in the spectrum -----------------------------------------------------------------
+
+def line_search(r: np.ndarray, ctx: Context, noise: NoiseModel) -> dict[str, float]:
+    """Strongest spectral line common to the three axes in residual ``r`` (N, 3).
+
+    The Fourier sum over every sample, sum_n r_n exp(-2 pi i f t_n), is exact for any time stamps: each
+    segment (uniformly sampled) is one FFT on a common frequency grid, shifted by its start time. Each
+    axis's periodogram is divided by the local noise level: the AR(1) spectrum of the noise estimate
+    times the running median of the ratio (so any smooth colour is allowed); 2 sum_j P_j / S_j is then
+    chi-square(6) at one frequency, and p is corrected for the number of frequencies searched."""
+    span = float(ctx.t[-1] - ctx.t[0])
+    nfft = int(2 ** np.ceil(np.log2(max(2.0 * span * ctx.rate_hz, 64))))
+    f = np.fft.rfftfreq(nfft, 1.0 / ctx.rate_hz)
+    X = np.zeros((len(f), 3), complex)
+    for s in np.unique(ctx.segment):
+        i = np.flatnonzero(ctx.segment == s)
+        if len(i) < 2:
+            continue
+        # each run's own mean removed: a line lives inside the holds, while every slow effect moves
+        # whole holds and would otherwise pass for a low-frequency line
+        x = r[i] - r[i].mean(axis=0)
+        X += np.fft.rfft(x, nfft, axis=0) * np.exp(-2j * np.pi * f * (ctx.t[i[0]] - ctx.t[0]))[:, None]
+    P = np.abs(X) ** 2
+    # a line shows inside the runs (their means are removed): below one cycle per typical run it is a
+    # slow wander of the noise, not a line
+    lengths = np.array([np.ptp(ctx.t[ctx.segment == k]) for k in np.unique(ctx.segment)])
+    typical = float(np.median(lengths[lengths > 0])) if np.any(lengths > 0) else span
+    lo = max(3.0 / max(span, 1e-9), 1.0 / max(typical, 1e-9))
+    keep = (f >= lo) & (f < ctx.rate_hz / 2 - 2 * (f[1] - f[0]))
+    if keep.sum() < 50:
+        return {"statistic": 0.0, "p_value": 1.0, "log_p": 0.0, "alias_hz": float("nan"), "independent": 0}
+    ar = noise.spectrum(f, ctx.rate_hz)
+    S = ar * np.column_stack([_running_median(P[:, j] / ar[:, j], 101) for j in range(3)]) / np.log(2.0)
+    stat = 2.0 * np.sum(P / np.maximum(S, 1e-300), axis=1)
+    stat[~keep] = 0.0
+    i = int(np.argmax(stat))
+    # gapped sampling makes the periodogram vary on the grid's own scale: on simulated white nulls the
+    # maximum behaves like twice as many independent frequencies as grid points searched
+    n_ind = max(1, int(2 * keep.sum()))
+    # refine the peak between grid points: the exact Fourier sum on a fine local grid (a frequency
+    # off by a fraction of a bin loses the phase over a long run)
+    fine = f[i] + np.linspace(-1.5, 1.5, 61) * (f[1] - f[0])
+    tt = ctx.t - ctx.t[0]
+    E = np.exp(-2j * np.pi * np.outer(fine, tt))
+    power = np.sum(np.abs(E @ r) ** 2, axis=1)
+    f_best = float(fine[int(np.argmax(power))])
+    log_p1 = chi2_logsf(stat[i], 6)
+    p = float(-np.expm1(n_ind * np.log1p(-min(np.exp(log_p1), 1 - 1e-16))))
+    # log p for ranking; when p1 is tiny, p = n_ind p1
+    log_p = float(np.log(p)) if p > 1e-300 else float(log_p1 + np.log(n_ind))
+    return {"statistic": float(stat[i]), "p_value": p, "log_p": log_p, "alias_hz": f_best, "independent": n_ind}
+
+
+def _running_median(x: np.ndarray, width: int) -> np.ndarray:
+    from scipy.ndimage import median_filter
+    return median_filter(x, size=width, mode="mirror")
+
+
+def mains_columns(ctx: Context, f_hz: float) -> np.ndarray:
+    """cos/sin at ``f_hz`` on each axis: (N, 3, 6)."""
+    w = 2 * np.pi * f_hz * ctx.t  # phase referred to t = 0 of the recording
+    f = np.column_stack([np.cos(w), np.sin(w)])
+    return np.concatenate([f[:, None, :] * np.eye(3)[j][None, :, None] for j in range(3)], axis=2)
+

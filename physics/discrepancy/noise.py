@@ -1,0 +1,175 @@
+"""The noise floor: AR(1) plus white noise per axis, its Kalman whitening, and simulated nulls."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import signal
+
+if TYPE_CHECKING:
+    from physics.discrepancy.twin import Context
+
+
+# --------------------------------------------------------------------------------------------------
+# Noise: AR(1) per axis, whitening, simulation
+# --------------------------------------------------------------------------------------------------
+
+@dataclass
+class NoiseModel:
+    """Each axis's noise: an AR(1) process (marginal ``sigma``, lag-1 coefficient ``phi``) plus white
+    noise (``white``: quantisation, the converter). Arrays of shape (3,) or (3, K) for K nulls.
+
+    A quantised sensor with strongly coloured noise is not AR(1): the rounding adds white noise that an
+    AR(1) model reads as a lower phi, and whitening with that phi leaves the slow noise correlated, which
+    every slow effect's test would take for a signal."""
+
+    sigma: np.ndarray
+    phi: np.ndarray
+    white: np.ndarray
+
+    @property
+    def floor(self) -> np.ndarray:
+        """Per-sample sigma (AR and white parts together)."""
+        return np.sqrt(self.sigma ** 2 + self.white ** 2)
+
+    def kalman(self) -> tuple[np.ndarray, np.ndarray]:
+        """Steady-state Kalman gain K and innovation sigma of the AR(1)-plus-white model."""
+        s2, p, q = self.sigma ** 2, self.phi, self.white ** 2
+        e2 = s2 * (1.0 - p * p)
+        P = s2
+        for _ in range(200):  # converges geometrically (phi^2 per step at worst)
+            Pm = p * p * P + e2
+            P = Pm * q / np.maximum(Pm + q, 1e-300)
+        Pm = p * p * P + e2
+        return Pm / np.maximum(Pm + q, 1e-300), np.sqrt(Pm + q)
+
+    def spectrum(self, f: np.ndarray, rate_hz: float) -> np.ndarray:
+        """Noise power (arbitrary scale) at frequencies ``f`` per axis: (len(f), 3)."""
+        z = np.exp(-2j * np.pi * f / rate_hz)[:, None]
+        return self.sigma ** 2 * (1 - self.phi ** 2) / np.abs(1.0 - self.phi * z) ** 2 + self.white ** 2
+
+
+#: Lags of the differences' autocovariance that the noise model is fitted to.
+NOISE_LAGS = 12
+
+
+def noise_model(r: np.ndarray, segment: np.ndarray) -> NoiseModel:
+    """AR(1)-plus-white noise per axis (and per trailing column) from first differences inside segments.
+
+    A difference cancels any pose's mean and nearly any slow model error. For x = a + w (a: AR(1) of
+    variance s^2, w: white of variance q), d = x_t - x_{t-1} has autocovariances
+    g(0) = 2 u / (1 - phi) + 2 q, g(1) = -u - q, g(k) = -phi^(k-1) u for k >= 2, with
+    u = s^2 (1 - phi)^2. (u, phi, q) are fitted to the first :data:`NOISE_LAGS` lags by least squares:
+    many lags pin phi near 1 much better than two do, and phi near 1 sets the slow noise every slow
+    effect's test is judged against."""
+    same = segment[1:] == segment[:-1]
+    d = np.diff(r, axis=0)
+    g = []
+    ok = same.copy()
+    for k in range(NOISE_LAGS + 1):
+        if k:
+            ok = ok[1:] & same[:-k]
+        prod = d[k:] * d[:len(d) - k] if k else d * d
+        g.append(np.mean(prod[ok], axis=0) if ok.any() else np.zeros(d.shape[1:]))
+    g = np.array(g)  # (lags, 3, ...)
+    shape = g.shape[1:]
+    G = g.reshape(len(g), -1)
+    sig, phi, white = np.empty(G.shape[1]), np.empty(G.shape[1]), np.empty(G.shape[1])
+    k = np.arange(len(g))
+    for i in range(G.shape[1]):
+        sig[i], phi[i], white[i] = _fit_difference_acov(G[:, i], k)
+    return NoiseModel(sig.reshape(shape), phi.reshape(shape), white.reshape(shape))
+
+
+def _fit_difference_acov(g: np.ndarray, k: np.ndarray) -> tuple[float, float, float]:
+    """(s, phi, sqrt q) of AR(1)-plus-white noise from its differences' autocovariance g(k)."""
+    from scipy.optimize import least_squares
+
+    g0 = max(g[0], 1e-300)
+    phi1 = float(np.clip(1.0 + 2.0 * g[1] / g0, 0.01, 0.98))  # AR(1) alone, the start (a sensor's noise is low-passed: phi >= 0)
+
+    def model(x: np.ndarray) -> np.ndarray:
+        u, ph, q = x[0] ** 2, x[1], x[2] ** 2
+        m = -u * ph ** np.maximum(k - 1, 0)
+        m[0] = 2 * u / (1 - ph) + 2 * q
+        m[1] -= q
+        return m
+
+    def jac(x: np.ndarray) -> np.ndarray:  # analytic: the fit runs once per axis of every null simulation
+        u, ph = x[0] ** 2, x[1]
+        J = np.zeros((len(k), 3))
+        J[:, 0] = -2 * x[0] * ph ** np.maximum(k - 1, 0)
+        J[2:, 1] = -u * (k[2:] - 1) * ph ** (k[2:] - 2)
+        J[0] = [4 * x[0] / (1 - ph), 2 * u / (1 - ph) ** 2, 4 * x[2]]
+        J[1] = [-2 * x[0], 0.0, -2 * x[2]]
+        return J / g0
+
+    u0 = g0 * (1 - phi1) / 2 * (1 - phi1)
+    sol = least_squares(lambda x: (model(x) - g) / g0, [np.sqrt(max(u0, 1e-300)), phi1, np.sqrt(0.1 * g0)],
+                        jac=jac, bounds=([0.0, 0.0, 0.0], [np.inf, 0.985, np.inf]), x_scale=1.0, ftol=1e-6, xtol=1e-6)
+    u, ph, q = sol.x[0] ** 2, float(sol.x[1]), sol.x[2] ** 2
+    s = float(np.sqrt(max(u, 1e-12)) / (1 - ph))
+    if s * s < 0.02 * q:  # no AR part to speak of: white noise, and its phi means nothing
+        return s, 0.0, float(np.sqrt(q))
+    return s, ph, float(np.sqrt(q))
+
+
+def estimate_noise(r: np.ndarray, ctx: "Context") -> NoiseModel:
+    """The noise floor: :func:`noise_model` on the static holds when they hold 200 samples or more (the
+    table at rest: nothing but the sensor's noise), else on every contiguous run of samples."""
+    hold = ctx.hold >= 0
+    if hold.sum() - len(np.unique(ctx.hold[hold])) >= 200:
+        return noise_model(r[hold], ctx.hold[hold])
+    return noise_model(r, ctx.segment)
+
+
+def whiten_all(X: np.ndarray, noise: NoiseModel, segment: np.ndarray) -> np.ndarray:
+    """Whiten (N, 3, p) columns (or (N, 3) data) into stacked rows (3N, p) (axis-major): the Kalman
+    innovations of the AR(1)-plus-white model, nu_t = x_t - phi x_{t-1} + phi (1 - K) nu_{t-1}, each over
+    its innovation sigma, restarted (from the marginal sigma) at each segment."""
+    flat = X.ndim == 2
+    X3 = X[:, :, None] if flat else X
+    K, S = noise.kalman()
+    first = np.r_[True, segment[1:] != segment[:-1]]
+    starts = np.flatnonzero(first)
+    ends = np.r_[starts[1:], len(segment)]
+    out = np.empty((3, X3.shape[0], X3.shape[2]))
+    for j in range(3):
+        b, a = [1.0, -noise.phi[j]], [1.0, -noise.phi[j] * (1.0 - K[j])]
+        for lo, hi in zip(starts, ends):
+            out[j, lo:hi] = signal.lfilter(b, a, X3[lo:hi, j, :], axis=0)
+        out[j] /= S[j]
+        out[j, first] *= S[j] / noise.floor[j]  # a segment's first sample: nothing to predict it from
+    out = out.reshape(3 * X3.shape[0], X3.shape[2])
+    return out[:, 0] if flat else out
+
+
+def _whiten_each(e: np.ndarray, noise: NoiseModel, segment: np.ndarray) -> np.ndarray:
+    """Whiten K realisations (N, 3, K), each with its own noise model ((3, K) arrays): a time loop over
+    all realisations at once."""
+    K, S = noise.kalman()
+    c = noise.phi * (1.0 - K)
+    first = np.r_[True, segment[1:] != segment[:-1]]
+    out = np.empty_like(e)
+    nu = np.zeros(e.shape[1:])
+    for t in range(len(e)):
+        nu = e[t] if first[t] else e[t] - noise.phi * e[t - 1] + c * nu
+        out[t] = nu / (noise.floor if first[t] else S)
+    return out
+
+
+def simulate_noise(n: int, noise: NoiseModel, segment: np.ndarray, rng: np.random.Generator, k: int = 1) -> np.ndarray:
+    """``k`` realisations (N, 3, k) of the noise model, the AR part restarted at each segment."""
+    e = rng.normal(size=(n, 3, k))
+    first = np.r_[True, segment[1:] != segment[:-1]]
+    innov = e * (noise.sigma * np.sqrt(1 - noise.phi ** 2))[None, :, None]
+    innov[first] = e[first] * noise.sigma[None, :, None]
+    out = np.empty_like(e)
+    starts = np.flatnonzero(first)
+    for a, b in zip(starts, np.r_[starts[1:], n]):
+        for j in range(3):
+            out[a:b, j] = signal.lfilter([1.0], [1.0, -noise.phi[j]], innov[a:b, j], axis=0)
+    return out + rng.normal(size=(n, 3, k)) * noise.white[None, :, None]
+

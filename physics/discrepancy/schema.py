@@ -1,0 +1,100 @@
+"""The analyser's result: the Analysis container."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from physics.effects import CATALOGUE, PARAMETER_SHIFT
+
+
+@dataclass
+class Analysis:
+    """The analyser's output: ``result`` is the JSON report, ``series`` per-sample arrays for plots."""
+
+    result: dict[str, Any]
+    series: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON report (already JSON-safe)."""
+        return self.result
+
+
+
+#: Where each effect lives in the one finding schema (frame, form, against): the catalogue's own entry
+#: says it (physics/effects.py); a parameter shift is the platform's linear map. A ``stage`` effect takes
+#: its frame from the fitted stage.
+CATALOGUE_MODEL: dict[str, tuple[str | None, str | None, str | None]] = {
+    **{e.id: e.model for e in CATALOGUE.values()}, PARAMETER_SHIFT: ("platform", "linear", None)}
+
+#: The input a generic "unexplained structure against <input>" test is about, from its name.
+_UNEXPLAINED_AGAINST = (("psi_t", "psi_t"), ("theta_t", "theta_t"), ("phi_t", "phi_t"), ("temperature", "temp_c"),
+                        ("time", "time"), ("rate", "rate"), ("accelerometer", "acc"), ("direction", None))
+
+
+def finding_model(finding: dict[str, Any]) -> dict[str, Any]:
+    """The ``model`` of a finding in the one schema: frame, form, against and time segments."""
+    effect = finding.get("effect")
+    if effect in CATALOGUE_MODEL:
+        frame, form, against = CATALOGUE_MODEL[effect]
+        if frame == "stage":
+            frame = (finding.get("parameters") or {}).get("stage", "outer")
+        return {"frame": frame, "form": form, "against": against, "segments": []}
+    against = None
+    text = str((finding.get("where") or {}).get("against", "")).lower()
+    for key, name in _UNEXPLAINED_AGAINST:
+        if key in text:
+            against = name
+            break
+    return {"frame": None, "form": None, "against": against, "segments": []}
+
+
+def with_schema(findings: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Every finding with ``model`` and ``plausible`` (filled from the catalogue's mapping when the
+    analyser that made it did not set them). Plausibility is a gate: a catalogue effect whose fitted
+    size is beyond its physical range is not reported as that effect, but as unexplained structure of
+    its shape (``stands_in_for``), with the model term kept."""
+    out = []
+    for f in findings:
+        f = dict(f)
+        f.setdefault("model", finding_model(f))
+        f.setdefault("plausible", True)
+        if f["plausible"] is False and f.get("effect") in CATALOGUE_MODEL and f["effect"] != "parameter_shift":
+            f["stands_in_for"] = f["effect"]
+            f["effect"] = "unexplained"
+            f["explanation"] = (f"Structure of the shape of {f['stands_in_for']}, but of a size no such cause "
+                                "plausibly has: not that effect; something the model lacks. (The term's fit: "
+                                + str(f.get("explanation", "")) + ")")
+        out.append(f)
+    return out
+
+
+def _mean(values: Any) -> float:
+    """Mean of the known numbers in a list (the attitude-free model leaves unused columns null)."""
+    xs = [float(v) for v in (values or []) if v is not None and np.isfinite(float(v))]
+    return float(np.mean(xs)) if xs else float("nan")
+
+
+def summary(result: dict[str, Any]) -> str:
+    """One plain sentence on whether the fitted model improves on the nominal one (in-sample, held-out and
+    heading), or that nothing does."""
+    ho = result.get("heldout") or {}
+    before = _mean(ho.get("rms_before_lsb"))
+    after = _mean(ho.get("rms_after_lsb"))
+    modelled = [f for f in result.get("findings", []) if f.get("effect") not in ("unexplained", "parameter_shift")]
+    if result.get("verdict") == "consistent":
+        return "The recording is consistent with the nominal model: nothing departs from it beyond the noise."
+    if not modelled or not np.isfinite(before) or not after < before:
+        return ("Nothing we can model improves the fit held-out: the departures are reported as unexplained "
+                "structure, and the nominal model stands.")
+    head = result.get("heading_error_deg") or {}
+    h = ""
+    if head.get("before") is not None and head.get("after") is not None:
+        h = f"; level heading error {head['before']:.3g} -> {head['after']:.3g} deg"
+    rb = _mean(result.get("residual_rms_before_lsb"))
+    ra = _mean(result.get("residual_rms_after_lsb"))
+    floor = _mean(result.get("noise_floor_lsb"))
+    return (f"The model with {len(modelled)} effect(s) improves the fit: residual {rb:.3g} -> {ra:.3g} LSB rms "
+            f"(noise floor {floor:.3g}), held-out {before:.3g} -> {after:.3g} LSB{h}.")

@@ -1,0 +1,245 @@
+"""Discovery beyond the catalogue (physics/discrepancy/discovery.py): the change-point search, the
+dictionary search and the one finding schema, on small synthetic cases.
+
+The departures are added to simulated recordings directly (an offset in counts inside a window, the
+lab-frame offset through the true unit and attitudes, a gain following temp_c), so these tests do not
+share code with the blind proof's concealments (proof/), which test the same analyser independently.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from physics.discrepancy import analyze
+from physics.discrepancy import discovery as dv
+from physics.discrepancy.lrt import _orth
+from physics.discrepancy.noise import estimate_noise, whiten_all
+from physics.discrepancy.schema import summary
+from physics.discrepancy.twin import context, fit_nominal, nominal_columns
+from physics.recording import Recording
+from physics.sensor import random_unit
+from physics.simulate import Noise, World, simulate_timeline
+from physics.table import platform_attitude
+from procedures.calibrate import calibration_poses
+
+WORLD = World(inclination_deg=60.0, declination_deg=100.0, warmup_c=4.0, warmup_tau_s=60.0)
+
+
+def _recording(seed: int = 3):
+    """An ordinary calibration run (level turn, sweeps, six accelerometer poses), 3 LSB white noise,
+    a warm-up in temp_c; the true unit."""
+    rng = np.random.default_rng(seed)
+    unit = random_unit(rng)
+    rec, _ = simulate_timeline(unit, calibration_poses(), WORLD, noise=Noise(3.0, 0.0, True), rng=rng)
+    return rec, unit
+
+
+def _with(rec: Recording, extra: np.ndarray) -> Recording:
+    """``rec`` with ``extra`` (N, 3) counts added to the magnetometer."""
+    return Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, rec.mag + extra, rec.acc,
+                                 rec.temp_c, rec.meta)
+
+
+def _window(rec: Recording, a: float, b: float) -> np.ndarray:
+    span = rec.t[-1] - rec.t[0]
+    return (rec.t >= rec.t[0] + a * span) & (rec.t < rec.t[0] + b * span)
+
+
+def _edges_ok(segment: list[float], rec: Recording, a: float, b: float) -> bool:
+    """Both edges of a found segment within 5 % of the duration of the true window's (in time, not in
+    samples: an edge during a move between holds can only be placed somewhere in that gap)."""
+    span = rec.t[-1] - rec.t[0]
+    return abs(segment[0] - (rec.t[0] + a * span)) < 0.05 * span and abs(segment[1] - (rec.t[0] + b * span)) < 0.05 * span
+
+
+def _lab_offset(rec: Recording, unit, d: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Counts added by a lab-frame field offset ``d`` (lab-field units) where ``mask``."""
+    C = platform_attitude(rec.psi_t, rec.theta_t, rec.phi_t)
+    h = np.einsum("nji,j->ni", C, d)  # C^T d: the lab offset seen in body axes
+    M = unit.mag.k[:, None] * unit.mag.M_o
+    return (h @ M.T) * mask[:, None]
+
+
+def _whitened(rec: Recording):
+    ctx = context(rec)
+    y = np.asarray(rec.mag, float)
+    nom = fit_nominal(ctx, y)
+    r0 = y - nom.predict(ctx)
+    noise = estimate_noise(r0, ctx)
+    Q0 = _orth(whiten_all(nominal_columns(ctx, nom), noise, ctx.segment))
+    zr = whiten_all(r0, noise, ctx.segment)
+    return ctx, nom, noise, Q0, zr - Q0 @ (Q0.T @ zr)
+
+
+def test_change_point_search_finds_the_window_and_refines_its_edges() -> None:
+    rec, _ = _recording()
+    m = _window(rec, 0.1, 0.45)
+    rec2 = _with(rec, np.outer(m, [12.0, -6.0, 9.0]))
+    ctx, nom, noise, Q0, z = _whitened(rec2)
+    X, _ = dv.base_columns(ctx, nom, "sensor", "offset")
+    ws = dv.search_windows(X, ctx, noise, Q0, z, None)
+    assert ws is not None and ws.df == 3
+    t0, t1 = dv.refine_window(X, ctx, noise, Q0, z, ws.a, ws.b)
+    true0, true1 = rec.t[m][0], rec.t[m][-1]
+    span = np.ptp(rec.t)
+    assert abs(t0 - true0) < 0.05 * span and abs(t1 - true1) < 0.05 * span
+    # within a hold an edge is found to a few samples (one sample of a 3 LSB offset is within the noise)
+    assert abs(t0 - true0) < 4 * np.median(np.diff(rec.t))
+    # the refined window explains more than any window of the grid
+    assert dv.window_statistic(X, ctx, noise, Q0, z, t0, t1) >= ws.statistic - 1e-6
+
+
+def test_window_search_on_noise_is_not_significant_after_correction() -> None:
+    """On a null recording the best window's search-corrected p is not small: the search over ~800
+    windows is paid for (m_eff measured on simulated nulls)."""
+    from physics.discrepancy.lrt import _null_residuals
+    rec, _ = _recording(seed=11)
+    ctx, nom, noise, Q0, z = _whitened(rec)
+    null = _null_residuals(ctx, noise, Q0, 100, np.random.default_rng(0))
+    X, _ = dv.base_columns(ctx, nom, "sensor", "offset")
+    ws = dv.search_windows(X, ctx, noise, Q0, z, null)
+    assert ws is not None
+    assert ws.m_eff > 5  # many windows, not all independent
+    assert ws.log_p > np.log(0.01)
+    # the uncorrected best window would look far more significant than it is
+    assert ws.log_p_single < ws.log_p
+
+
+def test_dictionary_blocks_and_their_columns() -> None:
+    blocks = dv.dictionary()
+    names = {b.name for b in blocks}
+    assert len(names) == len(blocks)
+    assert dv.Block("sensor", "offset", "segments") in blocks
+    assert dv.Block("lab", "offset", "segments") in blocks
+    assert dv.Block("sensor", "gain", "temp_c") in blocks
+    assert dv.Block("sensor", "rotation", "time") in blocks
+    # the lab frame has offsets only (a linear map of a constant field is an offset)
+    assert {b.form for b in blocks if b.frame == "lab"} == {"offset"}
+    rec, _ = _recording()
+    ctx = context(rec)
+    nom = fit_nominal(ctx, np.asarray(rec.mag, float))
+    # a sensor-frame gain is diag(g) times the linear output; a rotation is w x output
+    Xg, _ = dv.base_columns(ctx, nom, "sensor", "gain")
+    s = nom.body_field(ctx) @ nom.M.T
+    g = np.array([0.01, -0.02, 0.03])
+    assert np.allclose(np.einsum("nip,p->ni", Xg, g), s * g)
+    Xr, _ = dv.base_columns(ctx, nom, "sensor", "rotation")
+    w = np.array([1e-3, 2e-3, -1e-3])
+    assert np.allclose(np.einsum("nip,p->ni", Xr, w), np.cross(w, s))
+    # a lab-frame offset turns with the table: R^T d through M
+    Xl, _ = dv.base_columns(ctx, nom, "lab", "offset")
+    d = np.array([0.01, 0.0, -0.02])
+    expect = np.einsum("nji,j->ni", ctx.R, d) @ nom.M.T
+    assert np.allclose(np.einsum("nip,p->ni", Xl, d), expect)
+
+
+def _check_schema(r: dict) -> None:
+    json.dumps(r)
+    for f in r["findings"]:
+        m = f["model"]
+        assert set(m) == {"frame", "form", "against", "segments"}
+        assert isinstance(f["plausible"], bool)
+        assert m["frame"] in (None, "sensor", "platform", "outer", "middle", "lab", "table")
+        assert m["against"] in (None, "time", "temp_c", "rate", "acc", "psi_t", "theta_t", "phi_t")
+    assert r["summary"]
+    # the final model never predicts held-out data worse than the nominal one
+    assert np.mean(r["heldout"]["rms_after_lsb"]) <= np.mean(r["heldout"]["rms_before_lsb"]) + 1e-9
+
+
+def _ok_fit(r: dict) -> None:
+    ratio = np.max(np.asarray(r["residual_rms_after_lsb"]) / np.asarray(r["noise_floor_lsb"]))
+    assert ratio <= 1.3
+    assert r["heading_error_deg"]["after"] < r["heading_error_deg"]["before"]
+
+
+def test_sensor_offset_in_a_window_is_discovered_with_frame_and_time() -> None:
+    rec, _ = _recording()
+    m = _window(rec, 0.3, 0.7)
+    d = np.array([15.0, -8.0, 20.0])
+    r = analyze(_with(rec, np.outer(m, d)), null_sims=60).result
+    _check_schema(r)
+    assert r["verdict"] == "discrepancy"
+    first = r["findings"][0]
+    assert first["effect"] == "discovered"
+    assert first["model"]["frame"] == "sensor" and first["model"]["form"] == "offset"
+    seg, = first["model"]["segments"]
+    assert _edges_ok(seg, rec, 0.3, 0.7)
+    off, sd = np.asarray(first["parameters"]["offset_lsb"]), np.asarray(first["sigma"]["offset_lsb"])
+    assert np.all(np.abs(off - d) < 4.5 * sd + 0.5)
+    assert "sensor frame" in first["explanation"] and "s to" in first["explanation"]
+    assert first["separating_experiment"]
+    assert not [f for f in r["findings"] if f["effect"] not in ("discovered", "unexplained")]
+    _ok_fit(r)
+
+
+def test_lab_offset_in_a_window_is_told_from_a_sensor_offset() -> None:
+    rec, unit = _recording(seed=4)
+    m = _window(rec, 0.15, 0.55)
+    r = analyze(_with(rec, _lab_offset(rec, unit, np.array([0.006, -0.004, 0.003]), m)), null_sims=60).result
+    _check_schema(r)
+    first = r["findings"][0]
+    assert first["effect"] == "discovered" and first["model"]["frame"] == "lab"
+    seg, = first["model"]["segments"]
+    assert _edges_ok(seg, rec, 0.15, 0.55)
+    _ok_fit(r)
+
+
+def test_gain_following_temperature_is_not_called_a_bias_drift() -> None:
+    rec, unit = _recording(seed=5)
+    g = np.array([0.002, -0.0015, 0.0025])  # per degC
+    lin = rec.mag - unit.mag.bias
+    r = analyze(_with(rec, lin * g * (rec.temp_c - rec.temp_c[0])[:, None]), null_sims=60).result
+    _check_schema(r)
+    first = r["findings"][0]
+    assert first["effect"] == "discovered"
+    assert first["model"] == {"frame": "sensor", "form": "gain", "against": "temp_c", "segments": []}
+    assert "temperature_drift" not in {f["effect"] for f in r["findings"]}
+    slope = np.asarray(first["parameters"]["gain_per_degC"])
+    assert np.allclose(slope, g, atol=6e-4)
+    _ok_fit(r)
+
+
+def test_intermittent_offset_is_one_finding_with_several_segments() -> None:
+    rec, _ = _recording(seed=6)
+    m = _window(rec, 0.1, 0.3) | _window(rec, 0.6, 0.8)
+    r = analyze(_with(rec, np.outer(m, [10.0, 12.0, -9.0])), null_sims=60).result
+    _check_schema(r)
+    disc = [f for f in r["findings"] if f["effect"] == "discovered"]
+    assert len(disc) == 1
+    segs = disc[0]["model"]["segments"]
+    assert len(segs) == 2 and disc[0]["model"]["frame"] == "sensor"
+    assert _edges_ok(segs[0], rec, 0.1, 0.3) and _edges_ok(segs[1], rec, 0.6, 0.8)
+    assert "same size each time" in disc[0]["explanation"]
+    _ok_fit(r)
+
+
+def test_summary_says_plainly_when_nothing_improves_the_fit() -> None:
+    base = {"verdict": "discrepancy", "findings": [{"effect": "unexplained"}],
+            "heldout": {"rms_before_lsb": [3.0, 3.0, 3.0], "rms_after_lsb": [3.0, 3.0, 3.0]}}
+    assert summary(base).startswith("Nothing we can model improves the fit")
+    good = {"verdict": "discrepancy", "findings": [{"effect": "discovered"}],
+            "heldout": {"rms_before_lsb": [5.0] * 3, "rms_after_lsb": [3.0] * 3},
+            "residual_rms_before_lsb": [5.0] * 3, "residual_rms_after_lsb": [3.0] * 3, "noise_floor_lsb": [3.0] * 3,
+            "heading_error_deg": {"before": 0.8, "after": 0.1}}
+    text = summary(good)
+    assert "5 -> 3 LSB" in text and "0.8 -> 0.1 deg" in text
+    assert summary({"verdict": "consistent", "findings": []}).startswith("The recording is consistent")
+    # the attitude-free model leaves the columns it does not use null
+    free = {**good, "heldout": {"rms_before_lsb": [5.0, None, None], "rms_after_lsb": [3.0, None, None]},
+            "residual_rms_before_lsb": [5.0, None, None], "residual_rms_after_lsb": [3.0, None, None]}
+    assert "5 -> 3 LSB" in summary(free)
+
+
+@pytest.mark.parametrize("name,params,bad", [
+    ("stage_hard_iron:outer", np.array([0.2, 0.0, 0.0]), ["m"]),
+    ("stage_hard_iron:outer", np.array([0.01, 0.0, 0.0]), []),
+    ("nonlinearity", np.array([1304.0, 0.0, 0.0]), ["c3"]),
+])
+def test_plausibility_gate(name: str, params: np.ndarray, bad: list[str]) -> None:
+    from physics.discrepancy.analysis import _implausible
+    eff = {name: (None, {"stage_hard_iron:outer": ["m[0]", "m[1]", "m[2]"],
+                         "nonlinearity": ["c3[0]", "c3[1]", "c3[2]"]}[name], None)}
+    assert _implausible(name, params, eff) == bad

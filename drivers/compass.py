@@ -69,7 +69,7 @@ class CompassError(DriverError):
 
 
 class CompassTimeout(CompassError):
-    """No reply to a command (after the retry), or the stream went stale (no sample for 3 periods)."""
+    """No reply to a command (after the retry), or the stream went stale (no sample for 3 periods, at least 1 s)."""
 
 
 class CompassNak(CompassError):
@@ -489,7 +489,9 @@ class Compass:
     Staleness: once the stream rate is known (`set_rate`, `config`), a read that sees no sample for
     ``stale_periods`` periods (at least ``stale_min_s``; counted from the read's start at the earliest)
     raises `CompassTimeout`. The period is that of
-    the rate the link can carry (at 9600 baud the device caps at ~13 lines/s).
+    the rate the link can carry (at 9600 baud the device caps at ~13 lines/s). The floor of 1 s is
+    there because USB-serial adapters and a busy host deliver lines in bursts a few periods apart:
+    a gap of 0.3 s is latency, a second of silence is a compass that stopped talking.
     """
 
     def __init__(
@@ -503,7 +505,7 @@ class Compass:
         retries: int = 1,
         give_up_s: float = 5.0,
         stale_periods: float = 3.0,
-        stale_min_s: float = 0.05,
+        stale_min_s: float = 1.0,
         history: int = 200_000,
         name: str | None = None,
     ) -> None:

@@ -81,6 +81,30 @@ def test_an_axis_alarm_mid_run_fails_the_run_stops_the_table_and_keeps_the_sampl
     assert rec.step[-1] == "sweep_y"
 
 
+def test_a_compass_hiccup_is_retried_and_every_pose_keeps_exactly_its_planned_count(tmp_path: Path):
+    """A compass silent for 1.5 s mid-pose (a USB hub reset): the acquisition times out, keeps what
+    arrived and the retry reads only the rest, so the run completes with 60 samples in every pose."""
+    cfg = reference_config(seed=5, time_scale=20)
+    fired = {}
+
+    def control(engine: Engine, st: SimStation) -> None:
+        def on_event(e: Event, inner=engine.on_event) -> None:
+            inner(e)
+            if e.kind == "step" and e.data.get("step", {}).get("kind") == "acquire" and engine._samples >= 2 * 60 and not fired:
+                fired["t"] = time.monotonic()  # a few samples into the third pose (0.15 s of wall time)
+                loop = asyncio.get_running_loop()
+                loop.call_later(0.05, st.compasses[0].go_silent, True)
+                loop.call_later(1.55, st.compasses[0].go_silent, False)
+        engine.on_event = on_event
+    result, serials, sink, st, events, wall, status = run(cfg, "calibrate", {}, out=tmp_path, control=control)
+    assert result.state is RunState.completed, result.reason
+    assert any(e.kind == "step" and e.data.get("retry") == 1 for e in events)
+    rec = parse_recording(sink.path(0).read_text())
+    steps, counts = np.unique([f"{s}@{p:.1f},{t:.1f},{f:.1f}" for s, p, t, f in zip(rec.step, rec.psi_t, rec.theta_t, rec.phi_t)],
+                              return_counts=True)
+    assert len(steps) == 18 and set(counts) == {60}, dict(zip(steps, counts))
+
+
 def test_a_compass_that_goes_silent_fails_the_run_within_seconds_with_the_samples_kept(tmp_path: Path):
     cfg = reference_config(seed=4, time_scale=20)
     fired = {}

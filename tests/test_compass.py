@@ -490,7 +490,7 @@ def test_script_missing_reply_twice_raises_compass_timeout() -> None:
         t = time.monotonic()
         with pytest.raises(CompassTimeout):
             await c.identify()
-        assert 0.35 < time.monotonic() - t < 1.0  # two attempts of 0.2 s
+        assert 0.35 < time.monotonic() - t < 2.0  # two attempts of 0.2 s (upper bound loose: a busy host)
         assert c.stats.timeouts == 1
 
     run(scripted([(sentence("ID"), b""), (sentence("ID"), b"")], body))
@@ -595,7 +595,7 @@ def test_sim_identify_stream_rate_and_continuous_seq(transport: str) -> None:
         finally:
             t = time.monotonic()
             await c.close()
-            assert time.monotonic() - t < 0.2
+            assert time.monotonic() - t < 1.0  # one reader-thread read timeout (0.1 s), not the give-up
             await sim.stop()
 
     run(go())
@@ -775,8 +775,10 @@ def test_fixture_with_three_slots() -> None:
             await fx.set_rate_all(20)
             t = time.monotonic()
             got = await fx.read_all(40, timeout=2.0)
-            assert time.monotonic() - t < 0.5  # concurrently: ~0.2 s, not three times that
             assert sorted(got) == ["S0", "S1", "S2"] and all(len(v) == 40 for v in got.values())
+            # concurrently: every slot's samples span the same stretch of time (one after the other
+            # the slots' spans would not overlap), a test no busy host can break
+            assert max(v[0].t_host for v in got.values()) < min(v[-1].t_host for v in got.values())
             sims[1].go_silent()
             with pytest.raises(CompassError) as e:
                 await fx.read_all(40, timeout=2.0)

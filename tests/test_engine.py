@@ -52,7 +52,7 @@ def test_calibrate_two_units_at_time_scale_20(tmp_path: Path):
     cfg = two_units()
     result, serials, sink, st, events, wall, _ = run(cfg, "calibrate", {}, out=tmp_path)
     assert result.state is RunState.completed, result.reason
-    assert wall < 20.0, wall
+    assert wall < 60.0, wall  # about 8 s idle; in real time the plan takes minutes, so time scale 20 is in force
     # every pose's samples with the encoder angles read back, per unit, in a RECORDING.md file
     for slot, serial in serials.items():
         rec = parse_recording(sink.path(slot).read_text())

@@ -9,7 +9,6 @@ forward implementations, then noise and quantisation.
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -223,12 +222,9 @@ def test_real_files_end_to_end(name):
     from service.imports import read_recording_file
 
     rec = read_recording_file(REAL / name)
-    t0 = time.perf_counter()
     a = analyze_attitude_free(rec)
-    elapsed = time.perf_counter() - t0
     r = a.to_json()
     json.dumps(r, allow_nan=False)
-    assert elapsed < 30.0, elapsed
     assert r["samples"] == len(rec) and r["verdict"] in ("consistent", "discrepancy")
     assert a.series["residual_before"].shape == (len(rec), 3)
     assert all(x > 0 for x in r["noise_floor_lsb"])

@@ -415,7 +415,9 @@ def test_time_scale_20_runs_a_90_degree_move_20_times_faster() -> None:
             sim_elapsed = sim.clock.now() - t_sim
             profile = trapezoid_time(90, 30, 60)  # 3.5 s
             assert profile <= sim_elapsed <= profile + 1.0  # plus servo settling and polling
-            assert profile / 20 <= wall <= (profile + 1.0) / 20
+            # at least 1/20 of the profile; the upper bound leaves a busy host a second and still
+            # fails a table that ran in real time (3.5 s)
+            assert profile / 20 <= wall <= (profile + 1.0) / 20 + 1.0
 
     run(body())
 

@@ -24,7 +24,7 @@ from scipy.optimize import least_squares
 
 from physics.frames import SPECIFIC_FORCE_L, field_angles, rot_x, rot_y, rot_z
 from physics.heading import pitch_roll, wrap180
-from physics.recording import Recording
+from physics.recording import Recording, RecordingError
 from physics.sensor import LinearSensor, Mo_to_angles, split_matrix
 from physics.table import base_rotation, platform_attitude
 
@@ -132,10 +132,20 @@ class PeakPhase:
     amplitude: float
 
 
+def require_signal(mag: np.ndarray, sw: Sweep) -> None:
+    """Refuse a sweep in which no magnetometer axis changes at all while the table turns (a dead or
+    disconnected magnetometer, or readings that are not the magnetometer's): it has no phase to give."""
+    if not np.ptp(mag[sw.index], axis=0).any():
+        raise RecordingError(f"{sw.name}: mx, my and mz do not change while the table turns "
+                             f"(constant {', '.join(f'{x:g}' for x in mag[sw.index[0]])}): "
+                             "a dead or disconnected magnetometer?")
+
+
 def phases_by_sinusoid(mag: np.ndarray, sweeps: list[Sweep]) -> list[PeakPhase]:
     """Peak phases from the whole sinusoid of each sweep (PHYSICS.md: the peak is flat, the sinusoid is not)."""
     out = []
     for sw in sweeps:
+        require_signal(mag, sw)
         coef, rms = fit_sinusoid(sw.angle_deg, mag[sw.index])
         amps = np.hypot(coef[1], coef[2])
         for i in range(3):
@@ -143,7 +153,8 @@ def phases_by_sinusoid(mag: np.ndarray, sweeps: list[Sweep]) -> list[PeakPhase]:
             # noise-free data would give infinite weights; the floor scales with the sweep's largest
             # signal so that an axis almost along the turning axis keeps a weak, not exact, phase
             noise = max(float(rms[i]), 1e-6 * float(amps.max()))
-            sigma = noise / (amp * np.sqrt(len(sw.index) / 2.0))
+            # an axis with no sinusoid at all in this sweep has no phase to give: no weight
+            sigma = noise / (amp * np.sqrt(len(sw.index) / 2.0)) if amp > 0 else np.inf
             out.append(PeakPhase(sw, i, float(np.arctan2(coef[2, i], coef[1, i])), sigma, amp))
     return out
 
@@ -152,6 +163,7 @@ def phases_by_peak(mag: np.ndarray, sweeps: list[Sweep]) -> list[PeakPhase]:
     """Peak phases as published: the table angle of the largest mean reading among the poses of a sweep."""
     out = []
     for sw in sweeps:
+        require_signal(mag, sw)
         pos = np.round(sw.angle_deg % 360.0, 2)
         uniq = np.unique(pos)
         means = np.array([mag[sw.index[pos == p]].mean(axis=0) for p in uniq])

@@ -46,6 +46,7 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
     if method not in METHODS:
         raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
     check_angles(rec)
+    check_magnetometer(rec)
     acc = es.accelerometer(rec)
     if method in _COMPARISON:
         cal = _COMPARISON[method](rec, acc)
@@ -130,6 +131,15 @@ def check_angles(rec: Recording) -> None:
         if 1.0 < span <= 2 * np.pi + 1e-6 and np.all(np.abs(a) <= 2 * np.pi + 1e-6):
             raise RecordingError(f"column {name}: spans only {span:.3f}: table angles must be in degrees, "
                                  "these look like radians")
+
+
+def check_magnetometer(rec: Recording) -> None:
+    """Refuse a magnetometer axis whose reading never changes: no method can calibrate it (its
+    sensitivity would be 0 and every heading 0/0)."""
+    dead = [f"{name} (always {col[0]:g})" for name, col in zip(("mx", "my", "mz"), rec.mag.T) if len(col) and np.ptp(col) == 0]
+    if dead:
+        raise RecordingError(f"column{'s' if len(dead) > 1 else ''} {', '.join(dead)}: the reading never changes over "
+                             "the recording: a dead or disconnected magnetometer axis?")
 
 
 def _level(rec: Recording) -> np.ndarray:

@@ -120,6 +120,46 @@ def test_error_separation_recovers_the_reference_unit_noise_free() -> None:
     assert np.allclose(cal.base_tilt_deg, (0.08, -0.05), atol=1e-6)
 
 
+@pytest.mark.parametrize("method", ["joint", "error-separation", "peak-picking", "ellipsoid"])
+def test_a_dead_magnetometer_or_axis_is_refused_without_a_warning(method: str) -> None:
+    """Constant readings once gave 0/0 (RuntimeWarning) and then scipy's "Residuals are not finite"."""
+    import warnings
+
+    rec = recording(reference_unit(3.0, 4.0), samples=3, seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rec.mag[:, 1] = 0.0
+        with pytest.raises(RecordingError, match=r"column my \(always 0\): the reading never changes"):
+            fit(rec, method, bootstrap=0)
+        rec.mag[:] = 0.0
+        with pytest.raises(RecordingError, match=r"columns mx \(always 0\), my \(always 0\), mz \(always 0\)"):
+            fit(rec, method, bootstrap=0)
+
+
+@pytest.mark.parametrize("method", ["joint", "error-separation", "peak-picking"])
+def test_a_magnetometer_dead_during_one_sweep_is_refused_naming_it(method: str) -> None:
+    import warnings
+
+    rec = recording(reference_unit(3.0, 4.0), samples=3, seed=1)
+    rec.mag[rec.step == "rotate_z"] = 5.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(RecordingError, match=r"sweep about z .*: mx, my and mz do not change while the table turns"):
+            fit(rec, method, bootstrap=0)
+
+
+def test_a_dead_axis_gives_no_phase_and_no_warning() -> None:
+    import warnings
+
+    rec = recording(reference_unit(3.0, 4.0), samples=3, seed=1)
+    rec.mag[:, 1] = 0.0  # y_m dead: no sinusoid, so no phase from it (once 1/0, a RuntimeWarning)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        phases = es.phases_by_sinusoid(rec.mag, es.find_sweeps(es.table_angles(rec)))
+    assert all(p.sigma == np.inf for p in phases if p.sensor == 1)
+    assert all(np.isfinite(p.sigma) for p in phases if p.sensor != 1)
+
+
 @pytest.mark.parametrize("method", ["error-separation", "joint"])
 def test_reference_unit_with_noise_meets_the_accuracy_target(method: str) -> None:
     unit = reference_unit(3.0, 4.0)

@@ -12,25 +12,44 @@ import sys
 import urllib.error
 import urllib.request
 
-BASE = os.environ.get("COMPASSCAL_URL", "http://127.0.0.1:8000")
-KEY = os.environ["COMPASSCAL_KEY"]
+BASE = os.environ.get("COMPASSCAL_URL", "http://127.0.0.1:8000").rstrip("/")
+KEY = os.environ.get("COMPASSCAL_KEY")
+
+
+def fail(message):
+    """One line on stderr and a non-zero exit: what went wrong and what to do."""
+    sys.exit(f"calibrate_unit.py: {message}")
+
+
+def open_url(req):
+    """urlopen with the errors a technician meets (wrong URL, service down, wrong key) as one line."""
+    try:
+        return urllib.request.urlopen(req)
+    except urllib.error.HTTPError as e:
+        fail(f"{req.get_method()} {req.full_url}: {e.code} {e.read().decode(errors='replace')}")
+    except urllib.error.URLError as e:
+        fail(f"cannot reach the compasscal service at {BASE} ({e.reason}); check COMPASSCAL_URL and that the service runs")
+    except ValueError as e:  # not a URL at all, e.g. no http://
+        fail(f"COMPASSCAL_URL={BASE!r} is not a usable URL ({e}); e.g. http://127.0.0.1:8000")
+    except OSError as e:  # the connection dropped or timed out
+        fail(f"{req.full_url}: {e}")
 
 
 def call(method, path, body=None):
     req = urllib.request.Request(BASE + path, method=method, headers={"X-API-Key": KEY, "Content-Type": "application/json"},
                                  data=None if body is None else json.dumps(body).encode())
-    try:
-        with urllib.request.urlopen(req) as r:
+    with open_url(req) as r:
+        try:
             return json.loads(r.read())
-    except urllib.error.HTTPError as e:
-        sys.exit(f"{method} {path}: {e.code} {e.read().decode()}")
+        except ValueError:
+            fail(f"{method} {BASE + path}: the answer is not JSON; is COMPASSCAL_URL a compasscal service?")
 
 
 def follow(run_id):
     """Print progress from the run's server-sent events until it ends; returns the final state."""
     req = urllib.request.Request(f"{BASE}/runs/{run_id}/events", headers={"X-API-Key": KEY})
     state, kind = None, None
-    with urllib.request.urlopen(req) as stream:
+    with open_url(req) as stream:
         for raw in stream:
             line = raw.decode().strip()
             if line.startswith("event:"):
@@ -49,6 +68,12 @@ def follow(run_id):
     return state
 
 
+if len(sys.argv) != 3:
+    fail("usage: calibrate_unit.py STATION SERIAL (with COMPASSCAL_URL and COMPASSCAL_KEY set)")
+if not BASE.startswith(("http://", "https://")):
+    fail(f"COMPASSCAL_URL={BASE!r} is not an http:// or https:// URL; e.g. http://127.0.0.1:8000")
+if not KEY:
+    fail("COMPASSCAL_KEY is not set: give an operator key (compasscal keys create --owner you --role operator)")
 station, serial = sys.argv[1], sys.argv[2]
 run = call("POST", "/runs", {"station": station, "procedure": "calibrate", "serials": {"0": serial}})
 print(f"run {run['id']} started on {station} for {serial}")

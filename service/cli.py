@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import json
+import os
+import re
+import socket
 from enum import Enum
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, NoReturn, Optional
 
 import numpy as np
 import typer
+import typer.core
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from physics.calibration import Calibration, staged_truth_errors, truth_summary
@@ -21,8 +26,26 @@ from physics.simulate import World, plan_cost, simulate_recording, truth_from_js
 from physics.table import TableGeometry
 from procedures.calibrate import CalibrateParams, calibration_poses
 
+def _no_flag_types(params: list[Any]) -> list[Any]:
+    """Help shows no value placeholder after a flag: it takes no value (typer prints ``<bool>``)."""
+    for p in params:
+        if getattr(p, "is_flag", False):
+            p.display_type_rich = lambda ctx: None
+    return params
+
+
+class _Command(typer.core.TyperCommand):
+    def get_params(self, ctx: Any) -> list[Any]:
+        return _no_flag_types(super().get_params(ctx))
+
+
+class _Group(typer.core.TyperGroup):
+    def get_params(self, ctx: Any) -> list[Any]:
+        return _no_flag_types(super().get_params(ctx))
+
+
 app = typer.Typer(help="Electronic-compass calibration station.", no_args_is_help=True, add_completion=False,
-                  pretty_exceptions_show_locals=False)
+                  pretty_exceptions_show_locals=False, cls=_Group)
 console = Console()
 err_console = Console(stderr=True)  # errors never mix with a command's stdout (e.g. `sim`'s JSON line)
 
@@ -39,23 +62,131 @@ MAPPING_HELP = ("TOML mapping that says how to read a file no built-in reader kn
 Method = Enum("Method", {m.replace("-", "_"): m for m in METHODS}, type=str)  # type: ignore[misc]
 
 
-def _fail(message: str) -> None:
-    err_console.print(f"[bold red]error:[/] {message}")
+def _fail(message: str) -> NoReturn:
+    """End the command: the message on stderr (taken literally, not as rich markup: ``M[xm,xb]``), exit 2."""
+    err_console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
     raise typer.Exit(code=2)
 
 
-@app.command()
+def _note(message: str) -> None:
+    """A note on stderr (stdout stays the command's output)."""
+    err_console.print(f"[dim]note:[/] {escape(message)}", soft_wrap=True)
+
+
+def _output_file(path: Optional[Path], option: str, make_parents: bool = False) -> None:
+    """Refuse, before any work, an output file that cannot be written: a directory, a parent directory
+    that does not exist (created only with ``make_parents``) or that this user cannot write to."""
+    if path is None:
+        return
+    if path.is_dir():
+        _fail(f"{option} {path}: is a directory; give a file name")
+    parent = path.parent
+    if make_parents:
+        _output_dir(parent, option)
+        return
+    if not parent.is_dir():
+        _fail(f"{option} {path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        _fail(f"{option} {path}: not writable")
+
+
+def _output_dir(path: Path, option: str) -> None:
+    """Refuse, before any work, an output directory that is a file or cannot be created."""
+    if path.exists() and not path.is_dir():
+        _fail(f"{option} {path}: is a file, not a directory")
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        _fail(f"{option} {path}: {existing} is a file, not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        _fail(f"{option} {path}: {existing} is not writable")
+
+
+def _port(value: Optional[int], option: str, any_free: bool = False) -> None:
+    """A TCP port in range (0 means "any free port" only where ``any_free``)."""
+    low = 0 if any_free else 1
+    if value is not None and not low <= value <= 65535:
+        _fail(f"{option} must be a TCP port, {low}-65535, got {value}")
+
+
+def _listen(host: str, port: int, option: str = "--port") -> socket.socket:
+    """A listening socket on host:port for the service (uvicorn serves on it), or a clear error naming
+    ``option`` (e.g. "--port 8000") when the port is taken or the address is not this machine's."""
+    if not any(c.isdigit() for c in option):
+        option = f"{option} {port}"
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
+    except socket.gaierror as e:
+        _fail(f"--host {host}: {e.strerror}")
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn does: a restart need not wait
+        sock.bind(addr)
+        sock.listen(2048)
+    except OSError as e:
+        sock.close()
+        taken = " (another program is listening there; choose another port)" if e.errno == 98 else ""
+        _fail(f"{option}: cannot listen on {host}:{port}: {e.strerror}{taken}")
+    sock.set_inheritable(True)
+    return sock
+
+
+def _port_free(host: str, port: int, option: str) -> None:
+    """Refuse a port something else already listens on, before starting a server there (0: any, always free)."""
+    if port:
+        _listen(host, port, option).close()
+
+
+def _shown_url(url: str) -> str:
+    """A database URL for messages and logs: the password hidden."""
+    return re.sub(r"(://[^:/@]*):[^@]*@", r"\1:***@", url)
+
+
+def _open_database() -> str:
+    """Reach the service's database (COMPASSCAL_DATABASE_URL, else the SQLite default) and bring it to the
+    newest migration; any problem ends the command with one line naming the setting. Returns the URL
+    (password hidden) for the user to see."""
+    from sqlalchemy.exc import ArgumentError, InterfaceError, OperationalError
+
+    from service.db import default_url, make_engine, upgrade
+
+    try:
+        url = default_url()
+    except OSError as e:  # the SQLite file's directory cannot be made: a file is in the way, no permission
+        source = next((v for v in ("COMPASSCAL_DATA_DIR", "XDG_DATA_HOME") if os.environ.get(v)), "home directory")
+        why = "a file is in the way" if isinstance(e, (FileExistsError, NotADirectoryError)) else e.strerror
+        _fail(f"{source}: cannot use {e.filename} as the directory of the SQLite database: {why}")
+    shown = _shown_url(url)
+    try:
+        engine = make_engine(url)
+        try:
+            upgrade(engine)
+        finally:
+            engine.dispose()
+    except (ArgumentError, ImportError) as e:
+        _fail(f"COMPASSCAL_DATABASE_URL={shown}: not a database URL this installation can use "
+              f"({' '.join(str(e).split())}); e.g. postgresql://user:password@host:5432/compasscal")
+    except (OperationalError, InterfaceError) as e:
+        _fail(f"database {shown}: cannot connect: {' '.join(str(e.orig).split())}")
+    return shown
+
+
+@app.command(cls=_Command)
 def simulate(
     output: Path = typer.Option(..., "-o", "--output", help="Recording CSV to write (RECORDING.md format)."),
     unit: UnitKind = typer.Option(UnitKind.random, help="The paper's reference unit or a random production unit."),
     seed: int = typer.Option(0, help="Random seed (unit and noise)."),
-    noise: Optional[float] = typer.Option(None, help="Magnetometer noise, LSB (default: 3 for the reference unit, the unit's own for random)."),
+    noise: Optional[float] = typer.Option(None, help="Magnetometer noise, LSB, >= 0 (default: 3 for the reference unit, the unit's own for random)."),
     inclination: float = typer.Option(55.0, help="Field inclination I, deg."),
     declination: float = typer.Option(23.0, help="Field declination D from the table's zero mark, deg."),
-    base_tilt: tuple[float, float] = typer.Option((0.0, 0.0), help="Base tilt about x and about y, deg."),
+    base_tilt: tuple[float, float] = typer.Option((0.0, 0.0), metavar="<x> <y>", help="Base tilt about x and about y, deg."),
     samples: int = typer.Option(CalibrateParams().samples, help="Samples per pose."),
 ) -> None:
     """Simulate a unit on an ideal table running the calibration poses; writes the recording and its truth."""
+    if noise is not None and not noise >= 0:
+        _fail(f"--noise must be >= 0 LSB, got {noise:g}")
+    _output_file(output, "--output")
+    truth = output.with_suffix(".truth.json")
+    _output_file(truth, "--output (its .truth.json)")
     rng = np.random.default_rng(seed)
     u = reference_unit(3.0 if noise is None else noise, 4.0) if unit is UnitKind.reference else random_unit(rng, mag_noise_lsb=noise)
     world = World(inclination, declination, TableGeometry(base_tilt_deg=base_tilt))
@@ -64,16 +195,14 @@ def simulate(
     except ValueError as e:
         _fail(str(e))
     rec = simulate_recording(u, poses, world, rng=rng, meta={"procedure": "calibrate", "seed": str(seed)})
-    output.parent.mkdir(parents=True, exist_ok=True)
     output.write_text(format_recording(rec))
-    truth = output.with_suffix(".truth.json")
     truth.write_text(json.dumps(truth_json(u, world), indent=2))
     cost = plan_cost(poses)
     console.print(f"wrote {output} ({len(rec)} samples, {cost.positions} poses, {cost.total_s:.1f} s of table time) "
                   f"and the true parameters to {truth}")
 
 
-@app.command()
+@app.command(cls=_Command)
 def fit(
     recording: Path = typer.Argument(..., exists=True, dir_okay=False, help="Recording: RECORDING.md CSV, a foreign format the importers read (e.g. .mat, .hdf5), or any file with --mapping."),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="Calibration JSON to write."),
@@ -84,14 +213,21 @@ def fit(
     mapping: Optional[Path] = typer.Option(None, "--mapping", exists=True, dir_okay=False, help=MAPPING_HELP),
 ) -> None:
     """Calibrate from a recording; print the paper's tables, uncertainties and staged heading errors."""
+    _output_file(output, "--output")
+    _output_file(plot, "--plot")
+    truth_data = _read_json(truth, "--truth") if truth is not None else None
     rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
+    if skip_bad_rows:
+        skipped = rec.meta.get("skipped_rows")
+        _note(f"--skip-bad-rows: {skipped} malformed row(s) of {recording.name} skipped" if skipped is not None
+              else f"--skip-bad-rows: {recording.name} is not a text file with rows to skip; nothing skipped")
     try:
         cal = fit_recording(rec, method.value)
     except (RecordingError, InsufficientData, ValueError) as e:
         _fail(f"{recording}: {e}")
     print_calibration(cal)
-    if truth is not None:
-        print_truth(cal, json.loads(truth.read_text()))
+    if truth_data is not None:
+        print_truth(cal, truth_data)
     if output is not None:
         output.write_text(json.dumps(cal.to_json(), indent=2))
         console.print(f"calibration written to {output}")
@@ -134,9 +270,9 @@ def print_calibration(cal: Calibration) -> None:
             t3.add_row(label, f"{he[key]:.4f}")
     console.print(t3)
     if cal.heading_model:
-        console.print(f"heading model: {cal.heading_model}")
+        console.print(f"heading model: {escape(str(cal.heading_model))}")
     for note in cal.notes:
-        console.print(f"[dim]note: {note}[/]")
+        console.print(f"[dim]note: {escape(note)}[/]")
 
 
 def print_truth(cal: Calibration, truth: dict[str, object]) -> None:
@@ -162,6 +298,16 @@ def _read_recording(path: Path, mapping: Optional[Path] = None, skip_bad_rows: b
     raise AssertionError  # not reached: _fail exits
 
 
+def _read_json(path: Path, option: str) -> Any:
+    """A JSON file given as an option; errors end the command naming the option, the file and the line."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        _fail(f"{option} {path}: not JSON: line {e.lineno}, column {e.colno}: {e.msg}")
+    except (ValueError, OSError) as e:  # missing, a directory, unreadable, not UTF-8
+        _fail(f"{option} {path}: {getattr(e, 'strerror', None) or e}")
+
+
 def _read_calibration(path: Path) -> Calibration:
     """A calibration JSON (``fit -o``) as the nominal model; errors name the file and the field."""
     try:
@@ -179,7 +325,7 @@ def _read_calibration(path: Path) -> Calibration:
     raise AssertionError
 
 
-@app.command()
+@app.command(cls=_Command)
 def analyze(
     recording: Path = typer.Argument(..., exists=True, dir_okay=False, help="Recording: RECORDING.md CSV, a foreign format the importers read (e.g. .mat, .hdf5), or any file with --mapping."),
     calibration: Optional[Path] = typer.Option(None, "--calibration", exists=True, dir_okay=False, help="The unit's calibration JSON (from `fit -o`): the nominal model the recording's own fit is compared with (shifted parameters are reported)."),
@@ -196,6 +342,8 @@ def analyze(
 
     from physics.discrepancy import analyze as run_analysis
 
+    _output_file(json_out, "--json", make_parents=True)
+    _output_file(html, "--html", make_parents=True)
     rec = _read_recording(recording, mapping=mapping)
     cal = _read_calibration(calibration) if calibration is not None else None
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
@@ -322,7 +470,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                     check, _, _ = await run_procedure(
                         station, "evaluate", {"calibrations": cals},
                         on_event=lambda e: e.kind == "progress" and bar.update(eval_task, completed=e.data["percent"]))  # type: ignore[attr-defined]
-    console.print(f"run {result.state.value}" + (f": {result.reason}" if result.reason else "")
+    console.print(f"run {result.state.value}" + (f": {escape(str(result.reason))}" if result.reason else "")
                   + f" after {result.table_seconds:.1f} s of table time, {result.samples} samples kept")
     for slot in sorted(serials):
         if slot in sink.parts:
@@ -332,7 +480,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
     failed = 0
     for slot, r in sorted(result.outcome.results.items()):
         if "calibration" not in r:
-            err_console.print(f"[bold red]slot {slot} ({serials.get(slot)}): {r.get('error')}[/]")
+            err_console.print(f"[bold red]slot {slot} ({escape(str(serials.get(slot)))}): {escape(str(r.get('error')))}[/]")
             failed += 1
             continue
         cal = r["calibration"]
@@ -351,6 +499,39 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
     return failed
 
 
+def _station_urls(modbus: str, compasses: list[str]) -> None:
+    """Refuse, before connecting anything, a table or compass URL the drivers cannot use."""
+    import serial
+
+    from drivers.modbus import BusURL
+
+    try:
+        BusURL.parse(modbus)
+    except ValueError as e:
+        _fail(f"--modbus {modbus}: {e}; expected tcp://HOST:PORT, rtu+tcp://HOST:PORT, serial:///dev/ttyX?baud=N "
+              "or a device path")
+    for url in compasses:
+        try:
+            serial.serial_for_url(url, do_not_open=True)  # checks the URL's scheme without opening anything
+        except ValueError as e:
+            _fail(f"--compass {url}: {e}; expected a device path or socket://HOST:PORT")
+
+
+def _procedure_params(procedure: str, parameters: dict[str, Any]) -> dict[str, Any]:
+    """The procedure's own validation, before connecting the station: a bad value names its option."""
+    from pydantic import ValidationError
+
+    from procedures.calibrate import PROCEDURES
+
+    try:
+        PROCEDURES[procedure].validate(parameters)
+    except ValidationError as e:
+        err = e.errors()[0]
+        field = ".".join(str(x) for x in err["loc"])
+        _fail(f"--{field.replace('_', '-')} {err.get('input')}: {err['msg']}")
+    return parameters
+
+
 def _run(coro: object) -> int:
     """Run a station coroutine; driver and network errors end the command with a clear message."""
     import asyncio
@@ -363,32 +544,36 @@ def _run(coro: object) -> int:
     return 1
 
 
-@app.command()
+@app.command(cls=_Command)
 def calibrate(
-    modbus: str = typer.Option(..., help="The table's Modbus URL: tcp://HOST:PORT, rtu+tcp://HOST:PORT or a serial device."),
-    compass: list[str] = typer.Option(..., help="A compass's serial URL (a device path or socket://HOST:PORT); repeat per slot."),
+    modbus: str = typer.Option(..., metavar="<url>", help="The table's Modbus URL: tcp://HOST:PORT, rtu+tcp://HOST:PORT or a serial device."),
+    compass: list[str] = typer.Option(..., metavar="<url>", help="A compass's serial URL (a device path or socket://HOST:PORT); repeat per slot."),
     output: Path = typer.Option(Path("out"), "-o", "--output", help="Directory for recordings and calibrations."),
     time_scale: float = typer.Option(1.0, help="The station's time scale (a simulator run faster than real time)."),
-    samples: int = typer.Option(70, help="Samples per pose."),
+    samples: int = typer.Option(CalibrateParams().samples, help="Samples per pose."),
     method: Method = typer.Option(METHODS[0], help="Calibration method."),  # type: ignore[valid-type]
     evaluate: bool = typer.Option(False, help="Then check each calibration on the table, level and at pitch and roll up to 60 deg."),
     truth: Optional[Path] = typer.Option(None, help="True parameters written by `sim --truth`: also score against them."),
 ) -> None:
     """Run the calibration procedure on a station (real or simulated) and calibrate every unit in its fixture."""
-    truths = json.loads(truth.read_text()) if truth is not None else None
-    failed = _run(_calibrate_station(modbus, compass, output, time_scale, {"samples": samples, "method": method.value},
-                                     truths, evaluate))
+    _station_urls(modbus, compass)
+    if not time_scale > 0:
+        _fail(f"--time-scale must be > 0, got {time_scale:g}")
+    params = _procedure_params("calibrate", {"samples": samples, "method": method.value})
+    _output_dir(output, "--output")
+    truths = _read_json(truth, "--truth") if truth is not None else None
+    failed = _run(_calibrate_station(modbus, compass, output, time_scale, params, truths, evaluate))
     if failed:
         raise typer.Exit(code=1)
 
 
-@app.command()
+@app.command(cls=_Command)
 def demo(
     output: Path = typer.Option(Path("out/demo"), "-o", "--output", help="Directory for recordings and calibrations."),
     config: Optional[Path] = typer.Option(None, "--config", help="Station TOML for the simulator (default: the paper's reference unit, 3 LSB noise, base tilt 0.05/-0.03 deg)."),
     time_scale: float = typer.Option(20.0, help="Simulated seconds per wall second."),
     seed: int = typer.Option(1, help="Noise seed."),
-    api: bool = typer.Option(False, "--api", help="Run the service too and calibrate through its REST API (SQLite default database)."),
+    api: bool = typer.Option(False, "--api", help="Run the service too and calibrate through its REST API (its database: COMPASSCAL_DATABASE_URL, else the SQLite default)."),
     port: int = typer.Option(8000, help="With --api: the service's port."),
     serve_after: bool = typer.Option(True, "--serve/--no-serve", help="With --api: keep serving after the calibration until interrupted."),
 ) -> None:
@@ -397,6 +582,12 @@ def demo(
     from drivers.sim.config import ConfigError, load_config, reference_config
     from drivers.sim.station import SimStation
 
+    if not time_scale > 0:
+        _fail(f"--time-scale must be > 0, got {time_scale:g}")
+    if api:
+        _port(port, "--port")
+    else:
+        _output_dir(output, "--output")
     try:
         cfg = load_config(config) if config else reference_config(seed)
     except ConfigError as e:
@@ -412,16 +603,22 @@ def demo(
                                             st.truth(), evaluate=True)
 
     if api:
-        if _run(_api_demo(cfg, port, serve_after)):
+        database = _open_database()
+        sock = _listen("127.0.0.1", port)
+        chosen = os.environ.get("COMPASSCAL_DATABASE_URL") or os.environ.get("COMPASSCAL_DATA_DIR")
+        default = "" if chosen else (" (the user's default, shared by every checkout; for one of this checkout's "
+                                     "own: make run DB=./compasscal.db, or set COMPASSCAL_DATABASE_URL)")
+        console.print(f"database: {database}{default}", soft_wrap=True, markup=False, highlight=False)
+        if _run(_api_demo(cfg, sock, serve_after)):
             raise typer.Exit(code=1)
         return
     if _run(main()):
         raise typer.Exit(code=1)
 
 
-async def _api_demo(cfg: object, port: int, keep_serving: bool) -> int:
-    """The service's demonstration: a simulated station and the REST service in one process; a key,
-    the station and a calibration run made through the API as a technician's script would."""
+async def _api_demo(cfg: object, sock: socket.socket, keep_serving: bool) -> int:
+    """The service's demonstration: a simulated station and the REST service (on ``sock``, listening) in
+    one process; a key, the station and a calibration run made through the API as a technician's script would."""
     import asyncio
 
     import httpx
@@ -435,8 +632,9 @@ async def _api_demo(cfg: object, port: int, keep_serving: bool) -> int:
     async with SimStation(cfg, control_port=None) as st:  # type: ignore[arg-type]
         d = st.describe()
         app = create_app()
+        port = sock.getsockname()[1]
         server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-        serving = asyncio.create_task(server.serve())
+        serving = asyncio.create_task(server.serve(sockets=[sock]))
         while not server.started:
             if serving.done():
                 _fail(f"the service could not start on port {port}")
@@ -471,13 +669,13 @@ async def _api_demo(cfg: object, port: int, keep_serving: bool) -> int:
                             elif kind == "state":
                                 state = data["state"]
             run = (await http.get(f"/runs/{run['id']}", headers={"X-API-Key": operator})).json()
-            console.print(f"run {run['id']} {state}" + (f": {run.get('reason')}" if run.get("reason") else ""))
+            console.print(f"run {run['id']} {state}" + (f": {escape(str(run.get('reason')))}" if run.get("reason") else ""))
             if state != "completed":
                 return 1
             serial = d["compasses"][0]["serial"]
             cal = (await http.get(f"/devices/{serial}/calibrations/current", headers={"X-API-Key": operator})).json()
             print_calibration(Calibration.from_json(cal))
-            console.print(f"verdict [bold]{cal['verdict']}[/]" + ("".join(f"\n  {x}" for x in cal["reasons"])))
+            console.print(f"verdict [bold]{cal['verdict']}[/]" + ("".join(f"\n  {escape(str(x))}" for x in cal["reasons"])))
             print_truth(Calibration.from_json(cal), st.truth()[0])
         console.print(f"calibration history: {base}/devices/{serial}/calibrations ; current: {base}/devices/{serial}/calibrations/current")
         console.print(f"web pages: {base}/ui/runs/{run['id']} , {base}/ui/devices/{serial} (log in with the key below)")
@@ -491,9 +689,9 @@ async def _api_demo(cfg: object, port: int, keep_serving: bool) -> int:
     return 0
 
 
-@app.command()
+@app.command(cls=_Command)
 def sim(
-    config: Optional[Path] = typer.Option(None, "--config", help="Station TOML (world, table, [[unit]], [[fault]]). Default: one random unit on an ideal table."),
+    config: Optional[Path] = typer.Option(None, "--config", help=escape("Station TOML (world, table, [[unit]], [[effect]], [[fault]]). Default: one random unit on an ideal table.")),
     modbus_port: int = typer.Option(0, help="Modbus TCP port of the table (0: any free port)."),
     compass_tcp_port: Optional[int] = typer.Option(None, help="Serve compasses on TCP from this port (slot i on port+i; 0: any free ports) instead of ptys."),
     time_scale: Optional[float] = typer.Option(None, help="Run this many times faster than real time (overrides the config)."),
@@ -509,6 +707,9 @@ def sim(
     from drivers.sim.config import ConfigError, default_config, load_config
     from drivers.sim.station import SimStation
 
+    _port(modbus_port, "--modbus-port", any_free=True)
+    _port(compass_tcp_port, "--compass-tcp-port", any_free=True)
+    _output_file(truth, "--truth")
     try:
         cfg = load_config(config) if config else default_config(seed)
     except ConfigError as e:
@@ -519,6 +720,13 @@ def sim(
         cfg.world.time_scale = time_scale
     if seed is not None:
         cfg.world.seed = seed
+    _port_free(host, modbus_port, "--modbus-port")
+    if compass_tcp_port:
+        if compass_tcp_port + len(cfg.unit) - 1 > 65535:
+            _fail(f"--compass-tcp-port {compass_tcp_port}: slot i serves on port {compass_tcp_port}+i, past 65535 "
+                  f"for {len(cfg.unit)} units")
+        for slot in range(len(cfg.unit)):
+            _port_free(host, compass_tcp_port + slot, f"--compass-tcp-port {compass_tcp_port} (slot {slot} on port {compass_tcp_port + slot})")
 
     async def main() -> None:
         stop = asyncio.Event()
@@ -536,46 +744,46 @@ def sim(
         asyncio.run(main())
     except OSError as e:  # e.g. the port is taken
         _fail(f"cannot start the simulated station: {e}")
+    except RuntimeError as e:  # pymodbus's words for a port it cannot listen on (taken since the check above)
+        if "listen" not in str(e):
+            raise
+        _fail(f"--modbus-port {modbus_port}: cannot listen on {host}:{modbus_port}: {e}")
 
 
-keys_app = typer.Typer(help="API keys (stored hashed; a key is shown once).", no_args_is_help=True)
+keys_app = typer.Typer(help="API keys (stored hashed; a key is shown once).", no_args_is_help=True, cls=_Group)
 db_app = typer.Typer(help="The database (COMPASSCAL_DATABASE_URL, default a SQLite file in the user's data directory).",
-                     no_args_is_help=True)
+                     no_args_is_help=True, cls=_Group)
 app.add_typer(keys_app, name="keys")
 app.add_typer(db_app, name="db")
 
 
-@keys_app.command("create")
+@keys_app.command("create", cls=_Command)
 def keys_create(
     owner: str = typer.Option(..., help="Who the key belongs to (recorded with every change it makes)."),
     role: str = typer.Option(..., help="viewer (read), operator (runs, batches, prompts) or admin (stations, keys, limits)."),
 ) -> None:
     """Create an API key; it is printed once, alone on the last line."""
     from service.auth import create_key
-    from service.db import make_engine, sessions, upgrade
+    from service.db import make_engine, sessions
 
+    _open_database()
     engine = make_engine()
-    upgrade(engine)
     try:
         with sessions(engine)() as session:
             key = create_key(session, owner, role)
     except ValueError as e:
         _fail(str(e))
-    console.print(f"API key for {owner} ({role}); store it now, it cannot be shown again:")
+    console.print(f"API key for {escape(owner)} ({escape(role)}); store it now, it cannot be shown again:")
     print(key)
 
 
-@db_app.command("upgrade")
+@db_app.command("upgrade", cls=_Command)
 def db_upgrade() -> None:
     """Bring the database schema to the newest migration (the service also does this on start)."""
-    from service.db import default_url, make_engine, upgrade
-
-    upgrade(make_engine())
-    url = default_url()
-    console.print(f"database at the newest migration: {url.split('@')[-1]}")
+    console.print(f"database at the newest migration: {_open_database()}", soft_wrap=True, markup=False, highlight=False)
 
 
-@app.command()
+@app.command(cls=_Command)
 def serve(
     host: str = typer.Option("127.0.0.1", help="Address to listen on."),
     port: int = typer.Option(8000, help="Port to listen on."),
@@ -584,10 +792,15 @@ def serve(
     import uvicorn
 
     from service.api import create_app
-    uvicorn.run(create_app(), host=host, port=port)
+
+    _port(port, "--port")
+    database = _open_database()
+    sock = _listen(host, port)
+    console.print(f"database: {database}", soft_wrap=True, markup=False, highlight=False)
+    uvicorn.Server(uvicorn.Config(create_app(), host=host, port=port)).run(sockets=[sock])
 
 
-@app.command()
+@app.command(cls=_Command)
 def prove(
     n: int = typer.Option(10, "--n", min=0, help="Recordings per catalogue effect (non-centrality log-uniform in 3-300; 0: none)."),
     seed: int = typer.Option(0, help="Random seed of the whole proof."),
@@ -615,6 +828,7 @@ def prove(
     plans = {"calibrate": ordinary_plan, "characterize": characterize_plan}
     if open_plan not in plans:
         raise typer.BadParameter(f"expected one of {', '.join(plans)}, got {open_plan!r}", param_hint="--open-plan")
+    _output_file(json_out, "--json")  # before the minutes of work whose results it keeps
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
                   TimeRemainingColumn(), console=err_console, transient=False) as bar:
         task = bar.add_task("prove", total=None, info="")

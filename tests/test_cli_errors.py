@@ -1,0 +1,291 @@
+"""The command line's answers to common mistakes: one clear line on stderr naming the option or setting
+and the problem, exit code 2, no traceback, and nothing long started before the check (issue 15)."""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+from typer.testing import CliRunner
+
+import service.cli as cli
+from service.cli import app
+
+ROOT = Path(__file__).resolve().parent.parent
+runner = CliRunner()
+
+
+def refused(args: list[str], *words: str) -> str:
+    """Invoke; expect exit 2 and exactly one line on stderr containing ``words``; return that line."""
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, (r.exit_code, r.output, r.exception)
+    assert "Traceback" not in r.output
+    line = r.stderr.strip()
+    assert line.startswith("error: ") and "\n" not in line, r.stderr
+    for w in words:
+        assert w in line, (w, line)
+    return line
+
+
+@pytest.fixture
+def busy_port() -> Iterator[int]:
+    """A port something is listening on."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        yield s.getsockname()[1]
+
+
+@pytest.fixture
+def data_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """The SQLite default in a fresh directory (no COMPASSCAL_DATABASE_URL)."""
+    monkeypatch.setenv("COMPASSCAL_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.delenv("COMPASSCAL_DATABASE_URL", raising=False)
+    return tmp_path / "data"
+
+
+@pytest.fixture
+def nothing_starts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A command that should refuse must not start a server (which would serve until interrupted)."""
+    import uvicorn
+
+    import drivers.sim.station
+
+    def started(*a: object, **k: object) -> None:
+        raise AssertionError("a server was started instead of refusing")
+
+    monkeypatch.setattr(uvicorn, "run", started)
+    monkeypatch.setattr(uvicorn.Server, "run", started)
+    monkeypatch.setattr(drivers.sim.station, "SimStation", started)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# -- calibrate --------------------------------------------------------------------------------------
+
+def test_calibrate_refuses_an_unsupported_modbus_scheme_before_connecting(tmp_path: Path):
+    refused(["calibrate", "--modbus", "http://127.0.0.1:1", "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)],
+            "--modbus", "'http'", "tcp://HOST:PORT")
+
+
+def test_calibrate_refuses_an_unsupported_compass_scheme(tmp_path: Path):
+    refused(["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "http://127.0.0.1:1", "-o", str(tmp_path)],
+            "--compass", "http")
+
+
+def test_calibrate_refuses_bad_parameters_and_outputs_naming_the_option(tmp_path: Path):
+    base = ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1"]
+    refused([*base, "--samples", "0", "-o", str(tmp_path)], "--samples")
+    refused([*base, "--time-scale", "0", "-o", str(tmp_path)], "--time-scale")
+    (tmp_path / "afile").write_text("")
+    refused([*base, "-o", str(tmp_path / "afile")], "--output", "afile")
+
+
+def test_calibrate_takes_60_samples_per_pose_by_default_as_the_api_does(tmp_path: Path, monkeypatch):
+    from procedures.calibrate import CalibrateParams
+
+    seen = {}
+
+    async def fake_station(modbus, compasses, out, time_scale, params, truth, evaluate):
+        seen.update(params)
+        return 0
+
+    monkeypatch.setattr(cli, "_calibrate_station", fake_station)
+    r = runner.invoke(app, ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1",
+                            "-o", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    assert seen["samples"] == CalibrateParams().samples == 60
+
+
+# -- serve, demo --api, sim: ports ------------------------------------------------------------------
+
+def test_serve_names_a_port_in_use(busy_port: int, data_dir: Path, nothing_starts: None):
+    refused(["serve", "--port", str(busy_port)], f"--port {busy_port}", "in use")
+
+
+def test_serve_refuses_a_port_out_of_range(data_dir: Path, nothing_starts: None):
+    refused(["serve", "--port", "99999"], "--port", "99999", "65535")
+
+
+def test_serve_listens_on_the_port_asked_and_prints_its_database(data_dir: Path, monkeypatch):
+    import uvicorn
+
+    served = {}
+
+    def fake_run(self, sockets=None):
+        served["port"] = sockets[0].getsockname()[1]
+        served["config_port"] = self.config.port
+        sockets[0].close()
+
+    monkeypatch.setattr(uvicorn.Server, "run", fake_run)
+    port = free_port()
+    r = runner.invoke(app, ["serve", "--port", str(port)])
+    assert r.exit_code == 0, r.output
+    assert served == {"port": port, "config_port": port}
+    assert f"database: sqlite:///{data_dir / 'compasscal.db'}" in r.stdout
+
+
+def test_demo_api_names_a_port_in_use(busy_port: int, data_dir: Path, nothing_starts: None):
+    refused(["demo", "--api", "--port", str(busy_port)], f"--port {busy_port}", "in use")
+
+
+def test_demo_api_prints_the_database_it_uses(tmp_path: Path, monkeypatch):
+    async def fake_api_demo(cfg, sock, keep_serving):
+        sock.close()
+        return 0
+
+    monkeypatch.setattr(cli, "_api_demo", fake_api_demo)
+    for name in ("COMPASSCAL_DATABASE_URL", "COMPASSCAL_DATA_DIR"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))  # the user's default, here
+    r = runner.invoke(app, ["demo", "--api", "--port", str(free_port())])
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.stdout.split())
+    assert f"database: sqlite:///{tmp_path / 'compasscal' / 'compasscal.db'}" in said
+    assert "shared by every checkout" in said and "make run DB=./compasscal.db" in said
+    monkeypatch.setenv("COMPASSCAL_DATABASE_URL", f"sqlite:///{tmp_path / 'own.db'}")
+    r = runner.invoke(app, ["demo", "--api", "--port", str(free_port())])
+    assert r.exit_code == 0, r.output
+    assert f"database: sqlite:///{tmp_path / 'own.db'}" in r.stdout and "shared" not in r.stdout
+
+
+def test_sim_names_a_modbus_port_in_use(busy_port: int, nothing_starts: None):
+    refused(["sim", "--modbus-port", str(busy_port)], f"--modbus-port {busy_port}", "in use")
+
+
+def test_sim_names_a_compass_port_in_use_and_ports_out_of_range(busy_port: int, nothing_starts: None):
+    refused(["sim", "--compass-tcp-port", str(busy_port)], f"--compass-tcp-port {busy_port}", "in use")
+    refused(["sim", "--modbus-port", "70000"], "--modbus-port", "70000")
+
+
+# -- the database -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("args", [["keys", "create", "--owner", "alice", "--role", "admin"], ["db", "upgrade"]])
+def test_a_garbage_database_url_is_named(args: list[str], monkeypatch):
+    monkeypatch.setenv("COMPASSCAL_DATABASE_URL", "garbage")
+    refused(args, "COMPASSCAL_DATABASE_URL=garbage", "not a database URL")
+
+
+@pytest.mark.parametrize("args", [["keys", "create", "--owner", "alice", "--role", "admin"], ["db", "upgrade"]])
+def test_an_unreachable_database_is_named_without_its_password(args: list[str], monkeypatch):
+    monkeypatch.setenv("COMPASSCAL_DATABASE_URL", "postgresql://user:s3cret@127.0.0.1:1/compasscal")
+    line = refused(args, "postgresql://user:***@127.0.0.1:1/compasscal", "cannot connect")
+    assert "s3cret" not in line
+
+
+def test_a_data_dir_that_is_a_file_is_named(tmp_path: Path, monkeypatch, nothing_starts: None):
+    (tmp_path / "afile").write_text("")
+    monkeypatch.setenv("COMPASSCAL_DATA_DIR", str(tmp_path / "afile"))
+    monkeypatch.delenv("COMPASSCAL_DATABASE_URL", raising=False)
+    refused(["db", "upgrade"], "COMPASSCAL_DATA_DIR", "afile")
+    refused(["serve", "--port", str(free_port())], "COMPASSCAL_DATA_DIR", "afile")
+
+
+# -- outputs validated before the work --------------------------------------------------------------
+
+def test_prove_refuses_a_directory_for_json_before_running(tmp_path: Path, monkeypatch):
+    import proof.runner
+
+    def never(*a, **k):
+        raise AssertionError("the proof ran before its output was checked")
+
+    monkeypatch.setattr(proof.runner, "run_proof", never)
+    refused(["prove", "--json", str(tmp_path)], "--json", "is a directory")
+    refused(["prove", "--json", str(tmp_path / "no" / "such" / "p.json")], "--json", "does not exist")
+
+
+def test_simulate_refuses_a_missing_directory_and_negative_noise(tmp_path: Path):
+    refused(["simulate", "-o", str(tmp_path / "nonexistent" / "rec.csv")], "--output", "does not exist")
+    assert not (tmp_path / "nonexistent").exists()
+    refused(["simulate", "--noise", "-3", "-o", str(tmp_path / "rec.csv")], "--noise", "-3")
+    assert not (tmp_path / "rec.csv").exists()
+
+
+def test_fit_refuses_outputs_it_could_not_write_before_fitting(tmp_path: Path):
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", str(rec)]).exit_code == 0
+    refused(["fit", str(rec), "-o", str(tmp_path)], "--output", "is a directory")
+    refused(["fit", str(rec), "--plot", str(tmp_path / "no" / "fig.png")], "--plot", "does not exist")
+    refused(["fit", str(rec), "--truth", str(tmp_path / "missing.json")], "--truth", "missing.json")
+
+
+# -- fit's messages ---------------------------------------------------------------------------------
+
+def test_fit_says_how_many_rows_it_skipped(tmp_path: Path):
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", str(rec)]).exit_code == 0
+    lines = rec.read_text().splitlines()
+    data = [i for i, ln in enumerate(lines) if ln and not ln.startswith("#") and not ln.startswith("t,")]
+    for i in data[5:7]:
+        lines[i] = lines[i].rsplit(",", 1)[0] + ",oops"
+    rec.write_text("\n".join(lines) + "\n")
+    r = runner.invoke(app, ["fit", str(rec), "--skip-bad-rows"])
+    assert r.exit_code == 0, r.output
+    assert "2 malformed row(s) of rec.csv skipped" in r.stderr
+
+
+def test_fit_names_the_elements_a_level_only_recording_leaves_undetermined(tmp_path: Path):
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", str(rec)]).exit_code == 0
+    rec.write_text("".join(ln for ln in rec.read_text().splitlines(keepends=True) if ",sweep_" not in ln))
+    line = refused(["fit", str(rec)], "cannot determine", "M[xm,xb]", "M[ym,yb]", "bias[x]", "bias[z]")
+    assert "M, M" not in line
+
+
+# -- help -------------------------------------------------------------------------------------------
+
+def test_sim_help_shows_the_toml_array_tables():
+    r = runner.invoke(app, ["sim", "--help"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0
+    assert "[[unit]]" in r.output and "[[fault]]" in r.output and "[]" not in r.output
+
+
+@pytest.mark.parametrize("command", [[], ["simulate"], ["fit"], ["analyze"], ["calibrate"], ["demo"], ["sim"], ["serve"],
+                                     ["prove"], ["keys"], ["keys", "create"], ["db"], ["db", "upgrade"]])
+def test_help_has_no_type_placeholders_for_flags_or_lists(command: list[str]):
+    r = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    assert "<bool>" not in r.output and "<list[" not in r.output and "<float,float>" not in r.output
+
+
+# -- the real entry point ---------------------------------------------------------------------------
+
+def test_the_installed_command_exits_2_with_one_line(tmp_path: Path):
+    r = subprocess.run([sys.executable, "-m", "service.cli", "calibrate", "--modbus", "http://127.0.0.1:1",
+                        "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stdout == ""
+    assert re.fullmatch(r"error: --modbus http://127\.0\.0\.1:1: [^\n]+\n", r.stderr), r.stderr
+
+
+# -- the technician's example script ----------------------------------------------------------------
+
+def example(env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    base = {k: v for k, v in os.environ.items() if not k.startswith("COMPASSCAL_")}
+    return subprocess.run([sys.executable, str(ROOT / "examples" / "calibrate_unit.py"), "lab-1", "SN-0001"],
+                          env={**base, **env}, capture_output=True, text=True, timeout=60)
+
+
+def test_example_script_without_a_key_says_so_in_one_line():
+    r = example({})
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert r.stderr.count("\n") == 1 and "COMPASSCAL_KEY is not set" in r.stderr
+
+
+def test_example_script_with_a_wrong_url_says_so_in_one_line():
+    r = example({"COMPASSCAL_KEY": "cc_x", "COMPASSCAL_URL": f"http://127.0.0.1:{free_port()}"})
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert r.stderr.count("\n") == 1 and "cannot reach the compasscal service" in r.stderr
+    r = example({"COMPASSCAL_KEY": "cc_x", "COMPASSCAL_URL": "127.0.0.1:8000"})
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert r.stderr.count("\n") == 1 and "COMPASSCAL_URL" in r.stderr

@@ -3,6 +3,11 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= out
 PORT ?= 8000
+# The service's database for `make run`. Empty: the user's SQLite default (~/.local/share/compasscal/
+# compasscal.db, shared by every checkout). A path gives a SQLite file of its own (DB=./compasscal.db
+# for this checkout's), a URL any database (DB=postgresql://user:pw@host:5432/compasscal).
+DB ?=
+DB_ENV := $(if $(strip $(DB)),COMPASSCAL_DATABASE_URL='$(if $(findstring ://,$(DB)),$(DB),sqlite:///$(abspath $(DB)))')
 
 .PHONY: run demo test bench clean
 
@@ -14,9 +19,9 @@ $(VENV)/.installed: pyproject.toml
 
 # The main job: a simulated station (Modbus table + serial compass, time scale 20) and the REST
 # service on the SQLite default; an operator key; the paper's reference unit calibrated through the
-# API; the result and the URLs printed; then it keeps serving until interrupted (Ctrl-C).
+# API; the database, the result and the URLs printed; then it keeps serving until interrupted (Ctrl-C).
 run: $(VENV)/.installed
-	$(VENV)/bin/compasscal demo --api --port $(PORT)
+	$(DB_ENV) $(VENV)/bin/compasscal demo --api --port $(PORT)
 
 # The same calibration without the service (command line only; exits when done).
 demo: $(VENV)/.installed

@@ -26,6 +26,10 @@ from physics.sensor import split_matrix
 MAX_EFFECTS = 3
 #: The catalogue's share of alpha in each round (the dictionary of generic blocks has the rest).
 CATALOGUE_SHARE = 2.0 / 3.0
+#: When a catalogue effect and a dictionary block are both significant, the catalogue effect is named
+#: unless the block explains more by this much (in the statistic, twice the log-likelihood): a physics
+#: people know to look for is likelier than a generic one of the same fit.
+CATALOGUE_PRIOR = 2.0
 #: Plausibility limits on the nominal fit: beyond these a unit is not what it claims to be.
 MAX_MISALIGNMENT_DEG = 10.0
 MAX_K_MISMATCH = 0.25
@@ -298,16 +302,16 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
     """Forward selection (in place on ``selected`` catalogue effects and ``found`` discovered blocks);
     returns the test rows of every round.
 
-    Each round the best catalogue effect (Bonferroni over the catalogue's tests) and the best dictionary
-    block (Bonferroni over the dictionary, its window search corrected on the nulls) compete: the smaller
-    corrected p joins the model while below alpha. A catalogue effect, tested against fewer
-    alternatives, wins when it explains the structure as well; a generic block wins when it explains it
-    better. Plausibility is a gate: a significant catalogue effect whose fitted parameters (given the
-    model so far) exceed the catalogue's plausible range is refused (added to ``gated``) and the next
-    one is considered, so that the structure it would stand in for is left to discovery."""
+    Each round the catalogue's tests (Bonferroni at its share of alpha) and the dictionary's (Bonferroni
+    at the rest, its window search corrected on the nulls) say whether anything is there; of the
+    significant candidates the one with the most evidence (`Test.evidence`) joins, a catalogue effect
+    winning within :data:`CATALOGUE_PRIOR`. Plausibility is a gate: a significant catalogue effect whose
+    fitted parameters (given the model so far) exceed the catalogue's plausible range is refused (added
+    to ``gated``) and the next one is considered, so that the structure it would stand in for is left
+    to discovery."""
     rows: list[dict[str, Any]] = []
-    # alpha is shared between the two families (weighted Bonferroni): the smaller p of either family joins
-    # the model, so each is held to its share and the round's false-alarm rate stays alpha
+    # alpha is shared between the two families (weighted Bonferroni): each is held to its share, so the
+    # round's false-alarm rate stays alpha
     a_cat, a_dic = alpha * CATALOGUE_SHARE, alpha * (1.0 - CATALOGUE_SHARE)
     for round_no in range(MAX_EFFECTS + MAX_BLOCKS):
         say(f"tests: round {round_no + 1}", min(0.55 + 0.03 * round_no, 0.69))
@@ -323,7 +327,7 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
             # round 1's family also holds the line search
             _score(list(tests.values()) + list(gtests.values()), resid, null, extra=1 if round_no == 0 else 0)
             for name in sorted((n for n, t in tests.items() if t.df > 0 and t.log_p < np.log(a_cat)),
-                               key=lambda n: tests[n].log_p):
+                               key=lambda n: -tests[n].evidence):
                 if name != "mains_interference":
                     coef, _, off = _fit_terms(A0, [candidates[s] for s in selected] + [f.Xw for f in found]
                                               + [candidates[name]], zr)
@@ -340,10 +344,9 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
         if len(found) < MAX_BLOCKS:
             cands = dic.round(Q, resid, null, a_dic)
             disc = dic.choose(cands, Q, resid, null, a_dic)
-        # compared on the same scale: each p over its family's share of alpha
-        cat_log_p = tests[best_name].log_p - np.log(CATALOGUE_SHARE) if best_name is not None else 0.0
-        if disc is not None and best_name is not None and cat_log_p <= disc.test.log_p - np.log(1.0 - CATALOGUE_SHARE):
-            disc = None  # the catalogue explains it as well, against fewer alternatives
+        # both significant: the data's preference decides (evidence), a named effect winning a near tie
+        if disc is not None and best_name is not None and tests[best_name].evidence + CATALOGUE_PRIOR >= disc.test.evidence:
+            disc = None
         elif disc is not None:
             best_name = None
         rows += [_row(t, round_no + 1, selected=name == best_name, generic=name in gtests)

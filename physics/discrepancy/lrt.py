@@ -48,10 +48,23 @@ class Test:
     p_value: float = 1.0
     p_adjusted: float = 1.0
     log_p: float = 0.0  # natural log of the corrected p: ranks tests whose p underflows to 0
+    search: float = 0.0  # log of what searching (a window's edges) multiplied its single p by
 
     @property
     def df(self) -> int:
         return int(self.basis.shape[1])
+
+    @property
+    def evidence(self) -> float:
+        """How well the columns explain the residual, for choosing between explanations once something
+        is known to be there: the statistic (twice the log-likelihood gain) less 2 per parameter and
+        twice the log of the search's multiplicity (a window's fitted edges), an information criterion.
+
+        Which family a test belongs to and how large that family is decide whether anything is there
+        (the corrected p); they say nothing about which of two significant explanations the data
+        prefer, and at large statistics each test's null-calibrated scale moves p by orders of
+        magnitude, so p cannot rank them either."""
+        return self.statistic - 2.0 * self.df - 2.0 * self.search
 
 
 def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: int = 0) -> None:

@@ -57,6 +57,10 @@ REFINE_BINS = 3
 KEEP_SHARE = 1e-4
 #: At most this many discovered blocks join one recording's model.
 MAX_BLOCKS = 4
+#: Re-anchorings of the pair search (see :meth:`_Windows.best_pair`), and how many of the simulated
+#: nulls calibrate it (the search runs per null).
+ASCENT_STEPS = 2
+PAIR_NULLS = 64
 DEPENDENCES = ("segments", "time", "temp_c", "rate", "acc", "psi_t", "theta_t", "phi_t")
 
 
@@ -303,18 +307,21 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
         lp = stats.chi2.logsf(sn / c_scale, df[ok][None, :])
         m_eff, p_ref = _m_eff(np.exp(np.min(lp, axis=1)), ok.sum())
     lps = np.full(len(stat), np.inf)
-    lps[ok] = [chi2_logsf(s / c_scale, d) for s, d in zip(stat[ok], df[ok])]
+    lps[ok] = stats.chi2.logsf(stat[ok] / c_scale, df[ok])
+    far = ok & ~np.isfinite(lps)  # beyond scipy's range: the asymptotic tail
+    lps[far] = [chi2_logsf(s / c_scale, d) for s, d in zip(stat[far], df[far])]
     i = int(np.argmin(lps))
     single = WindowSearch(int(a_idx[i]), int(b_idx[i]), float(stat[i]), int(df[i]), float(lps[i]), m_eff,
                           _search_log_p(float(lps[i]), m_eff, stat[i] / c_scale, int(df[i]), p_ref, 2))
     # Two windows with the same parameters: something that came and went twice (a relay, a motor, a
-    # tool put back). The second window is searched given the best single one, on the data and on each
-    # null alike, and the better of the two searches pays for both (+log 2).
+    # tool put back). The pair is searched given the best single one (a second window beside it, or a
+    # gap inside it), on the data and on each null alike, and the better of the two searches pays for
+    # both (+log 2).
     windows = _Windows(a_idx, b_idx, S, GW, scale)
-    pair = windows.pair(i, C[b_idx] - C[a_idx])
+    pair = windows.best_pair(i, C[b_idx] - C[a_idx])
     if pair is None:
         return WindowSearch(**{**single.__dict__, "log_p": min(single.log_p + float(np.log(2.0)), 0.0)})
-    j, stat2, df2 = pair
+    (j1, j2), stat2, df2 = pair
     lp2 = chi2_logsf(stat2 / c_scale, df2)
     m_eff2, p_ref2 = m_eff * m_eff, p_ref
     if null is not None and len(null) >= 20:
@@ -322,18 +329,16 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
         lp_all = np.full((len(null), len(stat)), np.inf)
         lp_all[:, ok] = lp
         first = np.argmin(lp_all, axis=1)
-        min_p2 = np.ones(len(null))
-        for i1 in np.unique(first):
-            rows = np.flatnonzero(first == i1)
-            st = windows.pair_stats(int(i1), CWn[rows])
-            if st is not None:
-                sn2, dfn2 = st
-                min_p2[rows] = np.exp(np.min(stats.chi2.logsf(sn2 / c_scale, np.maximum(dfn2, 1)), axis=1))
+        min_p2 = np.ones(min(len(null), PAIR_NULLS))
+        for k in range(len(min_p2)):  # the same search on each null (a subsample: it is per null)
+            got = windows.best_pair(int(first[k]), CWn[k])
+            if got is not None:
+                min_p2[k] = float(stats.chi2.sf(got[1] / c_scale, max(got[2], 1)))
         m_eff2, p_ref2 = _m_eff(min_p2, len(stat) ** 2)
     log_p2 = _search_log_p(lp2, m_eff2, stat2 / c_scale, df2, p_ref2, 4)
     if log_p2 < single.log_p:
-        best = WindowSearch(int(a_idx[i]), int(b_idx[i]), float(stat2), int(df2), lp2, m_eff2, log_p2,
-                            (int(a_idx[j]), int(b_idx[j])))
+        best = WindowSearch(int(a_idx[j1]), int(b_idx[j1]), float(stat2), int(df2), lp2, m_eff2, log_p2,
+                            (int(a_idx[j2]), int(b_idx[j2])))
     else:
         best = single
     return WindowSearch(**{**best.__dict__, "log_p": min(best.log_p + float(np.log(2.0)), 0.0)})
@@ -365,7 +370,10 @@ def _m_eff(min_p: np.ndarray, most: float) -> tuple[float, float]:
 
 @dataclass
 class _Windows:
-    """The grid's windows and their Gram matrices (from the prefix sums), for pairs of windows."""
+    """The grid's windows and their Gram matrices (from the prefix sums), for pairs of windows with the
+    same parameters. The pairs tied with a first window: it and any window apart from it by a bin at
+    least, or the first window split in two by a gap (what came, went and came back while the best
+    single window spans both visits)."""
 
     a: np.ndarray
     b: np.ndarray
@@ -373,40 +381,76 @@ class _Windows:
     GW: np.ndarray
     scale: np.ndarray
 
-    def _pair_gram(self, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    def __post_init__(self) -> None:
+        n = int(self.b.max()) + 1
+        self.index = np.full((n, n), -1)
+        self.index[self.a, self.b] = np.arange(len(self.a))
+        self.cache: dict[int, Any] = {}
+
+    def _pairs(self, i1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Index pairs (first, second): ``i1`` with every window apart from it, and the splits of ``i1``."""
         a1, b1 = int(self.a[i1]), int(self.b[i1])
-        other = np.flatnonzero((self.a >= b1 + 1) | (self.b <= a1 - 1))  # apart by a bin at least
-        if not len(other):
+        other = np.flatnonzero((self.a >= b1 + 1) | (self.b <= a1 - 1))
+        c, d = np.triu_indices(b1 + 1, k=1)  # the gap [c, d) inside [a1, b1), both pieces MIN_BINS long
+        keep = (c >= a1 + MIN_BINS) & (d <= b1 - MIN_BINS)
+        first, second = self.index[a1, c[keep]], self.index[d[keep], b1]
+        split = (first >= 0) & (second >= 0)
+        return (np.concatenate([np.full(len(other), i1), first[split]]),
+                np.concatenate([other, second[split]]))
+
+    def _pair_gram(self, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        if i1 in self.cache:
+            return self.cache[i1]
+        self.cache[i1] = self._pair_gram_of(i1)
+        return self.cache[i1]
+
+    def _pair_gram_of(self, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        j1, j2 = self._pairs(i1)
+        if not len(j1):
             return None
-        S, a, b = self.S, self.a[other], self.b[other]
-        cross = S[b1, :, b, :] - S[a1, :, b, :] - S[b1, :, a, :] + S[a1, :, a, :]  # sum over W1 x W2
-        GU = self.GW[i1][None] + self.GW[other] + cross + np.transpose(cross, (0, 2, 1))
+        S, a1, b1, a2, b2 = self.S, self.a[j1], self.b[j1], self.a[j2], self.b[j2]
+        cross = S[b1, :, b2, :] - S[a1, :, b2, :] - S[b1, :, a2, :] + S[a1, :, a2, :]  # sum over W1 x W2
+        GU = self.GW[j1] + self.GW[j2] + cross + np.transpose(cross, (0, 2, 1))
         w, V = np.linalg.eigh(0.5 * (GU + np.transpose(GU, (0, 2, 1))))
-        keep = w > KEEP_SHARE * np.maximum(self.scale[i1] + self.scale[other], 1e-300)[:, None]
-        return other, w, V, keep
+        keep = w > KEEP_SHARE * np.maximum(self.scale[j1] + self.scale[j2], 1e-300)[:, None]
+        return j1, j2, w, V, keep
 
     def pair_stats(self, i1: int, cw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Statistics (K, pairs) and ranks of window ``i1`` tied with every window apart from it, for the
-        window sums ``cw`` (K, windows, p) of K realisations."""
+        """Statistics (K, pairs) and ranks of the pairs tied with window ``i1``, for the window sums
+        ``cw`` (K, windows, p) of K realisations."""
         g = self._pair_gram(i1)
         if g is None:
             return None
-        other, w, V, keep = g
-        cu = cw[:, i1][:, None, :] + cw[:, other]
-        return _window_stats(cu, w, V, keep), keep.sum(axis=1)[None, :].repeat(len(cw), axis=0)
+        j1, j2, w, V, keep = g
+        return _window_stats(cw[:, j1] + cw[:, j2], w, V, keep), keep.sum(axis=1)[None, :].repeat(len(cw), axis=0)
 
-    def pair(self, i1: int, cw: np.ndarray) -> tuple[int, float, int] | None:
-        """The window that, tied with ``i1``, explains most of the data (window sums ``cw`` (windows, p))."""
+    def best_pair(self, i1: int, cw: np.ndarray, steps: int = ASCENT_STEPS) -> tuple[tuple[int, int], float, int] | None:
+        """The best pair tied with ``i1``, then re-anchored on its other window while that explains more
+        (up to ``steps`` times): from the best single window the pair search reaches two visits whose
+        first or second it does not contain."""
+        got, prev = self.pair(i1, cw), i1
+        for _ in range(steps if got is not None else 0):
+            (j1, j2), st, _ = got
+            anchor = j2 if j1 == prev else j1
+            nxt = self.pair(anchor, cw)
+            if nxt is None or nxt[1] <= st + 1e-9:
+                break
+            got, prev = nxt, anchor
+        return got
+
+    def pair(self, i1: int, cw: np.ndarray) -> tuple[tuple[int, int], float, int] | None:
+        """The pair tied with ``i1`` that explains most of the data (window sums ``cw`` (windows, p)):
+        its two window indices, statistic and rank."""
         g = self._pair_gram(i1)
         if g is None:
             return None
-        other, w, V, keep = g
-        st = _window_stats(cw[i1][None, :] + cw[other], w, V, keep)
+        j1, j2, w, V, keep = g
+        st = _window_stats(cw[j1] + cw[j2], w, V, keep)
         df = keep.sum(axis=1)
         if not np.any(df > 0):
             return None
         k = int(np.argmax(np.where(df > 0, st, -np.inf)))
-        return int(other[k]), float(st[k]), int(df[k])
+        return (int(j1[k]), int(j2[k])), float(st[k]), int(df[k])
 
 
 def _edge_candidates(ctx: Context, lo_t: float, hi_t: float, limit: int = 60) -> np.ndarray:
@@ -567,15 +611,17 @@ class Dictionary:
             t.p_value = float(np.exp(ws.log_p))
             t.log_p = float(min(0.0, ws.log_p + np.log(family)))
             t.p_adjusted = float(min(1.0, t.p_value * family))
+            t.search = max(ws.log_p - ws.log_p_single, 0.0)
             cands.append(Found(blk, Xs, Xw, lab, t, segs, ws.m_eff))
         return cands
 
     def choose(self, cands: list[Found], Q: np.ndarray, y: np.ndarray, null: np.ndarray | None,
                alpha: float) -> Found | None:
-        """The block to add: the smallest corrected p below alpha, or a simpler significant block that
-        leaves it nothing to add, in the likeliest of the frames the recording cannot tell apart."""
-        best = min(cands, key=lambda c: c.test.log_p, default=None)
-        if best is None or best.test.log_p >= np.log(alpha):
+        """The block to add: of those significant at ``alpha``, the one with the most evidence
+        (`Test.evidence`), or a simpler significant block that leaves it nothing to add, in the likeliest
+        of the frames the recording cannot tell apart."""
+        best = max((c for c in cands if c.test.log_p < np.log(alpha)), key=lambda c: c.test.evidence, default=None)
+        if best is None:
             return None
         chosen, alike = _likeliest(_simplest(best, cands, Q, y, null, alpha, self.family), cands, alpha)
         return replace(chosen, alike=alike)
@@ -625,12 +671,23 @@ def _describe(b: Block) -> str:
 #: of the same size to be named: a permeability change of iron on a table stage is rarer than a magnet
 #: put down or a unit that moved (prior odds of about 20 to 1).
 RARER = {("outer", "gain"): 6.0, ("outer", "rotation"): 6.0, ("middle", "gain"): 6.0, ("middle", "rotation"): 6.0}
+#: The same for a change that starts and stops (a window): a unit's sensitivity that changes for a while
+#: and comes back is rarer than iron or a magnet near it for that while.
+RARER_WINDOWED = {("sensor", "gain"): 4.0, ("platform", "gain"): 4.0}
+#: Time and temperature during a warm-up are nearly the same input: a recording tells them apart only
+#: by this much more (the likelier input per form, :data:`SLOW_PREFERENCE`, is named within it).
+SLOW_SAME_EVIDENCE = 6.0
+
+
+def _rarer(b: Block) -> float:
+    return (RARER_WINDOWED if b.windowed else RARER).get((b.frame, b.form), 0.0)
 
 
 def _likeliest(chosen: Found, cands: list[Found], alpha: float) -> tuple[Found, list[str]]:
     """Among the significant candidates of ``chosen``'s size, in any frame and form, against the same
-    input (or the other slow input: time or temperature), those whose statistic (less :data:`RARER` for a
-    rare cause) is within :data:`SAME_EVIDENCE` of the largest explain the residual equally well; the
+    input (or the other slow input: time or temperature), those whose statistic (less :data:`RARER` or
+    :data:`RARER_WINDOWED` for a rare cause) is within :data:`SAME_EVIDENCE` (:data:`SLOW_SAME_EVIDENCE`
+    against a slow input) of the largest explain the residual equally well; the
     likeliest of them, and the descriptions of the others, which this recording cannot tell apart from
     it. (The statistic, not the p-value, decides: at large statistics the null-calibrated scale of each
     test moves p a lot.)"""
@@ -639,9 +696,10 @@ def _likeliest(chosen: Found, cands: list[Found], alpha: float) -> tuple[Found, 
     deps = set(slow) if b0.dependence in slow else {b0.dependence}
     group = [c for c in cands if c.test.df == chosen.test.df and c.block.dependence in deps
              and c.test.log_p < np.log(alpha)] or [chosen]
-    score = {id(c): c.test.statistic - RARER.get((c.block.frame, c.block.form), 0.0) for c in group}
+    score = {id(c): c.test.statistic - _rarer(c.block) for c in group}
     top = max(score.values())
-    alike = [c for c in group if score[id(c)] >= top - SAME_EVIDENCE]
+    margin = SLOW_SAME_EVIDENCE if b0.dependence in slow else SAME_EVIDENCE
+    alike = [c for c in group if score[id(c)] >= top - margin]
     pick = min(alike, key=lambda c: (FRAME_PREFERENCE.index(c.block.frame), FORMS.index(c.block.form),
                                      SLOW_PREFERENCE[c.block.form].index(c.block.dependence)
                                      if c.block.dependence in slow else 0))

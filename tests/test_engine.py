@@ -60,6 +60,7 @@ def test_calibrate_two_units_at_time_scale_20(tmp_path: Path):
         assert len(rec) == 18 * 60 and set(rec.step) == {"rotate_z", "sweep_y", "sweep_x"}
         assert np.all(np.diff(rec.t) >= 0) and rec.t[-1] <= result.table_seconds + 1e-6
         unit, world = truth_from_json(st.truth()[slot])
+        assert "calibration" in result.outcome.results[slot], result.outcome.results[slot]
         cal = result.outcome.results[slot]["calibration"]
         s = truth_summary(cal, unit, world)
         assert s["level_max"] < 0.03 and s["tilted_max"] < 0.06, (serial, s)

@@ -278,36 +278,36 @@ class Engine:
         """Hold still and take exactly ``step.samples`` samples per slot.
 
         A read that times out keeps what arrived (sent to the sink at once) and the retry reads only
-        what is missing, so a pose holds its planned count however late a busy host delivers lines;
-        a slot that got more than it needed in the failed read has the surplus left out."""
+        what is missing, so a pose holds its planned count however late a busy host delivers lines."""
         before = await self.station.table.positions()
-        have: dict[Any, list[CompassSample]] = {}
-        for attempt in range(self.retries + 1):
-            self._check_abort()
-            need = step.samples - min((len(v) for v in have.values()), default=0)
-            timeout = need / self.station.sample_rate_hz / self.station.time_scale + self.acquire_margin_s
-            error: CompassError | None = None
-            try:
-                got = await self.station.fixture.read_all(need, timeout=timeout)
-            except FixtureError as e:
-                got = dict(e.results)
-                got.update({slot: err.samples for slot, err in e.errors.items() if isinstance(err, CompassError)})
-                timeouts = all(isinstance(err, CompassTimeout) for err in e.errors.values())
-                error = CompassTimeout(str(e)) if timeouts else e
-            new = {slot: list(s)[: step.samples - len(have.get(slot, []))] for slot, s in got.items()}
-            self._keep(step.step, new, before)
-            for slot, s in new.items():
-                have.setdefault(slot, []).extend(s)
-            if error is None:
-                break
-            if not isinstance(error, CompassTimeout) or attempt == self.retries:
-                raise error from None
-            self.on_event(Event("step", {"retry": attempt + 1, "reason": _reason(error)}))
+        parts: dict[int, list[Recording]] = {}
+        await self._retry(lambda: self._read_missing(step, parts, before), CompassTimeout)
         after = await self.station.table.positions()
         moved = float(np.max(np.abs(np.subtract(after, before))))
         if moved > HOLD_TOLERANCE_DEG:
             raise DriverError(f"the table moved {moved:.3f} deg while {step.step} was acquiring")
-        return self._recordings(step.step, have, before)
+        return {slot: concat(recs) for slot, recs in parts.items()}
+
+    async def _read_missing(self, step: Acquire, parts: dict[int, list[Recording]], held: Any) -> None:
+        """Read what each slot still lacks of ``step.samples`` (a slot that got more than it needed in
+        a failed read has the surplus left out), keep it (`_keep`) and add it to ``parts``; then raise
+        the read's error, if any (a `CompassTimeout` when every failed slot timed out)."""
+        have = {int(slot): sum(len(r) for r in parts.get(int(slot), [])) for slot in self.station.fixture.compasses}
+        need = step.samples - min(have.values(), default=0)
+        timeout = need / self.station.sample_rate_hz / self.station.time_scale + self.acquire_margin_s
+        error: CompassError | None = None
+        try:
+            got = await self.station.fixture.read_all(need, timeout=timeout)
+        except FixtureError as e:
+            got = dict(e.results)
+            got.update({slot: err.samples for slot, err in e.errors.items() if isinstance(err, CompassError)})
+            timeouts = all(isinstance(err, CompassTimeout) for err in e.errors.values())
+            error = CompassTimeout(str(e)) if timeouts else e
+        kept = self._keep(step.step, {slot: list(s)[: step.samples - have.get(int(slot), 0)] for slot, s in got.items()}, held)
+        for slot, rec in kept.items():
+            parts.setdefault(slot, []).append(rec)
+        if error is not None:
+            raise error
 
     async def _scan(self, step: Scan) -> dict[int, Recording]:
         """Turn one axis while every compass streams; label each sample with the encoder angles at
@@ -375,23 +375,17 @@ class Engine:
         """Send samples to the sink (before anything else can go wrong) and return them as recordings.
         ``angles``: the held (psi, theta, phi), or per slot an (n, 3) array; ``times``: per slot host
         times of the samples (default: their arrival times on the compass's sample clock)."""
-        out = self._recordings(label, got, angles, times)
-        for slot, rec in out.items():
-            self.sink.add(slot, rec)
-            self._samples += len(rec)
-        self.on_event(Event("samples", {"step": label, "count": self._samples}))
-        return out
-
-    def _recordings(self, label: str, got: dict[Any, list[CompassSample]], angles: Any,
-                    times: dict[Any, np.ndarray] | None = None) -> dict[int, Recording]:
-        """The samples of each slot as a recording (arguments as for `_keep`); empty slots left out."""
         out: dict[int, Recording] = {}
         for slot, samples in got.items():
             if not samples:
                 continue
             a = angles[slot] if isinstance(angles, dict) else np.tile(np.asarray(angles, dtype=float), (len(samples), 1))
             th = times[slot] if times is not None else self._sample_times(samples)
-            out[int(slot)] = self._recording(int(slot), samples, label, a, th)
+            rec = self._recording(int(slot), samples, label, a, th)
+            self.sink.add(int(slot), rec)
+            out[int(slot)] = rec
+            self._samples += len(samples)
+        self.on_event(Event("samples", {"step": label, "count": self._samples}))
         return out
 
     def _sample_times(self, samples: list[CompassSample]) -> np.ndarray:

@@ -399,30 +399,21 @@ class _Windows:
                 np.concatenate([other, second[split]]))
 
     def _pair_gram(self, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The pairs tied with ``i1`` and the eigen-pairs of their Gram matrices (cached: the searches on
+        the nulls anchor on the same windows again and again)."""
         if i1 in self.cache:
             return self.cache[i1]
-        self.cache[i1] = self._pair_gram_of(i1)
-        return self.cache[i1]
-
-    def _pair_gram_of(self, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         j1, j2 = self._pairs(i1)
-        if not len(j1):
-            return None
-        S, a1, b1, a2, b2 = self.S, self.a[j1], self.b[j1], self.a[j2], self.b[j2]
-        cross = S[b1, :, b2, :] - S[a1, :, b2, :] - S[b1, :, a2, :] + S[a1, :, a2, :]  # sum over W1 x W2
-        GU = self.GW[j1] + self.GW[j2] + cross + np.transpose(cross, (0, 2, 1))
-        w, V = np.linalg.eigh(0.5 * (GU + np.transpose(GU, (0, 2, 1))))
-        keep = w > KEEP_SHARE * np.maximum(self.scale[j1] + self.scale[j2], 1e-300)[:, None]
-        return j1, j2, w, V, keep
-
-    def pair_stats(self, i1: int, cw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Statistics (K, pairs) and ranks of the pairs tied with window ``i1``, for the window sums
-        ``cw`` (K, windows, p) of K realisations."""
-        g = self._pair_gram(i1)
-        if g is None:
-            return None
-        j1, j2, w, V, keep = g
-        return _window_stats(cw[:, j1] + cw[:, j2], w, V, keep), keep.sum(axis=1)[None, :].repeat(len(cw), axis=0)
+        got = None
+        if len(j1):
+            S, a1, b1, a2, b2 = self.S, self.a[j1], self.b[j1], self.a[j2], self.b[j2]
+            cross = S[b1, :, b2, :] - S[a1, :, b2, :] - S[b1, :, a2, :] + S[a1, :, a2, :]  # sum over W1 x W2
+            GU = self.GW[j1] + self.GW[j2] + cross + np.transpose(cross, (0, 2, 1))
+            w, V = np.linalg.eigh(0.5 * (GU + np.transpose(GU, (0, 2, 1))))
+            keep = w > KEEP_SHARE * np.maximum(self.scale[j1] + self.scale[j2], 1e-300)[:, None]
+            got = (j1, j2, w, V, keep)
+        self.cache[i1] = got
+        return got
 
     def best_pair(self, i1: int, cw: np.ndarray, steps: int = ASCENT_STEPS) -> tuple[tuple[int, int], float, int] | None:
         """The best pair tied with ``i1``, then re-anchored on its other window while that explains more

@@ -482,7 +482,7 @@ def encoder_track(trace: list[tuple[float, float, float]], start: float, stop: f
     is the median over the polls in motion of (middle of the round trip - that time), each poll's
     time is then its profile time clamped into its own round trip, and the angle at any time is the
     profile there plus the measured departure from it (servo lag, a stop), interpolated between
-    polls. Without enough polls in motion the polls are interpolated as they are."""
+    polls, never behind the start. Without enough polls in motion the polls are interpolated as they are."""
     t0, t1, pos = (np.array([p[k] for p in trace], dtype=float) for k in range(3))
     mid = 0.5 * (t0 + t1)
     sign = 1.0 if stop >= start else -1.0
@@ -499,7 +499,13 @@ def encoder_track(trace: list[tuple[float, float, float]], start: float, stop: f
     order = np.argsort(when, kind="stable")
     when, pos = when[order], pos[order]
     departure = pos - (start + sign * prof.distance(when - tau))
-    return lambda t: start + sign * prof.distance(np.asarray(t, dtype=float) - tau) + np.interp(t, when, departure)
+
+    def angle(t: np.ndarray) -> np.ndarray:
+        # the servo's lag, interpolated from the first poll in motion back to rest, would put the
+        # first samples of the turn behind where the axis started: it does not move backwards
+        x = prof.distance(np.asarray(t, dtype=float) - tau) + sign * np.interp(t, when, departure)
+        return start + sign * np.maximum(x, 0.0)
+    return angle
 
 
 def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float) -> np.ndarray:

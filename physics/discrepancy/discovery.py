@@ -21,7 +21,10 @@ the same nested likelihood-ratio tests on prewhitened data apply. A fixed block 
 (null-calibrated by lrt._score). A windowed block is a search over every window of a time grid: its
 statistic for each window comes from prefix sums of the bin-masked columns' Gram matrix (so all
 windows cost one Gram matrix), the simulated nulls are searched the same way, and the maximum's
-p-value is corrected by the effective number of windows measured on those nulls. Every p is then
+p-value is corrected by the effective number of windows measured on those nulls. The best window then
+grows into two or three windows with one set of parameters (something switched on and off), each
+paying for its search; edges are refined to their posterior median in time; overlapping windows of one
+frame and form are reported where their sum is present. Every p is then
 Bonferroni-corrected over the whole dictionary: discovery adds no false alarms beyond alpha.
 
 Pure numpy/scipy, no I/O.
@@ -243,7 +246,7 @@ class WindowSearch:
     log_p_single: float
     m_eff: float
     log_p: float  # corrected for the search (not yet for the dictionary)
-    second: tuple[int, int] | None = None  # a second window with the same parameters (bins), if that won
+    others: tuple[tuple[int, int], ...] = ()  # more windows with the same parameters (bins), if they won
 
 
 def _bins(ctx: Context, n_bins: int) -> np.ndarray:
@@ -315,8 +318,8 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
                           _search_log_p(float(lps[i]), m_eff, stat[i] / c_scale, int(df[i]), p_ref, 2))
     # Two windows with the same parameters: something that came and went twice (a relay, a motor, a
     # tool put back). The pair is searched given the best single one (a second window beside it, or a
-    # gap inside it), on the data and on each null alike, and the better of the two searches pays for
-    # both (+log 2).
+    # gap inside it), on the data and on each null alike, and the best of the searches (one, two or
+    # three windows) pays for all three (+log 3).
     windows = _Windows(a_idx, b_idx, S, GW, scale)
     pair = windows.best_pair(i, C[b_idx] - C[a_idx])
     if pair is None:
@@ -336,12 +339,22 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
                 min_p2[k] = float(stats.chi2.sf(got[1] / c_scale, max(got[2], 1)))
         m_eff2, p_ref2 = _m_eff(min_p2, len(stat) ** 2)
     log_p2 = _search_log_p(lp2, m_eff2, stat2 / c_scale, df2, p_ref2, 4)
-    if log_p2 < single.log_p:
-        best = WindowSearch(int(a_idx[j1]), int(b_idx[j1]), float(stat2), int(df2), lp2, m_eff2, log_p2,
-                            (int(a_idx[j2]), int(b_idx[j2])))
-    else:
-        best = single
-    return WindowSearch(**{**best.__dict__, "log_p": min(best.log_p + float(np.log(2.0)), 0.0)})
+    if log_p2 >= single.log_p:
+        return WindowSearch(**{**single.__dict__, "log_p": min(single.log_p + float(np.log(3.0)), 0.0)})
+    best = WindowSearch(int(a_idx[j1]), int(b_idx[j1]), float(stat2), int(df2), lp2, m_eff2, log_p2,
+                        ((int(a_idx[j2]), int(b_idx[j2])),))
+    # A third visit (a relay that switched three times): a window beside the pair, or a gap in one of its
+    # windows, with the same parameters. Its search multiplies the pair's by the single window's (the
+    # third window is one more window searched), extrapolated over six edges.
+    third = windows.third(j1, j2, C[b_idx] - C[a_idx])
+    if third is not None:
+        ks, stat3, df3 = third
+        lp3 = chi2_logsf(stat3 / c_scale, df3)
+        log_p3 = _search_log_p(lp3, m_eff2 * m_eff, stat3 / c_scale, df3, p_ref2, 6)
+        if log_p3 < log_p2:
+            best = WindowSearch(int(a_idx[ks[0]]), int(b_idx[ks[0]]), float(stat3), int(df3), lp3, m_eff2 * m_eff,
+                                log_p3, tuple((int(a_idx[k]), int(b_idx[k])) for k in ks[1:]))
+    return WindowSearch(**{**best.__dict__, "log_p": min(best.log_p + float(np.log(3.0)), 0.0)})
 
 
 def _search_log_p(lp1: float, m_eff: float, x: float, df: int, p_ref: float, dims: int) -> float:
@@ -387,35 +400,66 @@ class _Windows:
         self.index[self.a, self.b] = np.arange(len(self.a))
         self.cache: dict[int, Any] = {}
 
-    def _pairs(self, i1: int) -> tuple[np.ndarray, np.ndarray]:
-        """Index pairs (first, second): ``i1`` with every window apart from it, and the splits of ``i1``."""
-        a1, b1 = int(self.a[i1]), int(self.b[i1])
-        other = np.flatnonzero((self.a >= b1 + 1) | (self.b <= a1 - 1))
-        c, d = np.triu_indices(b1 + 1, k=1)  # the gap [c, d) inside [a1, b1), both pieces MIN_BINS long
+    def _apart(self, i: int) -> np.ndarray:
+        """Which windows are apart from window ``i`` by a bin at least."""
+        return (self.a >= self.b[i] + 1) | (self.b <= self.a[i] - 1)
+
+    def _cross(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Sum of the Gram matrix over window i's bins x window j's bins (for arrays of window indices)."""
+        S, a1, b1, a2, b2 = self.S, self.a[i], self.b[i], self.a[j], self.b[j]
+        return S[b1, :, b2, :] - S[a1, :, b2, :] - S[b1, :, a2, :] + S[a1, :, a2, :]
+
+    def _splits(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Window ``i`` split by a gap into two pieces, each at least MIN_BINS long: their indices."""
+        a1, b1 = int(self.a[i]), int(self.b[i])
+        c, d = np.triu_indices(b1 + 1, k=1)
         keep = (c >= a1 + MIN_BINS) & (d <= b1 - MIN_BINS)
         first, second = self.index[a1, c[keep]], self.index[d[keep], b1]
-        split = (first >= 0) & (second >= 0)
-        return (np.concatenate([np.full(len(other), i1), first[split]]),
-                np.concatenate([other, second[split]]))
+        ok = (first >= 0) & (second >= 0)
+        return first[ok], second[ok]
 
-    def _pair_gram(self, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-        """The pairs tied with ``i1`` and the eigen-pairs of their Gram matrices (cached: the searches on
-        the nulls anchor on the same windows again and again)."""
-        if i1 in self.cache:
-            return self.cache[i1]
-        j1, j2 = self._pairs(i1)
-        got = None
-        if len(j1):
-            S, a1, b1, a2, b2 = self.S, self.a[j1], self.b[j1], self.a[j2], self.b[j2]
-            cross = S[b1, :, b2, :] - S[a1, :, b2, :] - S[b1, :, a2, :] + S[a1, :, a2, :]  # sum over W1 x W2
-            GU = self.GW[j1] + self.GW[j2] + cross + np.transpose(cross, (0, 2, 1))
-            w, V = np.linalg.eigh(0.5 * (GU + np.transpose(GU, (0, 2, 1))))
-            keep = w > KEEP_SHARE * np.maximum(self.scale[j1] + self.scale[j2], 1e-300)[:, None]
-            got = (j1, j2, w, V, keep)
-        self.cache[i1] = got
-        return got
+    def _union(self, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Sets of windows (K, m) tied to one set of parameters, and the eigen-pairs of the Gram matrix of
+        each set's union (the windows' own blocks and their cross blocks): (sets, w, V, keep)."""
+        if not len(sets):
+            return None
+        m = sets.shape[1]
+        G = sum(self.GW[sets[:, k]] for k in range(m))
+        for k in range(m):
+            for n in range(k + 1, m):
+                x = self._cross(sets[:, k], sets[:, n])
+                G = G + x + np.transpose(x, (0, 2, 1))
+        w, V = np.linalg.eigh(0.5 * (G + np.transpose(G, (0, 2, 1))))
+        keep = w > KEEP_SHARE * np.maximum(sum(self.scale[sets[:, k]] for k in range(m)), 1e-300)[:, None]
+        return sets, w, V, keep
 
-    def best_pair(self, i1: int, cw: np.ndarray, steps: int = ASCENT_STEPS) -> tuple[tuple[int, int], float, int] | None:
+    @staticmethod
+    def _best(union: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+              cw: np.ndarray) -> tuple[tuple[int, ...], float, int] | None:
+        """The set of :meth:`_union` that explains most of the data (window sums ``cw`` (windows, p)):
+        its window indices, statistic and rank."""
+        if union is None:
+            return None
+        sets, w, V, keep = union
+        st = _window_stats(cw[sets].sum(axis=1), w, V, keep)
+        df = keep.sum(axis=1)
+        if not np.any(df > 0):
+            return None
+        k = int(np.argmax(np.where(df > 0, st, -np.inf)))
+        return tuple(int(x) for x in sets[k]), float(st[k]), int(df[k])
+
+    def pair(self, i1: int, cw: np.ndarray) -> tuple[tuple[int, ...], float, int] | None:
+        """The best pair tied with ``i1``: it with every window apart from it, or ``i1`` split by a gap.
+        The pairs' eigen-pairs are cached (the searches on the nulls anchor on the same windows again
+        and again)."""
+        if i1 not in self.cache:
+            other = np.flatnonzero(self._apart(i1))
+            first, second = self._splits(i1)
+            self.cache[i1] = self._union(np.column_stack([np.concatenate([np.full(len(other), i1), first]),
+                                                          np.concatenate([other, second])]).astype(int))
+        return self._best(self.cache[i1], cw)
+
+    def best_pair(self, i1: int, cw: np.ndarray, steps: int = ASCENT_STEPS) -> tuple[tuple[int, ...], float, int] | None:
         """The best pair tied with ``i1``, then re-anchored on its other window while that explains more
         (up to ``steps`` times): from the best single window the pair search reaches two visits whose
         first or second it does not contain."""
@@ -429,32 +473,53 @@ class _Windows:
             got, prev = nxt, anchor
         return got
 
-    def pair(self, i1: int, cw: np.ndarray) -> tuple[tuple[int, int], float, int] | None:
-        """The pair tied with ``i1`` that explains most of the data (window sums ``cw`` (windows, p)):
-        its two window indices, statistic and rank."""
-        g = self._pair_gram(i1)
-        if g is None:
-            return None
-        j1, j2, w, V, keep = g
-        st = _window_stats(cw[j1] + cw[j2], w, V, keep)
-        df = keep.sum(axis=1)
-        if not np.any(df > 0):
-            return None
-        k = int(np.argmax(np.where(df > 0, st, -np.inf)))
-        return (int(j1[k]), int(j2[k])), float(st[k]), int(df[k])
+    def third(self, j1: int, j2: int, cw: np.ndarray) -> tuple[tuple[int, ...], float, int] | None:
+        """The best three windows with one set of parameters grown from the pair (j1, j2): a third window
+        apart from both, or one of the two split by a gap. Window indices, statistic and rank."""
+        k = np.flatnonzero(self._apart(j1) & self._apart(j2))
+        s1, s2 = self._splits(j1)
+        t1, t2 = self._splits(j2)
+        sets = np.concatenate([np.column_stack([np.full(len(k), j1), np.full(len(k), j2), k]),
+                               np.column_stack([s1, s2, np.full(len(s1), j2)]),
+                               np.column_stack([np.full(len(t1), j1), t1, t2])]).astype(int)
+        return self._best(self._union(sets), cw)
 
 
-def _edge_candidates(ctx: Context, lo_t: float, hi_t: float, limit: int = 60) -> np.ndarray:
-    """Possible edge times between ``lo_t`` and ``hi_t``: midpoints between consecutive samples."""
+def _edge_candidates(ctx: Context, lo_t: float, hi_t: float, limit: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """Possible edges between ``lo_t`` and ``hi_t``, as the sample intervals they fall in (K, 2): an edge
+    anywhere inside one puts the same samples in the window; and the span of time each stands for, as
+    cell bounds (K + 1,). Beyond ``limit`` candidates the gaps (moves between holds) are kept and the rest
+    thinned evenly; a kept candidate's cell then also covers the thinned ones next to it."""
     t = ctx.t
     mids = 0.5 * (t[1:] + t[:-1])
-    cand = mids[(mids >= lo_t) & (mids <= hi_t) & (np.diff(t) > 0)]
-    if len(cand) > limit:  # keep the gaps (moves between holds) and an even spread of the rest
-        gaps = np.diff(t)[(mids >= lo_t) & (mids <= hi_t) & (np.diff(t) > 0)]
-        order = np.argsort(-gaps)
-        keep = set(order[:limit // 2].tolist()) | set(np.linspace(0, len(cand) - 1, limit // 2).astype(int).tolist())
-        cand = cand[sorted(keep)]
-    return cand
+    idx = np.flatnonzero((mids >= lo_t) & (mids <= hi_t) & (np.diff(t) > 0))
+    if len(idx) > limit:
+        order = np.argsort(-np.diff(t)[idx])
+        keep = set(order[:limit // 2].tolist()) | set(np.linspace(0, len(idx) - 1, limit // 2).astype(int).tolist())
+        idx = idx[sorted(keep)]
+    if not len(idx):
+        return np.zeros((0, 2)), np.zeros(1)
+    # between two candidates the cell boundary is the sample nearest their midpoint (a sample between them)
+    inner = np.clip(np.searchsorted(t, 0.5 * (mids[idx[1:]] + mids[idx[:-1]])), idx[:-1] + 1, idx[1:])
+    bounds = np.concatenate([[max(t[idx[0]], lo_t)], t[inner], [min(t[idx[-1] + 1], hi_t)]])
+    return np.column_stack([t[idx], t[idx + 1]]), bounds
+
+
+def _posterior_edge(gaps: np.ndarray, bounds: np.ndarray, stat: np.ndarray) -> float:
+    """The posterior median of an edge's time, with a uniform prior in time and the likelihood
+    exp(statistic / 2) constant over each candidate's cell: where something appeared is as likely at any
+    second, so a long gap between holds (where the data cannot tell) weighs by its length against a
+    sample interval inside a hold. It is the estimate with the least expected error, where the largest
+    statistic alone would put the edge in the first sample interval that noise favours."""
+    width = np.maximum(np.diff(bounds), 1e-9)
+    mass = width * np.exp(0.5 * (stat - np.max(stat)))
+    cum = np.concatenate([[0.0], np.cumsum(mass)])
+    half = 0.5 * cum[-1]
+    k = int(np.clip(np.searchsorted(cum, half) - 1, 0, len(gaps) - 1))
+    tau = bounds[k] + np.clip((half - cum[k]) / mass[k], 0.0, 1.0) * width[k]
+    # kept strictly inside its sample interval, so that the window holds the samples the statistic was for
+    lo, hi = gaps[k]
+    return float(np.clip(tau, lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo)))
 
 
 def window_statistic(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray,
@@ -471,27 +536,26 @@ def window_statistic(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarr
 
 def refine_window(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray, a: int, b: int,
                   n_bins: int = N_BINS, other: np.ndarray | None = None) -> tuple[float, float]:
-    """Edges (s) of a window found on the grid, refined to the samples: each edge in turn moves to the
-    gap between samples within ``REFINE_BINS`` bins of it that maximises the statistic, keeping the
-    window at least ``MIN_BINS`` long (an edge that falls in a move between holds, where nothing was
-    recorded, lands in the middle of that gap)."""
+    """Edges (s) of a window found on the grid, refined to the samples: each edge in turn (twice) moves to
+    its posterior median (:func:`_posterior_edge`) over the times within ``REFINE_BINS`` bins of it,
+    keeping the window at least ``MIN_BINS`` long. An edge that falls in a move between holds, where
+    nothing was recorded, lands inside that gap."""
     span = max(np.ptp(ctx.t), 1e-9)
     t_of = lambda k: ctx.t[0] + span * k / n_bins  # noqa: E731
     shortest = MIN_BINS * span / n_bins * 0.999
     t0 = ctx.t[0] - 1e-9 if a == 0 else t_of(a)
     t1 = ctx.t[-1] + 1e-9 if b == n_bins else t_of(b)
-    best = window_statistic(X, ctx, noise, Q, y, t0, t1, other)
     for _ in range(2):
         if a > 0:
-            for e in _edge_candidates(ctx, t_of(max(a - REFINE_BINS, 0)), min(t_of(a + REFINE_BINS), t1 - shortest)):
-                v = window_statistic(X, ctx, noise, Q, y, e, t1, other)
-                if v > best:
-                    best, t0 = v, float(e)
+            gaps, bounds = _edge_candidates(ctx, t_of(max(a - REFINE_BINS, 0)), min(t_of(a + REFINE_BINS), t1 - shortest))
+            if len(gaps):
+                stat = np.array([window_statistic(X, ctx, noise, Q, y, e, t1, other) for e in gaps.mean(axis=1)])
+                t0 = _posterior_edge(gaps, bounds, stat)
         if b < n_bins:
-            for e in _edge_candidates(ctx, max(t_of(b - REFINE_BINS), t0 + shortest), t_of(min(b + REFINE_BINS, n_bins))):
-                v = window_statistic(X, ctx, noise, Q, y, t0, e, other)
-                if v > best:
-                    best, t1 = v, float(e)
+            gaps, bounds = _edge_candidates(ctx, max(t_of(b - REFINE_BINS), t0 + shortest), t_of(min(b + REFINE_BINS, n_bins)))
+            if len(gaps):
+                stat = np.array([window_statistic(X, ctx, noise, Q, y, t0, e, other) for e in gaps.mean(axis=1)])
+                t1 = _posterior_edge(gaps, bounds, stat)
     return t0, t1
 
 
@@ -582,7 +646,7 @@ class Dictionary:
             X, lab = self.base[(blk.frame, blk.form)]
             grid = lambda a, b: (ctx.t[0] + span * a / N_BINS if a else ctx.t[0] - 1e-9,  # noqa: E731
                                  ctx.t[0] + span * b / N_BINS if b < N_BINS else ctx.t[-1] + 1e-9)
-            windows = [(ws.a, ws.b)] + ([ws.second] if ws.second else [])
+            windows = [(ws.a, ws.b), *ws.others]
             edges = [grid(a, b) for a, b in windows]
             if i < refine and ws.log_p + np.log(family) < np.log(alpha):
                 for k, (a, b) in enumerate(windows):  # each window in turn, the other held
@@ -663,8 +727,9 @@ def _describe(b: Block) -> str:
 #: put down or a unit that moved (prior odds of about 20 to 1).
 RARER = {("outer", "gain"): 6.0, ("outer", "rotation"): 6.0, ("middle", "gain"): 6.0, ("middle", "rotation"): 6.0}
 #: The same for a change that starts and stops (a window): a unit's sensitivity that changes for a while
-#: and comes back is rarer than iron or a magnet near it for that while.
-RARER_WINDOWED = {("sensor", "gain"): 4.0, ("platform", "gain"): 4.0}
+#: and comes back is rarer than iron or a magnet near it for that while, and a stage's iron that changes
+#: its permeability or turns for a while and comes back is as rare as it is for the whole run.
+RARER_WINDOWED = {("sensor", "gain"): 4.0, ("platform", "gain"): 4.0, **RARER}
 #: Time and temperature during a warm-up are nearly the same input: a recording tells them apart only
 #: by this much more (the likelier input per form, :data:`SLOW_PREFERENCE`, is named within it).
 SLOW_SAME_EVIDENCE = 6.0
@@ -676,18 +741,19 @@ def _rarer(b: Block) -> float:
 
 def _likeliest(chosen: Found, cands: list[Found], alpha: float) -> tuple[Found, list[str]]:
     """Among the significant candidates of ``chosen``'s size, in any frame and form, against the same
-    input (or the other slow input: time or temperature), those whose statistic (less :data:`RARER` or
-    :data:`RARER_WINDOWED` for a rare cause) is within :data:`SAME_EVIDENCE` (:data:`SLOW_SAME_EVIDENCE`
-    against a slow input) of the largest explain the residual equally well; the
-    likeliest of them, and the descriptions of the others, which this recording cannot tell apart from
-    it. (The statistic, not the p-value, decides: at large statistics the null-calibrated scale of each
-    test moves p a lot.)"""
+    input (or the other slow input: time or temperature), those whose evidence (`Test.evidence`, less
+    :data:`RARER` or :data:`RARER_WINDOWED` for a rare cause) is within :data:`SAME_EVIDENCE`
+    (:data:`SLOW_SAME_EVIDENCE` against a slow input) of the largest explain the residual equally well;
+    the likeliest of them, and the descriptions of the others, which this recording cannot tell apart
+    from it. (Evidence, not the p-value, decides: at large statistics the null-calibrated scale of each
+    test moves p a lot; and a pair of windows pays for its second window's search, so it does not tie
+    with one window that explains as much.)"""
     slow = ("time", "temp_c")
     b0 = chosen.block
     deps = set(slow) if b0.dependence in slow else {b0.dependence}
     group = [c for c in cands if c.test.df == chosen.test.df and c.block.dependence in deps
              and c.test.log_p < np.log(alpha)] or [chosen]
-    score = {id(c): c.test.statistic - _rarer(c.block) for c in group}
+    score = {id(c): c.test.evidence - _rarer(c.block) for c in group}
     top = max(score.values())
     margin = SLOW_SAME_EVIDENCE if b0.dependence in slow else SAME_EVIDENCE
     alike = [c for c in group if score[id(c)] >= top - margin]
@@ -873,9 +939,35 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
             "confusable_with": list(f.alike), "separating_experiment": experiment, "effective_windows": f.m_eff if segs else None}
 
 
+def present_segments(windows: list[tuple[list[list[float]], np.ndarray, np.ndarray]], n_sigma: float = 3.0) -> list[list[float]]:
+    """Where a departure made of several windowed blocks of one frame and form is present: each block is
+    (segments, values, sigmas), and at any time the departure is the sum of the blocks active then. A
+    stretch where overlapping blocks cancel (every component of the sum within ``n_sigma`` of zero, the
+    sigmas added in quadrature) is a gap: a window over both visits and one over the gap between them with
+    the opposite value is something that came, went and came back. Contiguous present stretches merge."""
+    edges = sorted({float(e) for segs, _, _ in windows for seg in segs for e in seg})
+    out: list[list[float]] = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        mid = 0.5 * (a + b)
+        on = [(v, sd) for segs, v, sd in windows if any(s0 <= mid < s1 for s0, s1 in segs)]
+        if not on:
+            continue
+        if len(on) > 1:
+            total = np.sum([v for v, _ in on], axis=0)
+            sd = np.sqrt(np.sum([sd ** 2 for _, sd in on], axis=0))
+            if np.all(np.abs(total) <= n_sigma * sd):
+                continue
+        if out and abs(out[-1][1] - a) < 1e-9:
+            out[-1][1] = b
+        else:
+            out.append([a, b])
+    return out
+
+
 def merge_windows(findings: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Discovered windows of the same frame and form as one finding with several segments (something that
-    came and went more than once); the parameters of each window are kept in ``per_segment``."""
+    """Discovered windows of the same frame and form as one finding (something that came and went more
+    than once, or came, went and came back): its segments are where the blocks' sum is present
+    (:func:`present_segments`); the parameters of each block are kept in ``per_window``."""
     out: list[dict[str, Any]] = []
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for f in findings:
@@ -892,17 +984,21 @@ def merge_windows(findings: list[dict[str, Any]]) -> list[dict[str, Any]]:
         main = dict(max(fs, key=lambda f: f["statistic"] or 0.0))
         vals = [np.asarray(f["parameters"]["values"], float) for f in fs]
         sds = [np.asarray([np.inf if s is None else s for s in f["sigma"]["values"]], float) for f in fs]
-        same = all(np.all(np.abs(v - vals[0]) <= 3.0 * np.sqrt(s ** 2 + sds[0] ** 2)) for v, s in zip(vals, sds))
-        segs = [s for f in fs for s in f["model"]["segments"]]
+        segs = present_segments([(f["model"]["segments"], v, sd) for f, v, sd in zip(fs, vals, sds)])
+        spans = [(a, b, i) for i, f in enumerate(fs) for a, b in f["model"]["segments"]]
+        nested = any(i != j and a < d and c < b for a, b, i in spans for c, d, j in spans)
+        same = not nested and all(np.all(np.abs(v - vals[0]) <= 3.0 * np.sqrt(s ** 2 + sds[0] ** 2))
+                                  for v, s in zip(vals, sds))
         main["model"] = {**main["model"], "segments": segs}
-        main["parameters"] = {**main["parameters"], "per_segment": [f["parameters"] for f in fs]}
+        main["parameters"] = {**main["parameters"], "per_window": [
+            {"segments": f["model"]["segments"], **f["parameters"]} for f in fs]}
         main["heading_impact_deg"] = max((f["heading_impact_deg"] or 0.0) for f in fs)
         main["plausible"] = all(f["plausible"] for f in fs)
         when = " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
         main["explanation"] = (f"{FORM_TEXT[form]} {FRAME_TEXT[frame]}, present {when}"
-                               + (" " + INTERMITTENT if same else
-                                  ", a different size each time") + ". Each window: "
-                               + "; ".join(f["explanation"].split(":")[0] for f in fs) + ".")
+                               + (" " + INTERMITTENT if same else ", a different size each time" if not nested else
+                                  " (found as overlapping windows: the departure is their sum, absent where they cancel)")
+                               + ". Each window: " + "; ".join(f["explanation"].split(":")[0] for f in fs) + ".")
         main["separating_experiment"] = _experiment(Block(frame, form, "segments"), segs)
         out.append(main)
     return out

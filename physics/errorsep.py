@@ -486,7 +486,8 @@ def sensor_sigmas(fit: VectorFit) -> dict[str, np.ndarray]:
     """1-sigma of the reported numbers of a linear sensor: angles_deg (3x3), k (3), bias (3)."""
     _, s_ang = fit.propagate(lambda M, b, v: Mo_to_angles(split_matrix(M)[0]))
     _, s_k = fit.propagate(lambda M, b, v: split_matrix(M)[1])
-    return {"angles_deg": s_ang.reshape(3, 3), "k": s_k, "bias": np.sqrt(np.diag(fit.cov)[9:12])}
+    # (a variance a hair below zero is the rounding of a near-singular covariance, as in propagate)
+    return {"angles_deg": s_ang.reshape(3, 3), "k": s_k, "bias": np.sqrt(np.maximum(np.diag(fit.cov)[9:12], 0.0))}
 
 
 def field_and_tilt(mag_fit: VectorFit, acc_fit: VectorFit | None) -> dict[str, np.ndarray]:

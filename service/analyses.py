@@ -195,7 +195,8 @@ async def analysis_report(analysis_id: int, request: Request, _: Caller = Depend
     result = {k: v for k, v in report.items() if k not in STORED_KEYS}
     unit = f"slot {report.get('slot')}" + (f" ({report['serial']})" if report.get("serial") else "")
     title = f"Discrepancy analysis {row.id}: run {row.run_id}, {unit}"
-    return HTMLResponse(await asyncio.to_thread(analysis_html, result, None, title))  # matplotlib: off the loop
+    run_url = f"/ui/runs/{row.run_id}" if row.run_id is not None else None
+    return HTMLResponse(await asyncio.to_thread(analysis_html, result, None, title, run_url))  # matplotlib: off the loop
 
 
 __all__ = ["router", "analysis_json", "analysis_summary", "AnalysisIn"]

@@ -107,6 +107,202 @@ def tree(v: Any, depth: int = 0) -> dict[str, Any]:
     return {"kind": "text", "text": text(v) if v not in (None, {}, []) else "-"}
 
 
+# --------------------------------------------------------------------------- where the mismatch lives
+
+def _axis_head(unit: str) -> list[str]:
+    return [f"{a} ({unit})" for a in ("m_x", "m_y", "m_z")]
+
+
+#: Known ``locate`` parts in reading order: (heading, what the part tells the reader).
+LOCATE_PARTS: dict[str, tuple[str, str]] = {
+    "by_axis": ("By sensor axis",
+                "Which sensor axis carries the mismatch: the residual rms of the nominal model on each axis."),
+    "by_step": ("By step",
+                "Which step of the procedure carries the mismatch: residual rms and mean of each step with the nominal "
+                "model; one step far above the others points to that step."),
+    "harmonics": ("Against the table angles",
+                  "How much of the residual repeats 1, 2, 3 or 4 times per turn of each table angle: structure that "
+                  "repeats with an angle belongs to something fixed in a table stage or to the table's geometry."),
+    "time": ("In time",
+             "Whether the mismatch changes during the run: its linear trend, and the difference between two visits "
+             "to the same pose."),
+    "direction": ("By direction of turning",
+                  "Mean residual while each angle turns one way and the other: a difference between the two rows "
+                  "points to a lag or hysteresis that depends on the direction of turning."),
+    "frame": ("By frame",
+              "Tests of structure anchored in each frame: a small p says the residual holds structure of that kind."),
+    "whiteness": ("Whiteness of the residual",
+                  "Whether the whitened residual is still correlated from sample to sample (Ljung-Box test): a small "
+                  "p says structure is left that the noise model does not explain."),
+    "witness": ("Further structure",
+                "Tests of the residual against further structure (higher harmonics of each angle, a slow change in "
+                "time, other recorded quantities): a small p says the residual holds that structure."),
+}
+
+_ANGLE_NAMES = {"psi_t": "psi_t (ψ)", "theta_t": "theta_t (θ)", "phi_t": "phi_t (φ)",
+                "psi": "psi (ψ)", "theta": "theta (θ)", "phi": "phi (φ)"}
+
+
+def _table(head: list[str], rows: list[list[str]], title: str | None = None) -> dict[str, Any]:
+    """One labelled table for the template: its first column holds the row labels."""
+    return {"title": title, "head": head, "rows": rows}
+
+
+def _is_vector(v: Any) -> bool:
+    return isinstance(v, (list, tuple)) and not any(isinstance(x, (list, tuple, Mapping)) for x in v)
+
+
+def _test_row(label: str, v: Mapping[str, Any]) -> list[str]:
+    return [label, num(v.get("statistic")), num(v.get("df")), num(v.get("p_value"), 3)]
+
+
+def _is_test(v: Any) -> bool:
+    return isinstance(v, Mapping) and any(k in v for k in ("statistic", "df", "p_value"))
+
+
+def _as_came(key: str, title: str, v: Any) -> dict[str, Any]:
+    """A ``locate`` part shown as it came (the generic tree), without a caption that might not fit."""
+    return {"key": key, "title": title, "caption": "", "tables": [], "sentences": [], "empty": None, "extra": tree(v)}
+
+
+def _locate_part(key: str, v: Any) -> dict[str, Any]:
+    """One part of ``result["locate"]`` as {key, title, caption, tables, sentences, empty, extra}: the
+    known shapes (physics.discrepancy.analysis.locate) as labelled tables, anything else (other keys,
+    other shapes, e.g. the attitude-free model's) under ``extra`` as the generic tree."""
+    title, caption = LOCATE_PARTS.get(key, (key.replace("_", " "), ""))
+    part: dict[str, Any] = {"key": key, "title": title, "caption": caption, "tables": [], "sentences": [],
+                            "empty": None, "extra": None}
+    rest: dict[str, Any] = {}
+    try:
+        if key == "by_axis" and isinstance(v, Mapping):
+            rest = {k: x for k, x in v.items() if k not in ("rms_lsb", "dominant")}
+            if "rms_lsb" in v:
+                part["tables"].append(_table(["", *_axis_head("LSB")],
+                                             [["residual rms, nominal model", *per_axis(v.get("rms_lsb"))]]))
+            dom = v.get("dominant")
+            if isinstance(dom, str) and dom in ("x", "y", "z"):
+                part["sentences"].append(f"Largest against its noise floor: m_{dom}.")
+            elif dom is not None:
+                rest["dominant"] = dom
+        elif key == "by_step" and isinstance(v, (list, tuple)) and all(isinstance(x, Mapping) for x in v):
+            if not v:
+                part["empty"] = "No steps recorded."
+            else:
+                means = any("mean_lsb" in x for x in v)
+                others: list[str] = []
+                for x in v:
+                    others += [str(k) for k in x if k not in ("step", "samples", "rms_lsb", "mean_lsb")
+                               and str(k) not in others]
+                head = ["step", "samples", *[f"rms {h}" for h in _axis_head("LSB")]] \
+                    + ([f"mean {h}" for h in _axis_head("LSB")] if means else []) + others
+                rows = [[text(x.get("step")) if x.get("step") is not None else "-", num(x.get("samples")),
+                         *per_axis(x.get("rms_lsb"))] + (per_axis(x.get("mean_lsb")) if means else [])
+                        + [text(x.get(k)) for k in others] for x in v]
+                part["tables"].append(_table(head, rows))
+        elif key == "harmonics" and isinstance(v, Mapping):
+            for name, h in v.items():
+                amp = h.get("amplitude_lsb") if isinstance(h, Mapping) else None
+                if not isinstance(amp, (list, tuple)):
+                    rest[str(name)] = h
+                    continue
+                orders = h.get("orders") if isinstance(h.get("orders"), (list, tuple)) else []
+                rows = [[f"{num(orders[i]) if i < len(orders) else i + 1} × per turn", *per_axis(a, 3)]
+                        for i, a in enumerate(amp)]
+                part["tables"].append(_table(["order", *[f"amplitude {x}" for x in _axis_head("LSB")]], rows,
+                                             f"against {_ANGLE_NAMES.get(str(name), str(name))}"))
+                extra = {k: x for k, x in h.items() if k not in ("orders", "amplitude_lsb")}
+                if extra:
+                    rest[str(name)] = extra
+            if not v:
+                part["empty"] = "No table angle turned by 30 degrees or more: no harmonics to show."
+        elif key == "time" and isinstance(v, Mapping):
+            rest = {k: x for k, x in v.items() if k not in ("trend_lsb_per_min", "repeated_pose", "change_point_t_s")}
+            rows = []
+            if "trend_lsb_per_min" in v:
+                rows.append(["linear trend over the run (LSB/min)", *per_axis(v.get("trend_lsb_per_min"), 3)])
+            rp = v.get("repeated_pose")
+            if isinstance(rp, Mapping):
+                rows.append(["same pose again: last minus first visit (LSB)", *per_axis(rp.get("difference_lsb"), 3)])
+                ang = rp.get("angles")
+                pose = ", ".join(f"{n} {num(a, 4)}" for n, a in zip(("ψ", "θ", "φ"), ang)) if _is_vector(ang) else text(ang)
+                part["sentences"].append(f"Repeated pose: {pose} deg, visited again after {num(rp.get('dt_s'), 4)} s.")
+            elif rp is not None:
+                rest["repeated_pose"] = rp
+            if rows:
+                part["tables"].append(_table(["", "m_x", "m_y", "m_z"], rows))
+            if v.get("change_point_t_s") is not None:
+                part["sentences"].append(f"Most likely change point of the hold means: t = {num(v.get('change_point_t_s'), 4)} s "
+                                         "(where the mismatch shifts, if it does).")
+        elif key == "direction" and isinstance(v, Mapping):
+            rows = []
+            for name, d in v.items():
+                if not isinstance(d, Mapping) or not ("positive_mean_lsb" in d or "negative_mean_lsb" in d):
+                    rest[str(name)] = d
+                    continue
+                speeds = d.get("speeds_dps")
+                sp = ", ".join(num(s, 3) for s in speeds) if _is_vector(speeds) and speeds else text(speeds) if speeds else "-"
+                label = _ANGLE_NAMES.get(str(name), str(name))
+                rows.append([label, "turning +", *per_axis(d.get("positive_mean_lsb"), 3), sp])
+                rows.append(["", "turning −", *per_axis(d.get("negative_mean_lsb"), 3), ""])
+                extra = {k: x for k, x in d.items() if k not in ("positive_mean_lsb", "negative_mean_lsb", "speeds_dps")}
+                if extra:
+                    rest[str(name)] = extra
+            if rows:
+                part["tables"].append(_table(["angle", "direction", *[f"mean {h}" for h in _axis_head("LSB")],
+                                              "speeds (deg/s)"], rows))
+            if not v:
+                part["empty"] = "No turns in both directions were recorded: the direction of turning cannot be compared."
+        elif key in ("frame", "witness") and isinstance(v, Mapping):
+            rows = []
+            for name, t in v.items():
+                if _is_test(t):
+                    rows.append(_test_row(str(name), t))
+                    extra = {k: x for k, x in t.items() if k not in ("statistic", "df", "p_value")}
+                    if extra:
+                        rest[str(name)] = extra
+                else:
+                    rest[str(name)] = t
+            if rows:
+                part["tables"].append(_table(["the residual is…" if key == "frame" else "witness", "statistic", "df",
+                                              "p"], rows))
+            if not v:
+                part["empty"] = "No frame could be tested." if key == "frame" else "No witness channel was tested."
+        elif key == "whiteness" and isinstance(v, Mapping) and isinstance(v.get("per_axis"), (list, tuple)) \
+                and all(isinstance(x, Mapping) for x in v["per_axis"]):
+            rest = {k: x for k, x in v.items() if k != "per_axis"}
+            pa = list(v["per_axis"])[:3]
+            lags = {x.get("lags") for x in pa if x.get("lags") is not None}
+            q_label = "Ljung-Box Q" + (f" ({num(next(iter(lags)))} lags)" if len(lags) == 1 else "")
+            rows = [[q_label, *per_axis([x.get("ljung_box_q") for x in pa])],
+                    ["p", *per_axis([x.get("p_value") for x in pa], 3)]]
+            if len(lags) > 1:
+                rows.append(["lags", *per_axis([x.get("lags") for x in pa])])
+            part["tables"].append(_table(["", "m_x", "m_y", "m_z"], rows))
+        else:  # a key or a shape this page does not know: as it came
+            return _as_came(key, title, v)
+    except Exception:  # an odd value: never lose the page for it, show it as it came
+        return _as_came(key, title, v)
+    if rest:
+        part["extra"] = tree(rest)
+    elif not part["tables"] and not part["sentences"] and part["empty"] is None:
+        part["extra"] = tree(v)
+    if not part["tables"] and not part["sentences"] and part["empty"] is None:
+        part["caption"] = ""  # nothing of it understood: no caption that might not fit
+    return part
+
+
+def locate_parts(locate: Any, generic: bool = False) -> list[dict[str, Any]]:
+    """``result["locate"]`` for the page: the known parts in reading order, then any other key.
+    ``generic``: every part as it came (the attitude-free model's locate has the same keys with other
+    contents: magnitude residuals, a spectrum, time bins)."""
+    if not isinstance(locate, Mapping):
+        return [_locate_part("locate", locate)] if locate not in (None, {}, []) else []
+    keys = [k for k in LOCATE_PARTS if k in locate] + [k for k in locate if k not in LOCATE_PARTS]
+    if generic:
+        return [_as_came(str(k), str(k).replace("_", " "), locate[k]) for k in keys]
+    return [_locate_part(str(k), locate[k]) for k in keys]
+
+
 def model_text(finding: Mapping[str, Any]) -> str:
     """A finding's model in one line: form, frame, what it follows and when (the one finding schema)."""
     m = finding.get("model") or {}
@@ -166,8 +362,10 @@ def analysis_figures(result: Mapping[str, Any], series: Mapping[str, Any] | None
     return figs
 
 
-def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, title: str) -> str:
-    """The analysis report as one self-contained HTML page (see the module docstring)."""
+def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, title: str,
+                  run_url: str | None = None) -> str:
+    """The analysis report as one self-contained HTML page (see the module docstring); ``run_url``, when
+    the analysis belongs to a stored run, links the page back to that run's page."""
     held = result.get("heldout") or {}
     he = result.get("heading_error_deg") or {}
     attitude_free = result.get("model") == "attitude_free"
@@ -201,7 +399,7 @@ def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, t
     tests = [{"effect": str(t.get("effect")), "variant": text(t.get("variant")), "statistic": num(t.get("statistic")),
               "df": num(t.get("df")), "p_value": num(t.get("p_value"), 3), "p_adjusted": num(t.get("p_adjusted"), 3),
               "selected": bool(t.get("selected")), "extra": [text(t.get(k)) for k in test_extra]} for t in test_rows]
-    locate = result.get("locate") or {}
+    locate = result.get("locate")
     known = {"verdict", "model", "samples", "duration_s", "alpha", "noise_floor_lsb", "noise_ar1",
              "residual_rms_before_lsb", "residual_rms_after_lsb", "heldout", "heading_error_deg", "findings", "tests",
              "untestable", "locate", "notes", "summary"}
@@ -215,10 +413,9 @@ def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, t
         untestable=[(str(u.get("effect")), text(u.get("reason"))) for u in result.get("untestable") or []
                     if isinstance(u, Mapping)],
         notes=[text(n) for n in result.get("notes") or []],
-        locate=[(k, tree(v)) for k, v in locate.items() if k not in ("by_step", "harmonics")]
-        + [(k, tree(locate[k])) for k in ("by_step", "harmonics") if k in locate],
+        locate=locate_parts(locate, generic=attitude_free), run_url=run_url,
         other=tree(other) if other else None, figures=analysis_figures(result, series),
         has_series=series is not None)
 
 
-__all__ = ["analysis_html", "analysis_figures", "model_text", "num", "text", "tree"]
+__all__ = ["analysis_html", "analysis_figures", "locate_parts", "model_text", "num", "text", "tree"]

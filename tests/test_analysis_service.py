@@ -187,6 +187,55 @@ def test_report_without_table_angles_leaves_out_the_angle_plots(fake):
     assert 'id="fig-time"' in html and 'id="fig-angles"' not in html and "attitude_free" in html
 
 
+
+def test_report_shows_where_the_mismatch_lives_as_labelled_tables_and_links_back_to_the_run():
+    """With the real analyser: the locate part of the result is labelled tables (axes as columns with
+    units, harmonic orders as rows, turning + / turning - per angle), never the raw dict dump; odd or
+    unknown parts fall back to the generic rendering; a run's report links back to the run page."""
+    from physics.discrepancy import analyze
+
+    result = json.loads(json.dumps(analyze(with_magnet(simulated("SN-LOC")), null_sims=10,
+                                           rng=np.random.default_rng(4)).to_json()))
+    locate = result["locate"]
+    assert locate["harmonics"] and locate["whiteness"]["per_axis"] and locate["frame"]
+    html = analysis_html(result, None, "located")
+    self_contained(html)
+    for angle, label in (("psi_t", "ψ"), ("theta_t", "θ"), ("phi_t", "φ")):
+        if angle in locate["harmonics"]:
+            assert f"<caption>against {angle} ({label})</caption>" in html, angle
+    assert "<th>order</th><th>amplitude m_x (LSB)</th><th>amplitude m_y (LSB)</th><th>amplitude m_z (LSB)</th>" in html
+    assert "<th>1 × per turn</th>" in html and "<th>4 × per turn</th>" in html
+    assert "<th>m_x (LSB)</th><th>m_y (LSB)</th><th>m_z (LSB)</th>" in html  # by axis
+    assert "linear trend over the run (LSB/min)" in html and "Ljung-Box Q (10 lags)" in html
+    assert "<th>the residual is…</th><th>statistic</th><th>df</th><th>p</th>" in html
+    assert f"<th>{next(iter(locate['frame']))}</th>" in html
+    for raw in ("amplitude_lsb", "orders", "ljung_box_q", "per_axis", "trend_lsb_per_min", "rms_lsb", "mean_lsb",
+                "p_value", "dominant"):
+        assert raw not in html.split('id="locate"')[1].split("</div>")[0], raw
+    if not locate["direction"]:
+        assert "No turns in both directions were recorded" in html
+    # turns both ways (the shape physics.discrepancy.analysis.locate gives): a row per direction and angle
+    turned = {**result, "locate": {**locate, "direction": {
+        "psi": {"positive_mean_lsb": [1.5, -0.25, 0.125], "negative_mean_lsb": [-1.5, 0.25, -0.125], "speeds_dps": [10.0, 20.0]},
+        "theta": {"positive_mean_lsb": [0.5, 0.5, 0.5], "negative_mean_lsb": [0.5, 0.5, 0.5], "speeds_dps": [5.0]}}}}
+    html = analysis_html(turned, None, "turned")
+    section = html.split('id="locate-direction"')[1].split("</section>")[0]
+    assert "<th>angle</th><th>direction</th><th>mean m_x (LSB)</th><th>mean m_y (LSB)</th><th>mean m_z (LSB)</th>" in section
+    assert section.count("turning +") == 2 and section.count("turning −") == 2
+    assert '<td class="n">turning +</td><td class="n">1.5</td><td class="n">-0.25</td><td class="n">0.125</td>' in section
+    assert "positive_mean_lsb" not in html and "speeds_dps" not in html and "10, 20" in section
+    # odd values never break the page; unknown keys and shapes are shown as they came
+    odd = {**result, "locate": {"by_axis": None, "harmonics": {"psi_t": {"amplitude_lsb": [[None, "a"], 3]}, "psi_x": 5},
+                                "direction": {"psi": None}, "frame": {"somewhere": {"statistic": float("nan")}},
+                                "whiteness": {"ljung_box": 3.0}, "witness": None, "brand_new": {"answer": 42}}}
+    html = analysis_html(odd, None, "odd")
+    assert 'id="locate-brand_new"' in html and "<th>answer</th><td>42</td>" in html and "<th>psi_x</th><td>5</td>" in html
+    assert "<th>ljung_box</th><td>3</td>" in html and "<th>somewhere</th>" in html
+    # the report of a run links back to the run page; a report of a file has no such link
+    assert 'href="/ui/runs/7"' in analysis_html(result, None, "of run 7", run_url="/ui/runs/7")
+    assert 'id="run-link"' not in analysis_html(result, None, "of a file")
+
+
 # -------------------------------------------------------------------------------------------- CLI
 
 def test_cli_analyze_with_the_real_analyser_names_a_concealed_magnet(tmp_path: Path):
@@ -341,6 +390,7 @@ def test_api_analysis_is_stored_and_read_back(api):
     self_contained(page.text)
     assert f"run {run_id}, slot 0 (SN-AN)" in page.text and f'data-effect="{effects[0]}"' in page.text
     assert 'id="fig-by_step"' in page.text and 'id="fig-harmonics"' in page.text
+    assert f'href="/ui/runs/{run_id}"' in page.text and '<th>1 × per turn</th>' in page.text  # back to the run
     [log] = audited(api, "analysis.create")
     assert log.owner == "operator-user" and log.target == f"run {run_id}" and log.detail["analyses"][0]["id"] == created["id"]
     page = api.get(f"/ui/runs/{run_id}", role="viewer")

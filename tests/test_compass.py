@@ -332,24 +332,18 @@ def test_chunking_never_changes_the_result() -> None:
     assert st.dropped_samples == 3  # seq 2 (fused), 4 (truncated), 1 after the banner (bad checksum)
 
 
-def test_parse_rate_over_100k_sentences_per_second() -> None:
+def test_thirty_thousand_sentences_fed_in_4k_chunks_all_parse() -> None:
+    """Sentences split at arbitrary 4 KiB chunk boundaries all parse. (The parse rate and its target,
+    > 100,000 sentences per CPU second, are measured by benchmarks/drivers.py, not timed here.)"""
     rng = random.Random(1)
     n = 30_000
     blob = b"".join(
         raw(i, mag=tuple(rng.randint(-30000, 30000) for _ in range(3)), acc=tuple(rng.randint(-1100, 1100) for _ in range(3)))
         for i in range(n)
     )
-    chunks = [blob[i : i + 4096] for i in range(0, len(blob), 4096)]
-    best = 0.0
-    for _ in range(3):  # best of three, in CPU time: the machine may be busy with other work
-        p = SentenceParser()
-        t = time.process_time()
-        for c in chunks:
-            p.feed(c, 0.0)
-        best = max(best, n / (time.process_time() - t))
-        assert p.stats.samples == n
-    print(f"parse rate: {best:,.0f} RAW sentences/s")
-    assert best > 100_000
+    p = SentenceParser()
+    got = sum(len(p.feed(blob[i : i + 4096], 0.0)) for i in range(0, len(blob), 4096))
+    assert got == n and p.stats.samples == n and p.stats.dropped_samples == 0
 
 
 # ==================================================================================================

@@ -288,6 +288,10 @@ def test_shutdown_aborts_active_runs_quickly_and_a_restart_recovers(db_url: str)
             make_station(api, info)
             rid = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}}).json()["id"]
             wait_run(api, rid, ("running",))
+            deadline = time.monotonic() + 40.0  # shut down once samples are recorded (not racing the first pose)
+            while api.get(f"/runs/{rid}", role="viewer").json()["samples_count"] == 0:
+                assert time.monotonic() < deadline, "no sample recorded in 40 s"
+                time.sleep(0.05)
             with app.state.sessions() as s:  # as if a previous process had died mid-run
                 s.add(Run(procedure="calibrate", procedure_version="2", parameters={}, status="running",
                           operator="ghost", software_version="0"))

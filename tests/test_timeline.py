@@ -4,7 +4,6 @@ noise is what Noise says it is."""
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -121,15 +120,16 @@ def test_temperature_follows_warm_up() -> None:
     assert np.allclose(WORLD.temperature_at(np.array([200.0, 1e9])), [21.0 + 3.0 * (1 - np.exp(-1)), 24.0])
 
 
-def test_simulate_timeline_is_fast_for_a_ten_minute_plan() -> None:
+def test_simulate_timeline_of_a_ten_minute_plan_records_every_planned_sample() -> None:
+    """(Its speed, < 1 s for a 10-minute plan, is measured by benchmarks/procedure.py, not timed here.)"""
     plan = small_plan(samples=60) * 2
     tl = plan_timeline(plan, MOTION)
     assert tl.duration_s > 500
     unit = random_unit(np.random.default_rng(1))
-    t0 = time.perf_counter()
-    simulate_timeline(unit, plan, WORLD, MOTION, [StageHardIron("outer", [0.01, 0.0, 0.02]), Hysteresis([0.002, 0.001, 0.0])],
-                      Noise(3.0, 0.7), np.random.default_rng(0))
-    assert time.perf_counter() - t0 < 1.0
+    rec, clean = simulate_timeline(unit, plan, WORLD, MOTION, [StageHardIron("outer", [0.01, 0.0, 0.02]),
+                                                              Hysteresis([0.002, 0.001, 0.0])],
+                                   Noise(3.0, 0.7), np.random.default_rng(0))
+    assert len(rec) == len(clean) == len(tl.keep) and np.all(np.isfinite(rec.mag))
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -121,6 +121,7 @@ class Engine:
         self._answers: dict[str, asyncio.Future[str]] = {}
         self._t0 = time.monotonic()
         self._samples = 0
+        self._clock: dict[Any, tuple[float, int]] = {}  # per slot: the last kept sample's (host time, seq)
         self._streaming = False
         self._table_used = 0.0  # table seconds until the last move, settle or acquisition ended
 
@@ -364,7 +365,7 @@ class Engine:
             samples = [s for s in samples if t_begin <= s.t_host <= t_end]
             if not samples:
                 continue
-            t = self._sample_times(samples)
+            t = self._sample_times(slot, samples)
             a = np.tile(np.asarray(held, dtype=float), (len(samples), 1))
             a[:, step.index] = encoder(t)
             kept[slot], angles[slot], times[slot] = samples, np.round(a, 6), t
@@ -380,7 +381,7 @@ class Engine:
             if not samples:
                 continue
             a = angles[slot] if isinstance(angles, dict) else np.tile(np.asarray(angles, dtype=float), (len(samples), 1))
-            th = times[slot] if times is not None else self._sample_times(samples)
+            th = times[slot] if times is not None else self._sample_times(slot, samples)
             rec = self._recording(int(slot), samples, label, a, th)
             self.sink.add(int(slot), rec)
             out[int(slot)] = rec
@@ -388,9 +389,13 @@ class Engine:
         self.on_event(Event("samples", {"step": label, "count": self._samples}))
         return out
 
-    def _sample_times(self, samples: list[CompassSample]) -> np.ndarray:
-        return sample_clock(np.array([s.t_host for s in samples]), np.array([s.seq for s in samples]),
-                            self.station.sample_rate_hz * self.station.time_scale)
+    def _sample_times(self, slot: Any, samples: list[CompassSample]) -> np.ndarray:
+        """The samples' times on the compass's clock, continuing the slot's previous step."""
+        seq = np.array([s.seq for s in samples])
+        t = sample_clock(np.array([s.t_host for s in samples]), seq,
+                         self.station.sample_rate_hz * self.station.time_scale, after=self._clock.get(slot))
+        self._clock[slot] = (float(t[-1]), int(seq[-1]))
+        return t
 
     def _recording(self, slot: int, samples: list[CompassSample], step: str, angles: np.ndarray,
                    t_host: np.ndarray) -> Recording:
@@ -508,7 +513,8 @@ def encoder_track(trace: list[tuple[float, float, float]], start: float, stop: f
     return angle
 
 
-def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float) -> np.ndarray:
+def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float,
+                 after: tuple[float, int] | None = None) -> np.ndarray:
     """Each sample's time on the compass's own sample clock, in host seconds.
 
     A sample's arrival time carries the jitter of the serial link, the reader thread and the event
@@ -519,18 +525,25 @@ def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float) -> np.ndar
     slope is the nominal period (``1 / rate_hz``, host seconds), corrected by the lower envelope of
     the arrivals (the least-delayed sample of each stretch, which late bursts cannot pull) when a
     long run shows the device's clock off by up to 5 %. A run whose mean period is not within 20 %
-    of the nominal one (not the clock we think) keeps its arrival times."""
+    of the nominal one (not the clock we think) keeps its arrival times.
+
+    ``after``: (time, seq) of the last sample already timed on this clock (the previous step's). A
+    first run that continues its sequence is never put before it: each step alone takes the least
+    latency it saw, and a short step on a busy host can see more latency than the next by more than
+    a period (5 ms at time scale 10), which would put time backwards across the steps' boundary."""
     t = np.asarray(t_host, dtype=float).copy()
-    if len(t) < 2:
+    if len(t) < 1:
         return t
     period = 1.0 / rate_hz
     step = np.diff(np.asarray(seq, dtype=np.int64)) % 65536
     breaks = np.flatnonzero((step == 0) | (step > 1000)) + 1  # a restart or a long silence
-    for part in np.split(np.arange(len(t)), breaks):
-        if len(part) < 2:
-            continue
+    gap = (int(seq[0]) - after[1]) % 65536 if after is not None else 0
+    continues = 0 < gap <= 1000
+    for k, part in enumerate(np.split(np.arange(len(t)), breaks)):
         n = np.r_[0, np.cumsum(step[part[1:] - 1])].astype(float)
-        if not abs((t[part[-1]] - t[part[0]]) / (n[-1] * period) - 1.0) < 0.2:
+        if len(part) < 2 or not abs((t[part[-1]] - t[part[0]]) / (n[-1] * period) - 1.0) < 0.2:
+            if k == 0 and continues:  # arrival times kept, but never before the previous sample
+                t[part] = np.maximum(t[part], after[0] + 1e-6)
             continue
         slope = 0.0
         if len(part) >= 40:
@@ -541,7 +554,10 @@ def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float) -> np.ndar
             if abs(slope) > 0.05 * period:
                 slope = 0.0
         line = (period + slope) * n
-        t[part] = np.min(t[part] - line) + line
+        start = np.min(t[part] - line)
+        if k == 0 and continues:
+            start = max(start, after[0] + (period + slope) * gap)
+        t[part] = start + line
     return t
 
 

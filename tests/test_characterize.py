@@ -150,6 +150,25 @@ def test_sample_clock_removes_arrival_jitter_and_late_bursts():
     assert np.ptp(sample_clock(true + latency, seq, 20.0)[:200] - true[:200]) < 1e-3
 
 
+def test_sample_clock_keeps_time_running_forward_across_steps():
+    """Each step is timed on its own, from the least latency it saw. A short step whose samples all
+    came late (a busy host) is followed by one that saw the link's true latency: the second step's
+    first sample still comes after the first step's last (RECORDING.md: t is monotonic)."""
+    rate = 200.0  # 20 Hz at time scale 10: a period of 5 ms, less than the lateness below
+    n = np.arange(60)
+    true = 3.0 + n / rate
+    first = sample_clock(true[:8] + 0.012, n[:8], rate)  # every sample of the short step 12 ms late
+    alone = sample_clock(true[8:] + 0.001, n[8:], rate)
+    assert alone[0] < first[-1]  # timed alone, the second step would start before the first ended
+    second = sample_clock(true[8:] + 0.001, n[8:], rate, after=(first[-1], int(n[7])))
+    assert np.all(np.diff(np.r_[first, second]) > 0)
+    assert np.allclose(np.diff(second), 1 / rate)  # still on the device's steady clock
+    assert second[0] - first[-1] == pytest.approx(1 / rate)
+    # a sequence that does not continue the previous one (a restart) is not held to it
+    restarted = sample_clock(true[8:] + 0.001, n[8:] - 8, rate, after=(first[-1], int(n[7])))
+    assert restarted[0] == pytest.approx(true[8] + 0.001)
+
+
 def test_encoder_track_follows_the_profile_through_jittery_polls():
     from procedures.engine import Trapezoid
     rng = np.random.default_rng(2)

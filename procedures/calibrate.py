@@ -20,7 +20,7 @@ from physics.fit import METHODS, evaluate as evaluate_recording, fit
 from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_timeline
 from physics.table import Motion
-from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, ProcedureGen, Scan, Settle
+from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, ProcedureGen, Prompt, Scan, Settle
 
 NAME = "calibrate"
 VERSION = "2"
@@ -408,6 +408,29 @@ def characterize(p: CharacterizeParams) -> ProcedureGen:
     return out
 
 
+class BatchCalibrateParams(CalibrateParams):
+    """The calibration of one unit of a batch: the operator is asked to mount it first."""
+
+    serial: str = Field(min_length=1, description="the unit to mount in slot 0")
+    unmount: str | None = Field(None, description="the previous unit (with its result), to take out first")
+
+
+def batch_calibrate(p: BatchCalibrateParams) -> ProcedureGen:
+    """Prompt the operator to swap units, then the full calibration.
+
+    There is no unmount prompt at the end: the unit's verdict is only known once its calibration is
+    judged after the run, so the next unit's mount prompt says which unit to take out and how it did
+    (the operator sorts it into the right bin), and the batch's summary covers the last one."""
+    text = f"mount unit {p.serial} in slot 0"
+    if p.unmount:
+        text = f"unmount unit {p.unmount}, then {text}"
+    yield Prompt(text, id="mount")
+    return (yield from calibrate(p))
+
+
+#: The name of the batch's per-unit procedure (its unit is mounted only after its prompt).
+BATCH = "batch_calibrate"
+
 PROCEDURES: dict[str, Procedure] = {
     proc.name: proc for proc in (
         Procedure(NAME, VERSION, CalibrateParams, calibrate, "error-separation calibration, ending in the fit"),
@@ -418,5 +441,7 @@ PROCEDURES: dict[str, Procedure] = {
         Procedure("evaluate", "1", EvaluateParams, evaluate, "heading error of given calibrations, level and tilted"),
         Procedure("characterize", "1", CharacterizeParams, characterize,
                   "holds from both sides, tilts, turns both ways at two speeds: the discrepancy analysis's run"),
+        Procedure(BATCH, "1", BatchCalibrateParams, batch_calibrate,
+                  "one unit of a batch: mount prompt, then the error-separation calibration"),
     )
 }

@@ -19,7 +19,6 @@ import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
-from enum import Enum
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -33,23 +32,13 @@ from drivers.turntable import MoveTimeout, Turntable
 from physics.recording import Recording, concat, format_recording
 from physics.table import Motion
 from procedures.calibrate import PROCEDURES
+from procedures.states import RunState
 from procedures.steps import TIMED_STEPS, Acquire, Checkpoint, Move, Outcome, Procedure, Prompt, Scan, Settle, Step, step_seconds
 
 #: Table axis turned by each Scan axis.
 SCAN_AXIS = {"psi": "z", "theta": "y", "phi": "x"}
 #: The other axes must hold within this (deg) during an acquisition or a scan.
 HOLD_TOLERANCE_DEG = 0.01
-
-
-class RunState(str, Enum):
-    """Where a run is. ``completed``, ``failed`` and ``aborted`` are final."""
-
-    queued = "queued"
-    running = "running"
-    paused = "paused"
-    completed = "completed"
-    failed = "failed"
-    aborted = "aborted"
 
 
 @dataclass

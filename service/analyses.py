@@ -20,6 +20,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration, json_safe
+from procedures.states import ACTIVE
 from service.api import unprocessable
 from service.auth import Caller, audit, require
 from service.db import Analysis, Calibration, Device, Run, Sample
@@ -28,7 +29,6 @@ from service.db import Analysis, Calibration, Device, Run, Sample
 CONCURRENT = 2
 #: Keys the service adds to the analyser's result when it stores it (everything else is the result).
 STORED_KEYS = ("run_id", "slot", "serial", "calibration_id", "null_sims", "seed")
-ACTIVE = ("queued", "running", "paused")
 
 router = APIRouter(tags=["analyses"])
 

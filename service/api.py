@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import json
 from contextlib import asynccontextmanager
-from importlib.metadata import PackageNotFoundError, version
 from typing import Any, AsyncIterator
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response
@@ -22,12 +21,9 @@ from sqlalchemy.orm import Session
 from physics.recording import RecordingError, parse_recording
 from service.auth import Caller, audit, require
 from service.db import Calibration, Device, Limit, Run, make_engine, sessions, upgrade
+from service.runtime import SOFTWARE_VERSION, DomainError, field_errors, invalid
 from service.store import insert_samples
 
-try:
-    SOFTWARE_VERSION = version("compasscal")
-except PackageNotFoundError:  # running from a checkout that is not installed
-    SOFTWARE_VERSION = "0+unknown"
 
 #: Largest accepted upload (a recording of a few hours at 100 Hz).
 MAX_UPLOAD_BYTES = 50 * 1024 * 1024
@@ -35,14 +31,9 @@ MAX_UPLOAD_BYTES = 50 * 1024 * 1024
 router = APIRouter()
 
 
-def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[str, str]]:
-    """Pydantic errors as the service's 422 detail: ``[{"field": "body.parameters.samples", "problem": ...}]``."""
-    return [{"field": ".".join([*prefix, *(str(p) for p in e["loc"])]), "problem": e["msg"]} for e in errors]
-
-
 def unprocessable(field: str, problem: str) -> HTTPException:
-    """A 422 for one field, in the same shape."""
-    return HTTPException(422, [{"field": field, "problem": problem}])
+    """A 422 for one field, in the same shape as :func:`service.runtime.invalid`."""
+    return HTTPException(422, invalid(field, problem).detail)
 
 
 def db(request: Request) -> Session:
@@ -188,27 +179,57 @@ async def upload_recording(request: Request, caller: Caller = Depends(require("o
 
 # -------------------------------------------------------------------------------------------- app
 
-def create_app(database_url: str | None = None) -> FastAPI:
-    """The service. The database is upgraded to the newest migration on start."""
+def create_app(database_url: str | None = None, worker: bool = True) -> FastAPI:
+    """The service. The database is upgraded to the newest migration on start.
+
+    ``worker``: run a worker for every station in this process (the default; the only way on SQLite,
+    whose job queue lives in memory). Off when the stations have workers of their own
+    (``compasscal worker``) and the API runs as several processes (``compasscal serve --workers N``)."""
     from service.analyses import router as analyses_router
-    from service.runs import RunManager, router as runs_router
+    from service.db import default_url
+    from service.runs import router as runs_router
+    from service.runtime import HEARTBEAT_S, Notifier, reap_lost_workers
     from service.web import router as web_router
+    from service.worker import Jobs, WorkerContext
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        engine = make_engine(database_url)
+        url = database_url or default_url()
+        engine = make_engine(url)
         await asyncio.to_thread(upgrade, engine)
         app.state.engine = engine
         app.state.sessions = sessions(engine)
-        app.state.manager = RunManager(app.state.sessions, SOFTWARE_VERSION)
+        app.state.notifier = Notifier(url)
+        await app.state.notifier.start()
+        app.state.jobs = Jobs(url, WorkerContext(app.state.sessions, SOFTWARE_VERSION, poke=app.state.notifier.poke),
+                              embedded=worker)
+        await app.state.jobs.start()
+
+        async def reap() -> None:  # runs whose worker died: failed, "worker lost"
+            while True:
+                await asyncio.sleep(HEARTBEAT_S)
+                try:
+                    for run_id in await asyncio.to_thread(reap_lost_workers, app.state.sessions):
+                        app.state.notifier.poke(run_id)
+                except Exception:  # noqa: BLE001 - the database is away for a moment
+                    pass
+        reaper = asyncio.create_task(reap())
         try:
             yield
         finally:
-            await app.state.manager.shutdown()
+            reaper.cancel()
+            await asyncio.gather(reaper, return_exceptions=True)
+            await app.state.jobs.stop()
+            await app.state.notifier.stop()
             engine.dispose()
 
     app = FastAPI(title="compasscal", version=SOFTWARE_VERSION, lifespan=lifespan,
                   description="Electronic-compass calibration station: stations, runs, batches, calibration history.")
+
+    @app.exception_handler(DomainError)
+    async def _domain(request: Request, exc: DomainError) -> JSONResponse:
+        # the run-time layer's refusals (no FastAPI there): one mapping to HTTP
+        return JSONResponse(status_code=exc.status, content=jsonable_encoder({"detail": exc.detail}))
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -220,3 +241,11 @@ def create_app(database_url: str | None = None) -> FastAPI:
     app.include_router(analyses_router)
     app.include_router(web_router)
     return app
+
+
+def app_from_env() -> FastAPI:
+    """The app of ``compasscal serve`` (a factory, so each of several API processes builds its own):
+    COMPASSCAL_STATION_WORKER=0 leaves the stations to their own workers."""
+    import os
+
+    return create_app(worker=os.environ.get("COMPASSCAL_STATION_WORKER", "1") != "0")

@@ -787,17 +787,66 @@ def db_upgrade() -> None:
 def serve(
     host: str = typer.Option("127.0.0.1", help="Address to listen on."),
     port: int = typer.Option(8000, help="Port to listen on."),
+    workers: int = typer.Option(1, "--workers", min=1, max=64,
+                                help="API processes (more than 1 needs PostgreSQL and a `compasscal worker` per station)."),
+    station_worker: Optional[bool] = typer.Option(
+        None, "--station-worker/--no-station-worker",
+        help="Drive every station from this process (default with one API process; always on SQLite). "
+             "Off: each station has its own `compasscal worker --station NAME`."),
 ) -> None:
     """Run the REST service (OpenAPI at /docs)."""
     import uvicorn
 
-    from service.api import create_app
+    from service.db import default_url
 
     _port(port, "--port")
     database = _open_database()
+    pg = default_url().startswith("postgresql")
+    embedded = (workers == 1) if station_worker is None else station_worker
+    if not pg and (workers > 1 or not embedded):
+        _fail(f"{'--workers ' + str(workers) if workers > 1 else '--no-station-worker'}: the SQLite default keeps its job "
+              "queue in memory, inside the one service process; set COMPASSCAL_DATABASE_URL=postgresql://... for "
+              "several API processes and station workers")
+    if workers > 1 and embedded:
+        _fail("--station-worker with --workers > 1: each API process would drive every station; run one "
+              "`compasscal worker --station NAME` per station instead")
     sock = _listen(host, port)
-    console.print(f"database: {database}", soft_wrap=True, markup=False, highlight=False)
-    uvicorn.Server(uvicorn.Config(create_app(), host=host, port=port)).run(sockets=[sock])
+    console.print(f"database: {database}; {workers} API process(es); stations driven "
+                  + ("here" if embedded else "by their `compasscal worker`s"), soft_wrap=True, markup=False, highlight=False)
+    os.environ["COMPASSCAL_STATION_WORKER"] = "1" if embedded else "0"  # read by service.api:app_from_env
+    config = uvicorn.Config("service.api:app_from_env", factory=True, host=host, port=port, workers=workers)
+    if workers > 1:
+        from uvicorn.supervisors import Multiprocess
+        Multiprocess(config, target=uvicorn.Server(config).run, sockets=[sock]).run()
+    else:
+        uvicorn.Server(config).run(sockets=[sock])
+
+
+@app.command(cls=_Command)
+def worker(
+    station: list[str] = typer.Option(..., "--station", help="The station this worker drives (repeat for several)."),
+) -> None:
+    """The station agent: owns the station's table and compasses, takes its runs from the job queue
+    (PostgreSQL), publishes their events; first stops the axes and ends what a previous worker left."""
+    import asyncio
+
+    from service.db import default_url
+    from service.runtime import DomainError
+    from service.worker import serve_worker
+
+    database = _open_database()
+    url = default_url()
+    if not url.startswith("postgresql"):
+        _fail(f"database {database}: a station worker needs PostgreSQL (COMPASSCAL_DATABASE_URL=postgresql://...); "
+              "on the SQLite default `compasscal serve` drives the stations itself")
+    console.print(f"database: {database}; worker of station(s) {', '.join(station)}", soft_wrap=True, markup=False,
+                  highlight=False)
+    try:
+        asyncio.run(serve_worker(url, list(station)))
+    except DomainError as e:
+        _fail(f"--station: {e.detail}")
+    except KeyboardInterrupt:
+        pass
 
 
 @app.command(cls=_Command)

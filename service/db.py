@@ -73,6 +73,14 @@ class Station(Base):
     compasses: Mapped[list[Any]] = mapped_column(JSON)
     time_scale: Mapped[float] = mapped_column(Float, default=1.0)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    # what its worker reports (the worker owns the hardware; the API only reads these)
+    state: Mapped[str] = mapped_column(String(16), default="idle")  # idle | running | paused | fault
+    reason: Mapped[str | None] = mapped_column(Text)  # the fault's
+    run_id: Mapped[int | None] = mapped_column(Integer)  # the run holding the station (claimed on start)
+    batch_id: Mapped[int | None] = mapped_column(Integer)  # a batch holds the station between its units
+    worker: Mapped[str | None] = mapped_column(String(128))  # host:pid of the worker serving it
+    heartbeat_at: Mapped[datetime | None]  # that worker's last sign of life
+    reset: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # the last reset's outcome
 
 
 class Batch(Base):
@@ -111,7 +119,35 @@ class Run(Base):
     table_seconds: Mapped[float | None]
     samples_count: Mapped[int] = mapped_column(Integer, default=0)
     meta: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    # the live view, kept by the worker from the run's events (so any API process can answer)
+    pause_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    prompts: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # waiting prompts: id -> text
+    progress: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     calibrations: Mapped[list["Calibration"]] = relationship(back_populates="run")
+
+
+class RunEvent(Base):
+    """One event of a run (state, step, progress, samples, prompt, result), as the worker published it.
+    The id orders every run's events and is the server-sent events' id (``Last-Event-ID``)."""
+
+    __tablename__ = "run_events"
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(16))
+    data: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class RunCommand(Base):
+    """An operator's command to a run's worker (pause, resume, abort, answer), taken in order."""
+
+    __tablename__ = "run_commands"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(16))
+    data: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    taken_at: Mapped[datetime | None]
 
 
 class Sample(Base):

@@ -28,6 +28,7 @@ from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
+from procedures.states import ACTIVE
 from service import plots
 from service.auth import COOKIE, ROLES, Caller, lookup, require
 from service.db import Analysis, Batch, Calibration, Device, Limit, Run, Sample, Station
@@ -41,7 +42,6 @@ STATIC_TYPES = {".css": "text/css; charset=utf-8", ".js": "text/javascript; char
                 ".svg": "image/svg+xml"}
 #: Rows per poll of the live sample plot (a long run is fetched in pieces, never all at once).
 LIVE_ROWS = 5000
-ACTIVE = ("queued", "running", "paused")
 
 router = APIRouter(include_in_schema=False)
 
@@ -324,18 +324,15 @@ def stations_page(request: Request) -> Response:
     who = _page_caller(request)
     if isinstance(who, Response):
         return who
-    from service.runs import PROCEDURES, run_json
+    from procedures.calibrate import BATCH, PROCEDURES
+    from service.runtime import run_json
 
-    mgr = request.app.state.manager
     with request.app.state.sessions() as s:
         rows = s.scalars(select(Station).order_by(Station.name)).all()
-        stations = []
-        for r in rows:
-            st = mgr.station_state(r.name)
-            stations.append({"name": r.name, "state": st.state, "run_id": st.run_id, "batch_id": st.batch_id,
-                             "fault": st.reason, "slots": len(r.compasses or []), "modbus": r.modbus})
-        runs = [run_json(r, mgr) for r in s.scalars(select(Run).order_by(Run.created_at.desc(), Run.id.desc()).limit(20))]
-    procs = [{"name": p.name, "description": p.doc} for name, p in PROCEDURES.items() if name != "batch_calibrate"]
+        stations = [{"name": r.name, "state": r.state, "run_id": r.run_id, "batch_id": r.batch_id,
+                     "fault": r.reason, "slots": len(r.compasses or []), "modbus": r.modbus} for r in rows]
+        runs = [run_json(r) for r in s.scalars(select(Run).order_by(Run.created_at.desc(), Run.id.desc()).limit(20))]
+    procs = [{"name": p.name, "description": p.doc} for name, p in PROCEDURES.items() if name != BATCH]
     return _render(request, who, "stations.html", title="Stations", stations=stations, runs=runs, procedures=procs)
 
 
@@ -345,14 +342,13 @@ def run_page(request: Request, run_id: int) -> Response:
     who = _page_caller(request)
     if isinstance(who, Response):
         return who
-    from service.runs import run_json
+    from service.runtime import run_json
 
-    mgr = request.app.state.manager
     with request.app.state.sessions() as s:
         row = s.get(Run, run_id)
         if row is None:
             return _error_page(request, who, 404, "No such run", f"There is no run {run_id}.")
-        run = run_json(row, mgr)
+        run = run_json(row)
         active = run["status"] in ACTIVE
         units: list[dict[str, Any]] = []
         errors: list[dict[str, Any]] = []
@@ -431,13 +427,13 @@ def batch_page(request: Request, batch_id: int) -> Response:
     who = _page_caller(request)
     if isinstance(who, Response):
         return who
-    from service.runs import _batch_json
+    from service.runtime import batch_json
 
     with request.app.state.sessions() as s:
         batch = s.get(Batch, batch_id)
         if batch is None:
             return _error_page(request, who, 404, "No such batch", f"There is no batch {batch_id}.")
-        b = _batch_json(s, batch, request.app.state.manager)
+        b = batch_json(s, batch)
     done = sum(1 for u in b["units"] if u["status"] in ("completed", "failed", "aborted"))
     return _render(request, who, "batch.html", title=f"Batch {batch_id}", batch=b, done=done,
                    active=b["status"] in ("queued", "running"))

@@ -38,16 +38,27 @@ def wait_run(api: Api, run_id: int, until: tuple[str, ...] = FINAL, timeout: flo
         time.sleep(0.05)
 
 
-def read_events(api: Api, run_id: int) -> list[tuple[str, dict[str, Any]]]:
-    """The run's server-sent events until the stream closes."""
-    events, kind = [], None
-    with api.client.stream("GET", f"/runs/{run_id}/events", headers={"X-API-Key": api.keys["viewer"]}) as r:
+def read_events(api: Api, run_id: int, last: int | None = None) -> list[tuple[str, dict[str, Any]]]:
+    """The run's server-sent events until the stream closes (after event ``last``, if given)."""
+    return [(k, d) for _, k, d in _stream(api, run_id, last)]
+
+
+def read_event_ids(api: Api, run_id: int) -> list[int]:
+    return [i for i, _, _ in _stream(api, run_id, None)]
+
+
+def _stream(api: Api, run_id: int, last: int | None) -> list[tuple[int, str, dict[str, Any]]]:
+    events, kind, ident = [], None, -1
+    headers = {"X-API-Key": api.keys["viewer"], **({"Last-Event-ID": str(last)} if last is not None else {})}
+    with api.client.stream("GET", f"/runs/{run_id}/events", headers=headers) as r:
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
         for line in r.iter_lines():
-            if line.startswith("event: "):
+            if line.startswith("id: "):
+                ident = int(line[4:])
+            elif line.startswith("event: "):
                 kind = line[7:]
             elif line.startswith("data: "):
-                events.append((kind, json.loads(line[6:])))
+                events.append((ident, kind, json.loads(line[6:])))
     return events
 
 
@@ -160,10 +171,14 @@ def test_calibration_runs_store_history_and_stream_events(api: Api):
         history = api.get("/devices/GAO2017-REF/calibrations", role="viewer").json()
         assert [(h["run_id"], h["status"]) for h in history] == [(second, "current"), (first["id"], "superseded")]
 
-        # a finished run's history replays; once forgotten, one state event from its row
-        assert read_events(api, second)[-1][0] == "state"
-        api.client.app.state.manager.history.pop(first["id"])
-        assert read_events(api, first["id"]) == [("state", {"state": "completed", "reason": None, "from": "database"})]
+        # a finished run's history replays from the database, whole, to any process; Last-Event-ID resumes
+        replay = read_events(api, first["id"])
+        assert replay[0] == ("state", {"state": "queued", "reason": None}) and replay[-1] == events[-1]
+        assert {"step", "progress", "samples", "result"} <= {k for k, _ in replay}
+        ids = read_event_ids(api, second)
+        assert ids == sorted(ids) and len(ids) == len(events)
+        tail = read_events(api, second, last=ids[-3])
+        assert tail == events[-2:]
 
         # listing: newest first, filters, pagination
         runs = api.get("/runs", role="viewer").json()
@@ -303,6 +318,8 @@ def test_shutdown_aborts_active_runs_quickly_and_a_restart_recovers(db_url: str)
         api = Api(client, keys)
         j = api.get(f"/runs/{rid}", role="viewer").json()
         assert j["status"] == "aborted" and j["reason"] == "service shutting down" and j["samples_count"] > 0
-        assert read_events(api, rid) == [("state", {"state": "aborted", "reason": "service shutting down", "from": "database"})]
+        ev = read_events(api, rid)  # the whole history, from the database, to the new process
+        assert ev[0] == ("state", {"state": "queued", "reason": None})
+        assert ev[-1] == ("state", {"state": "aborted", "reason": "service shutting down"})
         ghost = api.get("/runs?status=failed", role="viewer").json()
         assert [g["operator"] for g in ghost] == ["ghost"] and "stopped" in ghost[0]["reason"]

@@ -1,0 +1,410 @@
+"""The run-time layer shared by the API processes and the station workers (no FastAPI here).
+
+The database is the only state they share:
+
+- a station's row says what its worker reports (``idle``, ``running``, ``paused``, ``fault``, the
+  run holding it, the worker's heartbeat);
+- a run's row carries its status and its live view (pause requested, waiting prompts, progress);
+- ``run_events`` holds every event a worker published, in order (the server-sent events replay it,
+  so any API process can stream any run and a reconnect resumes with ``Last-Event-ID``);
+- ``run_commands`` holds what operators asked (pause, resume, abort, a prompt's answer), which the
+  run's worker takes in order.
+
+Runs, batches, station resets and analyses are jobs (service/worker.py). The API validates a
+request, claims the station in one conditional UPDATE (so two API processes can never start two
+runs on one table), writes the run's row and defers its job; everything after that is the worker's.
+
+Errors are domain errors (:class:`DomainError` and its kinds); service/api.py maps them to HTTP in
+one handler.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
+
+from pydantic import ValidationError
+from sqlalchemy import select, text, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from physics.calibration import json_safe
+from procedures.states import ACTIVE, FINAL, RunState, check_transition
+from service.db import Batch, Calibration, Run, RunCommand, RunEvent, Station, utcnow
+
+try:
+    SOFTWARE_VERSION = version("compasscal")
+except PackageNotFoundError:  # running from a checkout that is not installed
+    SOFTWARE_VERSION = "0+unknown"
+
+#: Compass stream rate of every run (the engine's default; recorded in the run's metadata).
+SAMPLE_RATE_HZ = 20
+#: Seconds between a worker's heartbeats, and how many missed ones mean it is lost.
+HEARTBEAT_S = 2.0
+LOST_AFTER_S = 4 * HEARTBEAT_S
+#: The PostgreSQL channel a worker notifies after each event it commits (payload: the run id).
+CHANNEL = "compasscal_events"
+#: Seconds an API call waits for a worker to act on a command it must confirm (a reset, an answer).
+CONFIRM_S = 20.0
+
+
+# -------------------------------------------------------------------------------------- errors
+
+class DomainError(Exception):
+    """A request the run-time layer refuses; ``status`` is the HTTP code service/api.py answers."""
+
+    status = 400
+
+    def __init__(self, detail: Any) -> None:
+        super().__init__(detail if isinstance(detail, str) else json.dumps(detail))
+        self.detail = detail
+
+
+class NotFound(DomainError):
+    status = 404
+
+
+class Conflict(DomainError):
+    status = 409
+
+
+class Invalid(DomainError):
+    """Bad input: ``detail`` is ``[{"field": ..., "problem": ...}]``."""
+
+    status = 422
+
+
+class Unavailable(DomainError):
+    status = 503
+
+
+def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[str, str]]:
+    """Pydantic errors as the service's 422 detail: ``[{"field": "body.parameters.samples", "problem": ...}]``."""
+    return [{"field": ".".join([*prefix, *(str(p) for p in e["loc"])]), "problem": e["msg"]} for e in errors]
+
+
+def invalid(field: str, problem: str) -> Invalid:
+    """A 422 for one field, in the same shape."""
+    return Invalid([{"field": field, "problem": problem}])
+
+
+# -------------------------------------------------------------------------------------- events
+
+def publish(session: Session, run_id: int, kind: str, data: dict[str, Any]) -> None:
+    """Append an event to the run's log and update the run's live view (committed by the caller).
+    On PostgreSQL the commit also notifies every API process listening on :data:`CHANNEL`."""
+    data = json_safe(data)
+    session.add(RunEvent(run_id=run_id, kind=kind, data=data, created_at=utcnow()))
+    run = session.get(Run, run_id)
+    if run is not None:
+        if kind == "prompt":
+            prompts = dict(run.prompts or {})
+            if data.get("answered"):
+                prompts.pop(str(data.get("id")), None)
+            else:
+                prompts[str(data["id"])] = data.get("text", "")
+            run.prompts = prompts
+        elif kind == "progress":
+            run.progress = data
+        elif kind == "state":
+            run.status = data["state"]
+            if data["state"] != RunState.running.value:
+                run.pause_requested = False
+            if data["state"] == RunState.running.value and run.started_at is None:
+                run.started_at = utcnow()
+            if data["state"] in FINAL:
+                run.prompts = {}
+                run.reason = data.get("reason")
+    if session.get_bind().dialect.name == "postgresql":
+        session.execute(text("SELECT pg_notify(:channel, :run)"), {"channel": CHANNEL, "run": str(run_id)})
+
+
+def events_after(session: Session, run_id: int, after: int, limit: int = 500) -> list[RunEvent]:
+    """The run's events with an id above ``after``, oldest first."""
+    return list(session.scalars(select(RunEvent).where(RunEvent.run_id == run_id, RunEvent.id > after)
+                                .order_by(RunEvent.id).limit(limit)))
+
+
+class Notifier:
+    """Wakes the API's event streams when a worker publishes: PostgreSQL's LISTEN on one connection
+    per API process, or :meth:`poke` from a worker in this process. Streams also re-read the log
+    every second, so a lost notification delays an event, never loses it."""
+
+    def __init__(self, database_url: str | None) -> None:
+        self.url = database_url if database_url and database_url.startswith("postgresql") else None
+        self._waiters: dict[int, asyncio.Event] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        if self.url:
+            self._task = asyncio.create_task(self._listen(), name="notifier")
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+
+    async def _listen(self) -> None:
+        import psycopg
+
+        conninfo = self.url.replace("postgresql+psycopg://", "postgresql://")
+        while True:
+            try:
+                async with await psycopg.AsyncConnection.connect(conninfo, autocommit=True) as conn:
+                    await conn.execute(f"LISTEN {CHANNEL}")
+                    async for n in conn.notifies():
+                        if n.payload.isdigit():
+                            self._wake(int(n.payload))
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # noqa: BLE001 - the database restarted: listen again (streams poll meanwhile)
+                await asyncio.sleep(1.0)
+
+    def _wake(self, run_id: int) -> None:
+        ev = self._waiters.pop(run_id, None)
+        if ev is not None:
+            ev.set()
+
+    def poke(self, run_id: int) -> None:
+        """Wake the streams of ``run_id`` (thread-safe; a worker in this process calls it)."""
+        if self._loop is None or self._loop.is_closed():
+            return
+        if threading.get_ident() == getattr(self._loop, "_thread_id", None):
+            self._wake(run_id)
+        else:
+            try:
+                self._loop.call_soon_threadsafe(self._wake, run_id)
+            except RuntimeError:  # the loop has closed
+                pass
+
+    async def wait(self, run_id: int, timeout: float) -> None:
+        """Until the run publishes or ``timeout`` passes."""
+        ev = self._waiters.setdefault(run_id, asyncio.Event())
+        try:
+            await asyncio.wait_for(ev.wait(), timeout)
+        except asyncio.TimeoutError:
+            pass
+
+
+# --------------------------------------------------------------------------------------- views
+
+def worker_alive(row: Station, now: datetime | None = None) -> bool:
+    """Whether a worker has served the station within :data:`LOST_AFTER_S`."""
+    return row.heartbeat_at is not None and (now or utcnow()) - row.heartbeat_at < timedelta(seconds=LOST_AFTER_S)
+
+
+def station_json(row: Station) -> dict[str, Any]:
+    """A station as the API shows it: configuration, state, current run, fault, its worker."""
+    return {"name": row.name, "modbus": row.modbus, "compasses": row.compasses, "time_scale": row.time_scale,
+            "created_at": row.created_at, "state": row.state, "run_id": row.run_id, "fault": row.reason,
+            "batch_id": row.batch_id, "worker": row.worker, "worker_alive": worker_alive(row),
+            "heartbeat_at": row.heartbeat_at}
+
+
+def run_json(row: Run) -> dict[str, Any]:
+    """A run as the API shows it: its row with its live view (prompts, progress) while it runs."""
+    snap = row.station_snapshot or {}
+    live = row.status in ACTIVE
+    return {"id": row.id, "status": row.status, "reason": row.reason, "station": snap.get("name"),
+            "procedure": row.procedure, "procedure_version": row.procedure_version, "parameters": row.parameters,
+            "serials": row.serials, "operator": row.operator, "batch_id": row.batch_id,
+            "software_version": row.software_version, "station_snapshot": row.station_snapshot,
+            "created_at": row.created_at, "started_at": row.started_at, "finished_at": row.finished_at,
+            "table_seconds": row.table_seconds, "samples_count": row.samples_count or 0,
+            "result": (row.meta or {}).get("result"),
+            "pause_requested": bool(live and row.pause_requested),
+            "prompts": [{"id": k, "text": v} for k, v in (row.prompts or {}).items()] if live else [],
+            "progress": row.progress}
+
+
+def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
+    """A batch: status, one row per unit (run, status, verdict), the waiting prompt and the summary."""
+    station = s.get(Station, batch.station_id)
+    runs = s.scalars(select(Run).where(Run.batch_id == batch.id).order_by(Run.id)).all()
+    by_serial: dict[str, Run] = {}
+    for r in runs:
+        by_serial[str((r.serials or {}).get("0", ""))] = r  # the latest run of each unit
+    cals = {c.run_id: c for c in s.scalars(select(Calibration).where(Calibration.run_id.in_([r.id for r in runs])))} if runs else {}
+    units, prompt = [], None
+    for serial in batch.serials:
+        r = by_serial.get(serial)
+        if r is None:
+            units.append({"serial": serial, "run_id": None, "status": "pending", "verdict": None})
+            continue
+        j = run_json(r)
+        c = cals.get(r.id)
+        units.append({"serial": serial, "run_id": r.id, "status": j["status"], "reason": j["reason"],
+                      "verdict": c.verdict if c else None, "calibration_id": c.id if c else None,
+                      "calibration_status": c.status if c else None, "prompts": j["prompts"]})
+        if j["prompts"]:
+            prompt = {"run_id": r.id, **j["prompts"][0]}
+    return {"id": batch.id, "station": station.name if station else None, "status": batch.status,
+            "operator": batch.operator, "serials": batch.serials, "created_at": batch.created_at,
+            "finished_at": batch.finished_at, "summary": batch.summary or {}, "units": units, "prompt": prompt}
+
+
+# ------------------------------------------------------------------------------------ requests
+
+def _busy(row: Station, batch_id: int | None = None) -> str | None:
+    """Why no run can start on the station now (None when one can)."""
+    if row.run_id is not None:
+        return f"station {row.name} is busy with run {row.run_id}"
+    if row.state == "fault":
+        return f"station {row.name} is in fault ({row.reason}); POST /stations/{row.name}/reset first"
+    if row.batch_id is not None and row.batch_id != batch_id:
+        return f"station {row.name} is busy with batch {row.batch_id}"
+    return None
+
+
+def create_run(s: Session, station_name: str, procedure: str, parameters: dict[str, Any] | None,
+               serials: dict[str, str] | None, operator: str, software_version: str,
+               batch_id: int | None = None) -> Run:
+    """Validate a run, write its row (``queued``, with its provenance) and claim the station for it,
+    in one transaction (committed). NotFound, Invalid (naming the field) or Conflict (busy, fault)."""
+    from procedures.calibrate import PROCEDURES
+
+    proc = PROCEDURES.get(procedure)
+    if proc is None:
+        raise invalid("body.procedure", f"unknown procedure {procedure!r}; known: {', '.join(sorted(PROCEDURES))}")
+    try:
+        params = proc.validate(parameters)
+    except ValidationError as e:
+        raise Invalid(field_errors(e.errors(), ("body", "parameters"))) from None
+    row = s.scalar(select(Station).where(Station.name == station_name))
+    if row is None:
+        raise NotFound(f"no station {station_name!r}")
+    given: dict[str, str] = {}
+    for key, serial in (serials or {}).items():
+        if not (key.isascii() and key.isdigit() and int(key) < len(row.compasses)):
+            raise invalid(f"body.serials.{key}", f"not a slot of station {row.name} (slots 0 to {len(row.compasses) - 1})")
+        if not str(serial).strip():
+            raise invalid(f"body.serials.{key}", "empty serial number")
+        given[str(int(key))] = str(serial).strip()
+    why = _busy(row, batch_id)
+    if why:
+        raise Conflict(why)
+    snapshot = {"name": row.name, "modbus": row.modbus, "compasses": list(row.compasses), "time_scale": float(row.time_scale)}
+    run = Run(station_id=row.id, batch_id=batch_id, procedure=proc.name, procedure_version=proc.version,
+              parameters=json_safe(params.model_dump()), status=RunState.queued.value, operator=operator,
+              station_snapshot=snapshot, serials=given, software_version=software_version, prompts={},
+              meta={"station": row.name, "sample_rate_hz": str(SAMPLE_RATE_HZ), "time_scale": f"{row.time_scale:g}",
+                    "parameters": params.model_dump_json()})
+    s.add(run)
+    s.flush()
+    # the claim: one conditional UPDATE, so two API processes racing for one table cannot both win
+    claimed = s.execute(update(Station).where(Station.id == row.id, Station.run_id.is_(None), Station.state != "fault",
+                                              (Station.batch_id.is_(None)) | (Station.batch_id == batch_id))
+                        .values(run_id=run.id, state="running")).rowcount
+    if claimed != 1:
+        s.rollback()
+        s.refresh(row)
+        raise Conflict(_busy(row, batch_id) or f"station {station_name} is busy")
+    publish(s, run.id, "state", {"state": RunState.queued.value, "reason": None})
+    s.commit()
+    return run
+
+
+def request_state(s: Session, run_id: int, target: str, reason: str | None) -> tuple[str, bool]:
+    """Check ``PUT /runs/{id}/state`` against the state machine and queue the command for the run's
+    worker (committed). Returns what it does and whether the caller must also cancel a queued job."""
+    row = s.get(Run, run_id)
+    if row is None:
+        raise NotFound(f"no run {run_id}")
+    if (row.status, target) == ("running", "running") and row.pause_requested:
+        row.pause_requested = False
+        s.add(RunCommand(run_id=run_id, kind="resume", data={}, created_at=utcnow()))
+        s.commit()
+        return "pause request withdrawn", False
+    try:
+        what = check_transition(row.status, target)
+    except ValueError as e:
+        raise Conflict(str(e)) from None
+    kind = {"paused": "pause", "running": "resume", "aborted": "abort"}[target]
+    if kind == "pause":
+        row.pause_requested = True
+    s.add(RunCommand(run_id=run_id, kind=kind, data={"reason": reason or "aborted by the operator"} if kind == "abort" else {},
+                     created_at=utcnow()))
+    s.commit()
+    return what, kind == "abort" and row.status == RunState.queued.value
+
+
+def finish_unstarted(s: Session, run_id: int, status: str, reason: str) -> bool:
+    """End a run no worker has taken (its job was cancelled, or its worker is lost): final status,
+    station freed. False when a worker took it meanwhile (it then ends the run itself)."""
+    done = s.execute(update(Run).where(Run.id == run_id, Run.status == RunState.queued.value)
+                     .values(status=status, reason=reason, finished_at=utcnow())).rowcount
+    if done != 1:
+        s.rollback()
+        return False
+    s.execute(update(Station).where(Station.run_id == run_id).values(run_id=None, state="idle"))
+    publish(s, run_id, "state", {"state": status, "reason": reason})
+    s.commit()
+    return True
+
+
+def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> None:
+    """Queue the operator's answer to a waiting prompt (committed); NotFound when none is waiting."""
+    row = s.get(Run, run_id)
+    if row is None:
+        raise NotFound(f"no run {run_id}")
+    waiting = dict(row.prompts or {}) if row.status in ACTIVE else {}
+    if prompt_id not in waiting:
+        raise NotFound(f"run {run_id} has no prompt {prompt_id!r} waiting"
+                       + (f" (waiting: {', '.join(waiting)})" if waiting else ""))
+    s.add(RunCommand(run_id=run_id, kind="answer", data={"id": prompt_id, "answer": answer}, created_at=utcnow()))
+    s.commit()
+
+
+def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None) -> list[int]:
+    """Runs whose station's worker stopped beating (killed, its PC off): failed with reason "worker
+    lost", the station in fault until reset. Returns the runs so ended."""
+    now = now or utcnow()
+    ended = []
+    with sessions() as s:
+        rows = s.execute(select(Run, Station).join(Station, Station.run_id == Run.id)
+                         .where(Run.status.in_((RunState.running.value, RunState.paused.value)))).all()
+        for run, station in rows:
+            if station.heartbeat_at is None or worker_alive(station, now):
+                continue  # (never beaten: the station was made after its worker's last beat)
+            why = f"worker lost: station {station.name}'s worker stopped beating"
+            n = s.execute(update(Run).where(Run.id == run.id, Run.status.in_(ACTIVE))
+                          .values(status=RunState.failed.value, reason=why, finished_at=now)).rowcount
+            if n:
+                s.execute(update(Station).where(Station.id == station.id, Station.run_id == run.id)
+                          .values(run_id=None, state="fault", reason=f"worker lost during run {run.id}; "
+                                                                    f"POST /stations/{station.name}/reset"))
+                publish(s, run.id, "state", {"state": RunState.failed.value, "reason": why})
+                ended.append(run.id)
+        s.commit()
+    return ended
+
+
+@dataclass
+class Waited:
+    """What a confirmation wait saw."""
+
+    ok: bool
+    value: Any = None
+
+
+async def wait_for(check: Any, timeout: float, every: float = 0.1) -> Waited:
+    """Poll ``check()`` (a sync function returning a value or None) until it returns something."""
+    deadline = asyncio.get_running_loop().time() + timeout
+    while True:
+        value = await asyncio.to_thread(check)
+        if value is not None:
+            return Waited(True, value)
+        if asyncio.get_running_loop().time() > deadline:
+            return Waited(False)
+        await asyncio.sleep(every)
+
+
+__all__ = ["DomainError", "NotFound", "Conflict", "Invalid", "Unavailable", "field_errors", "invalid", "publish",
+           "events_after", "Notifier", "station_json", "run_json", "batch_json", "create_run", "request_state",
+           "finish_unstarted", "queue_answer", "reap_lost_workers", "worker_alive", "wait_for"]

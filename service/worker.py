@@ -1,0 +1,648 @@
+"""Station workers: the jobs that drive the hardware, and the processes that take them.
+
+A station's runs, batches and resets are jobs on its own queue (``station-NAME``) with a lock of the
+same name, so two jobs never share a turntable. The queue is
+procrastinate: on PostgreSQL its tables, LISTEN/NOTIFY and locks; on the SQLite default its
+in-memory connector, with the worker in a thread of the service's own process (the same job code,
+one code path for the procedure).
+
+``compasscal worker --station NAME`` (the station agent, one per bench PC) owns that station's Modbus
+and serial connections: it first stops the axes and ends what a previous worker left (its runs
+``failed``, "worker lost"), then takes the station's jobs, beats its heartbeat on the station's row
+every :data:`~service.runtime.HEARTBEAT_S` s, publishes every event of a run to the database (where
+any API process streams it) and obeys the commands operators leave there.
+
+Each run executes in a thread of its own with its own event loop (procrastinate runs a synchronous
+task in a thread): the worker's loop never waits on a Modbus poll or the fit at the end.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import threading
+from collections.abc import Callable
+from contextlib import AsyncExitStack
+from dataclasses import dataclass, field
+from typing import Any
+
+from procrastinate import App, JobContext, PsycopgConnector
+from procrastinate.jobs import Status
+from procrastinate.testing import InMemoryConnector
+from sqlalchemy import select, update
+from sqlalchemy.orm import sessionmaker
+
+from drivers.modbus import BusError
+from drivers.turntable import AxisError, Turntable
+from physics.calibration import Calibration as PhysCalibration, json_safe
+from procedures.calibrate import BATCH, PROCEDURES
+from procedures.engine import Engine, Event, open_station
+from procedures.states import ACTIVE, FINAL, RunState
+from service.db import Batch, Run, RunCommand, Station, utcnow
+from service.runtime import HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError, create_run, publish
+from service.store import DbSink, store_calibration
+
+#: Wall seconds allowed to connect a station's table and fixture, and to identify the compasses.
+OPEN_TIMEOUT_S = 15.0
+IDENTIFY_TIMEOUT_S = 10.0
+#: Seconds between two looks at a run's commands.
+COMMAND_POLL_S = 0.1
+
+def station_queue(name: str) -> str:
+    """The queue (and the lock) of a station's jobs."""
+    return f"station-{name}"
+
+
+def _reason(e: BaseException) -> str:
+    return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+
+
+def _is_table_error(reason: str | None) -> bool:
+    """Whether a run's reason (the engine's "Type: message") is an error of the table's drivers."""
+    names, todo = set(), [AxisError, BusError]
+    while todo:
+        c = todo.pop()
+        names.add(c.__name__)
+        todo.extend(c.__subclasses__())
+    return bool(reason) and reason.split(":", 1)[0].strip() in names
+
+
+@dataclass
+class WorkerContext:
+    """What every job of a worker needs: the database, the software's version, and how to wake this
+    process's event streams (a worker inside the service's process; a no-op elsewhere)."""
+
+    sessions: sessionmaker
+    software_version: str
+    poke: Callable[[int], None] = lambda run_id: None
+    name: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
+    executing: dict[int, "RunControl"] = field(default_factory=dict)  # runs executing in this process
+
+    def publish(self, run_id: int, kind: str, data: dict[str, Any]) -> None:
+        """Append one event to the run's log (committed) and wake the streams."""
+        with self.sessions() as s:
+            publish(s, run_id, kind, data)
+            if kind == "state" and data.get("state") in (RunState.running.value, RunState.paused.value):
+                s.execute(update(Station).where(Station.run_id == run_id).values(state=data["state"]))
+            s.commit()
+        self.poke(run_id)
+
+
+def _context(job: JobContext) -> WorkerContext:
+    return job.additional_context["compasscal"]
+
+
+# -------------------------------------------------------------------------------------- a run
+
+@dataclass
+class _Finish:
+    """How a run ended."""
+
+    status: str
+    reason: str | None = None
+    fault: str | None = None  # the station's fault, if the hardware needs the operator
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+class RunControl:
+    """The operator's commands to one executing run, taken from the database in order and handed
+    to its engine (kept until the engine exists)."""
+
+    def __init__(self, ctx: WorkerContext, run_id: int) -> None:
+        self.ctx, self.run_id = ctx, run_id
+        self.engine: Engine | None = None
+        self.abort_reason: str | None = None
+        self.pending: list[RunCommand] = []
+
+    def take(self) -> None:
+        """Read the commands not yet taken and apply them."""
+        with self.ctx.sessions() as s:
+            rows = list(s.scalars(select(RunCommand).where(RunCommand.run_id == self.run_id, RunCommand.taken_at.is_(None))
+                                  .order_by(RunCommand.id)))
+            for r in rows:
+                r.taken_at = utcnow()
+            s.commit()
+        for r in rows:
+            if r.kind == "abort":
+                self.abort_reason = self.abort_reason or str(r.data.get("reason") or "aborted by the operator")
+            if self.engine is None:
+                self.pending.append(r)
+            else:
+                self.apply(r)
+
+    def apply(self, r: RunCommand) -> None:
+        assert self.engine is not None
+        if r.kind == "pause":
+            self.engine.pause()
+        elif r.kind == "resume":
+            self.engine.resume()
+        elif r.kind == "abort":
+            self.engine.abort(str(r.data.get("reason") or "aborted by the operator"))
+        elif r.kind == "answer":
+            if self.engine.answer(str(r.data["id"]), str(r.data.get("answer", ""))):
+                self.ctx.publish(self.run_id, "prompt", {"id": r.data["id"], "answered": True, "answer": r.data.get("answer", "")})
+
+    def attach(self, engine: Engine) -> None:
+        self.engine = engine
+        pending, self.pending = self.pending, []
+        for r in pending:
+            self.apply(r)
+
+    async def follow(self) -> None:
+        """Take commands until cancelled."""
+        while True:
+            try:
+                await asyncio.to_thread(self.take)
+            except Exception:  # noqa: BLE001 - the database is away for a moment: try again
+                pass
+            await asyncio.sleep(COMMAND_POLL_S)
+
+
+async def execute_run(ctx: WorkerContext, run_id: int) -> None:
+    """Run one queued run to its end: open the station, identify the units, drive the procedure's
+    engine with the samples going to the database, store each unit's calibration, free the station.
+    A run that is no longer ``queued`` (aborted before a worker took it) is left as it is."""
+    with ctx.sessions() as s:
+        run = s.get(Run, run_id)
+        if run is None or run.status != RunState.queued.value:
+            return
+        snapshot, given = dict(run.station_snapshot or {}), dict(run.serials or {})
+        proc = PROCEDURES[run.procedure]
+        params = proc.validate(run.parameters)
+        # this worker serves the station from now on (a station made since the last beat has none)
+        s.execute(update(Station).where(Station.run_id == run_id).values(heartbeat_at=utcnow(), worker=ctx.name))
+        s.commit()
+    control = RunControl(ctx, run_id)
+    ctx.executing[run_id] = control
+    follower = asyncio.create_task(control.follow())
+    table_seconds: float | None = None
+    fin = _Finish(RunState.failed.value)
+    try:
+        fin, table_seconds = await _drive(ctx, run_id, control, snapshot, proc, params, given)
+    except asyncio.CancelledError:  # the worker is going down: the engine has stopped the axes
+        fin = _Finish(RunState.aborted.value, "worker shutting down")
+    except Exception as e:  # noqa: BLE001 - a bug or closing the hardware failed: end the run, not the worker
+        fin = _Finish(RunState.failed.value, f"internal error: {_reason(e)}", fault=_reason(e))
+    finally:
+        follower.cancel()
+        await asyncio.gather(follower, return_exceptions=True)
+        ctx.executing.pop(run_id, None)
+        _finish(ctx, run_id, fin, table_seconds)
+
+
+async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot: dict[str, Any], proc: Any,
+                 params: Any, given: dict[str, str]) -> tuple[_Finish, float | None]:
+    identify_first = proc.name != BATCH  # a batch's unit is mounted only after its prompt
+    async with AsyncExitStack() as stack:
+        try:
+            station = await asyncio.wait_for(stack.enter_async_context(open_station(
+                snapshot["modbus"], snapshot["compasses"], time_scale=snapshot["time_scale"],
+                sample_rate_hz=SAMPLE_RATE_HZ, name=snapshot["name"])), OPEN_TIMEOUT_S)
+        except Exception as e:  # noqa: BLE001 - unreachable table or compass, bad URL: the station's fault
+            why = f"could not open station {snapshot['name']}: {_reason(e)}"
+            return _Finish(RunState.failed.value, why, fault=why), None
+        idents: dict[int, tuple[str, str, str]] = {}
+        if identify_first and control.abort_reason is None:
+            try:
+                ids = await asyncio.wait_for(station.fixture.identify_all(), IDENTIFY_TIMEOUT_S)
+                idents = {int(k): v for k, v in ids.items()}  # type: ignore[call-overload]
+            except Exception as e:  # noqa: BLE001 - a compass that does not answer
+                why = f"could not identify the compasses: {_reason(e)}"
+                return _Finish(RunState.failed.value, why, fault=why), None
+        serials = {slot: ident[1] for slot, ident in idents.items()}
+        serials.update({int(k): v for k, v in given.items()})
+        if idents:
+            with ctx.sessions() as s:
+                s.execute(update(Run).where(Run.id == run_id).values(serials={str(k): v for k, v in sorted(serials.items())}))
+                s.commit()
+
+        def on_event(e: Event) -> None:  # in this thread, inside the engine
+            if e.kind == "state" and e.data["state"] in FINAL:
+                return  # held back: the run ends once its calibrations are stored
+            if e.kind == "result":
+                return  # replaced by the fuller result below
+            ctx.publish(run_id, e.kind, e.data)
+
+        engine = Engine(station, proc, params, DbSink(ctx.sessions, run_id), on_event=on_event, serials=serials)
+        await asyncio.to_thread(control.take)
+        if control.abort_reason is not None:
+            return _Finish(RunState.aborted.value, control.abort_reason), None
+        control.attach(engine)
+        result = await engine.run()
+        fin = _Finish(result.state.value, result.reason)
+        if result.state is RunState.failed:
+            fin.fault = await _probe(station, result.reason)
+        elif result.state is RunState.completed and result.outcome is not None:
+            if not idents:  # learn model and firmware now the unit is mounted (best effort)
+                try:
+                    ids = await asyncio.wait_for(station.fixture.identify_all(), 3.0)
+                    idents = {int(k): v for k, v in ids.items()}  # type: ignore[call-overload]
+                except Exception:  # noqa: BLE001 - only the device row's model is missing then
+                    pass
+            try:
+                fin.summary = _store(ctx, run_id, result.outcome, serials, idents)
+            except Exception as e:  # noqa: BLE001 - the data is kept; the run says what went wrong
+                fin = _Finish(RunState.failed.value, f"storing the calibrations failed: {_reason(e)}")
+        fin.summary = {**fin.summary, "samples": result.samples}
+        return fin, result.table_seconds
+
+
+async def _probe(station: Any, reason: str | None) -> str | None:
+    """After a failed run: the station's fault, if its table needs the operator (else None)."""
+    try:
+        status = await asyncio.wait_for(station.table.status_all(), 3.0)
+    except Exception as e:  # noqa: BLE001
+        return f"{reason}; the table does not answer: {_reason(e)}"
+    faulted = [f"axis {n}: fault {s.fault_name or s.fault_code}" for n, s in status.items() if s.fault]
+    if faulted or _is_table_error(reason):
+        return reason or ", ".join(faulted)
+    return None
+
+
+def _store(ctx: WorkerContext, run_id: int, outcome: Any, serials: dict[int, str],
+           idents: dict[int, tuple[str, str, str]]) -> dict[str, Any]:
+    """Judge and keep each unit's calibration; the summary of the run's result by slot."""
+    units: dict[str, Any] = {}
+    with ctx.sessions() as s:
+        run = s.get(Run, run_id)
+        for slot, res in sorted(outcome.results.items()):
+            serial = serials.get(slot) or ""
+            entry: dict[str, Any] = {"serial": serial}
+            ident = idents.get(slot)
+            if ident and serial and ident[1] and ident[1] != serial:
+                entry["identified_serial"] = ident[1]  # the request's serial wins; say so
+            cal = res.get("calibration")
+            if isinstance(cal, PhysCalibration):
+                if not serial:
+                    entry["error"] = "the compass reported no serial number; give serials in the request"
+                else:
+                    cal.serial = serial
+                    row = store_calibration(s, run, slot, serial, json_safe(cal.to_json()),
+                                            ident[0] if ident else None, ident[2] if ident else None)
+                    entry.update(calibration_id=row.id, verdict=row.verdict, status=row.status, reasons=row.reasons,
+                                 heading_error_deg=json_safe((cal.quality or {}).get("heading_error_deg")))
+            elif "error" in res:
+                entry["error"] = str(res["error"])
+            else:
+                entry["result"] = json_safe(res)
+            units[str(slot)] = entry
+        s.commit()
+    return {"units": units, "notes": list(outcome.notes)}
+
+
+def _finish(ctx: WorkerContext, run_id: int, fin: _Finish, table_seconds: float | None) -> None:
+    """Write the run's end and free its station in one transaction, then publish it: whoever sees
+    the final state can fetch the calibrations and start the next run at once."""
+    with ctx.sessions() as s:
+        run = s.get(Run, run_id)
+        if run is None:
+            return
+        if run.status in FINAL:  # ended meanwhile (a reaper that thought this worker lost)
+            return
+        run.finished_at = utcnow()
+        if table_seconds is not None:
+            run.table_seconds = table_seconds
+        if fin.summary:
+            run.meta = {**(run.meta or {}), "result": json_safe(fin.summary)}
+        s.execute(update(Station).where(Station.run_id == run_id)
+                  .values(run_id=None, state="fault" if fin.fault else "idle", reason=fin.fault))
+        if fin.status == RunState.completed.value:
+            publish(s, run_id, "result", fin.summary)
+        publish(s, run_id, "state", {"state": fin.status, "reason": fin.reason})
+        s.commit()
+    ctx.poke(run_id)
+
+
+def run_task(job: JobContext, run_id: int) -> None:
+    """The job of one run (on its station's queue)."""
+    asyncio.run(execute_run(_context(job), run_id))
+
+
+# ---------------------------------------------------------------------------------- batches
+
+async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str, Any], operator: str) -> None:
+    """Each unit in turn on slot 0: a mount prompt, the calibration, its verdict in the summary. A
+    unit that fails does not stop the batch; a station in fault does (nothing can run on it)."""
+    with ctx.sessions() as s:
+        batch = s.get(Batch, batch_id)
+        station = s.get(Station, batch.station_id)
+        name, serials = station.name, list(batch.serials)
+    summary: dict[str, str] = {}
+    status, previous = "completed", None
+    try:
+        for serial in serials:
+            with ctx.sessions() as s:
+                row = s.scalar(select(Station).where(Station.name == name))
+                fault = row.reason if row.state == "fault" else None
+                try:
+                    run = None if fault else create_run(s, name, BATCH, {**parameters, "serial": serial, "unmount": previous},
+                                                        {"0": serial}, operator, ctx.software_version, batch_id=batch_id)
+                except DomainError as e:
+                    summary[serial] = f"not run: {e.detail}"
+                    continue
+            if fault:
+                summary[serial], status = f"not run: station in fault ({fault})", "failed"
+                continue
+            ctx.poke(run.id)
+            await execute_run(ctx, run.id)
+            with ctx.sessions() as s:
+                summary[serial] = _verdict(s.get(Run, run.id))
+            previous = f"{serial} ({summary[serial]})"
+            _save_batch(ctx, batch_id, "running", summary, final=False)
+    finally:
+        with ctx.sessions() as s:
+            s.execute(update(Station).where(Station.name == name, Station.batch_id == batch_id).values(batch_id=None))
+            s.commit()
+        _save_batch(ctx, batch_id, status, summary, final=True)
+
+
+def _verdict(run: Run) -> str:
+    """One unit's line in a batch summary: its verdict, or why it has none."""
+    if run.status != RunState.completed.value:
+        return f"{run.status}: {run.reason}"
+    unit = (((run.meta or {}).get("result") or {}).get("units") or {}).get("0") or {}
+    if "verdict" in unit:
+        return unit["verdict"]
+    return f"no calibration: {unit.get('error', 'no data from slot 0')}"
+
+
+def _save_batch(ctx: WorkerContext, batch_id: int, status: str, summary: dict[str, str], final: bool) -> None:
+    with ctx.sessions() as s:
+        batch = s.get(Batch, batch_id)
+        if batch is None:
+            return
+        batch.status, batch.summary = status, dict(summary)
+        if final:
+            batch.finished_at = utcnow()
+        s.commit()
+
+
+def batch_task(job: JobContext, batch_id: int, parameters: dict[str, Any], operator: str) -> None:
+    """The job of one batch (on its station's queue: the station's lock is held for the whole batch)."""
+    asyncio.run(execute_batch(_context(job), batch_id, parameters, operator))
+
+
+# ----------------------------------------------------------------------------------- resets
+
+async def reset_station(ctx: WorkerContext, name: str, token: str) -> None:
+    """Reset the table's axis faults (RESET_FAULT on each faulted axis); the station becomes idle when
+    none remains. The outcome goes to the station's row under ``token`` (the API waits for it)."""
+    with ctx.sessions() as s:
+        row = s.scalar(select(Station).where(Station.name == name))
+        if row is None:
+            return
+        modbus, busy = row.modbus, row.run_id
+    out: dict[str, Any] = {"token": token}
+    if busy is not None:
+        out.update(ok=False, status=409, error=f"station {name} is busy with run {busy}; abort it first")
+    else:
+        table = Turntable(modbus)
+        try:
+            async def go() -> dict[str, Any]:
+                await table.connect()
+                before = await table.status_all()
+                await table.reset_faults()
+                after = await table.status_all()
+                return {"reset_axes": [n for n, st in before.items() if st.fault],
+                        "still_faulted": {n: st.fault_name or str(st.fault_code) for n, st in after.items() if st.fault}}
+            out.update(ok=True, **await asyncio.wait_for(go(), OPEN_TIMEOUT_S))
+        except Exception as e:  # noqa: BLE001 - any driver or network failure is reported; the state stays
+            out.update(ok=False, status=503, error=f"could not reset station {name}: {_reason(e)}")
+        finally:
+            await table.close()
+    with ctx.sessions() as s:
+        values: dict[str, Any] = {"reset": out}
+        if out.get("ok"):
+            if out["still_faulted"]:
+                values.update(state="fault", reason="still faulted after reset: "
+                              + ", ".join(f"axis {n}: {f}" for n, f in out["still_faulted"].items()))
+            else:
+                values.update(state="idle", reason=None)
+        s.execute(update(Station).where(Station.name == name).values(**values))
+        s.commit()
+
+
+def reset_task(job: JobContext, station: str, token: str) -> None:
+    """The job of a station reset (on the station's queue)."""
+    asyncio.run(reset_station(_context(job), station, token))
+
+
+# ----------------------------------------------------------------------------- the processes
+
+#: The jobs, by name (queued as ``compasscal.NAME``).
+JOBS: dict[str, Callable[..., None]] = {"run": run_task, "batch": batch_task, "reset": reset_task}
+
+
+def make_app(connector: Any) -> App:
+    """A procrastinate app with compasscal's jobs (``compasscal.run``, ``.batch``, ``.reset``, ...)."""
+    app = App(connector=connector)
+    for name, fn in JOBS.items():
+        app.task(name=f"compasscal.{name}", pass_context=True)(fn)
+    return app
+
+
+def pg_connector(database_url: str) -> PsycopgConnector:
+    """procrastinate's connector for a ``postgresql://`` URL."""
+    conninfo = database_url.replace("postgresql+psycopg://", "postgresql://")
+    return PsycopgConnector(conninfo=conninfo, min_size=1, max_size=4)
+
+
+def heartbeat(ctx: WorkerContext, stations: list[str] | None) -> None:
+    """Mark the stations (None: every station) as served by this worker, now."""
+    with ctx.sessions() as s:
+        q = update(Station).values(heartbeat_at=utcnow(), worker=ctx.name)
+        if stations is not None:
+            q = q.where(Station.name.in_(stations))
+        s.execute(q)
+        s.commit()
+
+
+def recover(ctx: WorkerContext, stations: list[str] | None, queued_too: bool, reason: str) -> list[int]:
+    """End what a previous worker of these stations (None: every station) left: its running and
+    paused runs (and its queued ones when their jobs are lost with it) fail with ``reason``; their
+    stations go to fault when a run was cut off mid-way (the table may have stopped anywhere)."""
+    states = ACTIVE if queued_too else (RunState.running.value, RunState.paused.value)
+    ended = []
+    with ctx.sessions() as s:
+        q = select(Run).where(Run.status.in_(states))
+        if stations is not None:
+            q = q.where(Run.station_snapshot.is_not(None))
+        for run in s.scalars(q):
+            name = (run.station_snapshot or {}).get("name")
+            if stations is not None and name not in stations:
+                continue
+            cut = run.status != RunState.queued.value
+            run.status, run.reason, run.finished_at = RunState.failed.value, reason, utcnow()
+            st = s.scalar(select(Station).where(Station.run_id == run.id))
+            if st is not None:
+                st.run_id = None
+                if cut:
+                    st.state, st.reason = "fault", f"{reason} during run {run.id}; POST /stations/{st.name}/reset"
+                else:
+                    st.state = "idle"
+            publish(s, run.id, "state", {"state": RunState.failed.value, "reason": reason})
+            ended.append(run.id)
+        # batches whose job went with the previous process
+        bq = update(Batch).where(Batch.status.in_(("queued", "running"))).values(status="failed", finished_at=utcnow())
+        if stations is None:
+            s.execute(bq)
+            s.execute(update(Station).values(batch_id=None))
+        s.commit()
+    return ended
+
+
+async def _stop_axes(ctx: WorkerContext, stations: list[str]) -> None:
+    """A restarted worker first stops its tables (a killed one may have left an axis turning)."""
+    with ctx.sessions() as s:
+        urls = [r.modbus for r in s.scalars(select(Station).where(Station.name.in_(stations)))]
+    for url in urls:
+        table = Turntable(url)
+        try:
+            await asyncio.wait_for(table.connect(), 5.0)
+            await asyncio.wait_for(table.stop_all(), 5.0)
+        except Exception:  # noqa: BLE001 - a table that is off stops nothing; its next run will say so
+            pass
+        finally:
+            await table.close()
+
+
+async def _fail_stalled_jobs(app: App, queues: list[str] | None) -> None:
+    """Jobs left ``doing`` by a previous worker of these queues hold their station's lock: end them."""
+    for job in await app.job_manager.list_jobs_async(status="doing"):
+        if queues is None or job.queue in queues:
+            await app.job_manager.finish_job_by_id_async(job.id, status=Status.FAILED, delete_job=False)
+
+
+async def _beat(ctx: WorkerContext, stations: list[str] | None) -> None:
+    while True:
+        try:
+            await asyncio.to_thread(heartbeat, ctx, stations)
+        except Exception:  # noqa: BLE001 - the database restarted: beat again next time
+            pass
+        await asyncio.sleep(HEARTBEAT_S)
+
+
+async def serve_worker(database_url: str, stations: list[str], concurrency: int = 4) -> None:
+    """The station agent (``compasscal worker``): recover, stop the axes, then take the stations' jobs
+    until stopped. PostgreSQL only: the SQLite default runs its worker in the service."""
+    from service.db import make_engine, sessions, upgrade
+
+    engine = make_engine(database_url)
+    await asyncio.to_thread(upgrade, engine)
+    ctx = WorkerContext(sessions(engine), SOFTWARE_VERSION)
+    with ctx.sessions() as s:
+        known = set(s.scalars(select(Station.name).where(Station.name.in_(stations))))
+    missing = [n for n in stations if n not in known]
+    if missing:
+        raise Conflict(f"no station {', '.join(repr(m) for m in missing)}; create it first (PUT /stations/NAME)")
+    queues = [station_queue(n) for n in stations]
+    app = make_app(pg_connector(database_url))
+    async with app.open_async():
+        await _fail_stalled_jobs(app, queues)
+        await asyncio.to_thread(recover, ctx, stations, False, "worker lost: the station's worker stopped mid-run")
+        await _stop_axes(ctx, stations)
+        beat = asyncio.create_task(_beat(ctx, stations))
+        try:
+            await app.run_worker_async(queues=queues, concurrency=concurrency, name=ctx.name, wait=True,
+                                       additional_context={"compasscal": ctx}, fetch_job_polling_interval=1.0,
+                                       shutdown_graceful_timeout=10.0)
+        finally:
+            beat.cancel()
+            await asyncio.gather(beat, return_exceptions=True)
+    engine.dispose()
+
+
+class Jobs:
+    """The service's side of the queue: defers jobs, cancels queued ones, and (unless the stations
+    have workers of their own) runs a worker for every station in a thread of this process."""
+
+    def __init__(self, database_url: str, ctx: WorkerContext, embedded: bool) -> None:
+        self.url, self.ctx, self.embedded = database_url, ctx, embedded
+        self.pg = database_url.startswith("postgresql")
+        self.app: App | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+
+    async def start(self) -> None:
+        if self.pg:
+            self.app = make_app(pg_connector(self.url))
+            await self.app.open_async()
+            if self.embedded:
+                await self.app.job_manager.check_connection_async()
+                await _fail_stalled_jobs(self.app, None)
+        elif not self.embedded:
+            raise ValueError("SQLite keeps its job queue in memory: its worker must run in the service")
+        else:
+            self.app = make_app(InMemoryConnector())
+        if self.embedded:
+            # runs left active by a previous process: on PostgreSQL their queued jobs survive; in memory they do not
+            await asyncio.to_thread(recover, self.ctx, None, not self.pg,
+                                    "the service stopped while the run was active (worker lost)")
+            self._thread = threading.Thread(target=self._serve, name="compasscal-worker", daemon=True)
+            self._thread.start()
+            await asyncio.to_thread(self._ready.wait, 30.0)
+            if self._error is not None:
+                raise self._error
+
+    def _serve(self) -> None:
+        try:
+            asyncio.run(self._embedded())
+        except BaseException as e:  # noqa: BLE001 - reported to start()
+            self._error = e
+            self._ready.set()
+
+    async def _embedded(self) -> None:
+        self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
+        app = self.app if not self.pg else make_app(pg_connector(self.url))
+        async with app.open_async():  # in memory: opened here, so its notifications reach this loop
+            beat = asyncio.create_task(_beat(self.ctx, None))
+            worker = asyncio.create_task(app.run_worker_async(
+                queues=None, concurrency=16, name=self.ctx.name, wait=True, install_signal_handlers=False,
+                additional_context={"compasscal": self.ctx}, fetch_job_polling_interval=0.5,
+                listen_notify=True, update_heartbeat_interval=HEARTBEAT_S))
+            self._ready.set()
+            await self._stop.wait()
+            worker.cancel()
+            beat.cancel()
+            await asyncio.gather(worker, beat, return_exceptions=True)
+
+    async def defer(self, task: str, queue: str, lock: str | None = None, **kwargs: Any) -> int:
+        """Queue job ``compasscal.task``; its id."""
+        assert self.app is not None
+        return await self.app.configure_task(f"compasscal.{task}", queue=queue, lock=lock).defer_async(**kwargs)
+
+    async def cancel(self, job_id: int) -> bool:
+        """Cancel a job no worker has taken; False when one has."""
+        assert self.app is not None
+        return await self.app.job_manager.cancel_job_by_id_async(job_id)
+
+    async def stop(self, grace_s: float = 5.0) -> None:
+        """Abort the runs this process executes (axes stopped, samples kept), wait for them briefly,
+        stop the worker thread and close the queue."""
+        if self._thread is not None:
+            runs = list(self.ctx.executing)
+            if runs:
+                with self.ctx.sessions() as s:
+                    for run_id in runs:
+                        s.add(RunCommand(run_id=run_id, kind="abort", data={"reason": "service shutting down"},
+                                         created_at=utcnow()))
+                    s.commit()
+                deadline = asyncio.get_running_loop().time() + grace_s
+                while self.ctx.executing and asyncio.get_running_loop().time() < deadline:
+                    await asyncio.sleep(0.05)
+            if self._loop is not None and self._stop is not None:
+                try:
+                    self._loop.call_soon_threadsafe(self._stop.set)
+                except RuntimeError:
+                    pass
+            await asyncio.to_thread(self._thread.join, 5.0)
+        if self.pg and self.app is not None:
+            await self.app.close_async()
+
+
+__all__ = ["JOBS", "station_queue", "execute_run", "execute_batch", "reset_station", "make_app", "serve_worker",
+           "Jobs", "WorkerContext"]

@@ -1,0 +1,164 @@
+"""Stations as workers on PostgreSQL (issue 13): an API process and a station worker as separate
+processes sharing one database. kill -9 of the API mid-run: the run carries on in its worker and a
+new API process streams it on from Last-Event-ID. kill -9 of the worker mid-run: within a few
+heartbeats the run is failed, "worker lost", with its samples kept and the station in fault; a
+restarted worker stops the axes first, and the station's reset goes through it."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from conftest import fresh_database, sim_station
+from drivers.sim.config import reference_config
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(args: list[str], url: str, log: Path) -> subprocess.Popen[bytes]:
+    env = {**os.environ, "COMPASSCAL_DATABASE_URL": url}
+    with log.open("wb") as out:  # the child keeps its own copy of the descriptor
+        return subprocess.Popen([sys.executable, "-m", "service.cli", *args], cwd=ROOT, env=env,
+                                stdout=out, stderr=subprocess.STDOUT)
+
+
+class Client:
+    """HTTP to one API process, with a key per role."""
+
+    def __init__(self, port: int, keys: dict[str, str]) -> None:
+        self.base, self.keys = f"http://127.0.0.1:{port}", keys
+
+    def call(self, method: str, path: str, role: str = "admin", **kw: Any) -> httpx.Response:
+        return httpx.request(method, self.base + path, headers={"X-API-Key": self.keys[role]}, timeout=30, **kw)
+
+    def run(self, run_id: int) -> dict[str, Any]:
+        return self.call("GET", f"/runs/{run_id}", "viewer").json()
+
+    def wait(self, run_id: int, until: Any, timeout: float = 60.0) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        while True:
+            j = self.run(run_id)
+            if until(j):
+                return j
+            assert time.monotonic() < deadline, f"run {run_id}: {j['status']} ({j['reason']}) after {timeout} s"
+            time.sleep(0.1)
+
+    def events(self, run_id: int, last: int | None = None) -> list[tuple[int, str, dict[str, Any]]]:
+        headers = {"X-API-Key": self.keys["viewer"], **({"Last-Event-ID": str(last)} if last is not None else {})}
+        out, ident, kind = [], -1, ""
+        with httpx.stream("GET", f"{self.base}/runs/{run_id}/events", headers=headers, timeout=120) as r:
+            for line in r.iter_lines():
+                if line.startswith("id: "):
+                    ident = int(line[4:])
+                elif line.startswith("event: "):
+                    kind = line[7:]
+                elif line.startswith("data: "):
+                    out.append((ident, kind, json.loads(line[6:])))
+        return out
+
+
+def _api(url: str, tmp: Path, name: str) -> tuple[subprocess.Popen[bytes], int]:
+    port = _free_port()
+    proc = _start(["serve", "--port", str(port), "--no-station-worker"], url, tmp / f"{name}.log")
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
+                return proc, port
+        except httpx.HTTPError:
+            pass
+        assert proc.poll() is None, (tmp / f"{name}.log").read_text()
+        assert time.monotonic() < deadline, "the API did not start in 60 s"
+        time.sleep(0.2)
+
+
+def _kill(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+
+
+def test_runs_survive_an_api_kill_and_a_lost_worker_is_reported(tmp_path: Path):
+    url = fresh_database("postgresql", tmp_path)
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        api1, port1 = _api(url, tmp_path, "api1")
+        procs.append(api1)
+        from service.auth import create_key
+        from service.db import make_engine, sessions
+        engine = make_engine(url)
+        with sessions(engine)() as s:
+            keys = {role: create_key(s, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
+        engine.dispose()
+        c1 = Client(port1, keys)
+        with sim_station(reference_config(seed=4, time_scale=20)) as info:
+            r = c1.call("POST", "/stations", json={"name": "lab-1", "modbus": info["modbus"], "time_scale": 20,
+                                                   "compasses": [x["url"] for x in info["compasses"]]})
+            assert r.status_code == 201, r.text
+            worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker1.log")
+            procs.append(worker)
+            body = {"station": "lab-1", "procedure": "calibrate", "parameters": {"samples": 20}}
+
+            # 1. kill -9 of the API mid-run: the run carries on; a new API process streams it on
+            rid = c1.call("POST", "/runs", "operator", json=body).json()["id"]
+            j = c1.wait(rid, lambda j: j["samples_count"] > 0)
+            assert j["status"] == "running" and c1.call("GET", "/stations/lab-1", "viewer").json()["worker_alive"]
+            _kill(api1)
+            api2, port2 = _api(url, tmp_path, "api2")
+            procs.append(api2)
+            c2 = Client(port2, keys)
+            first = c2.events(rid)
+            assert first[-1][1:] == ("state", {"state": "completed", "reason": None}), first[-3:]
+            assert [i for i, _, _ in first] == sorted(i for i, _, _ in first)
+            assert c2.events(rid, last=first[-3][0]) == first[-2:]  # Last-Event-ID resumes there
+            done = c2.run(rid)
+            assert done["samples_count"] == 18 * 20 and done["result"]["units"]["0"]["verdict"] in ("PASS", "MARGINAL")
+
+            # 2. kill -9 of the worker mid-run: failed "worker lost", samples kept, station in fault
+            rid2 = c2.call("POST", "/runs", "operator", json=body).json()["id"]
+            c2.wait(rid2, lambda j: j["samples_count"] > 0)
+            t0 = time.monotonic()
+            _kill(worker)
+            lost = c2.wait(rid2, lambda j: j["status"] not in ("queued", "running", "paused"), timeout=30)
+            assert lost["status"] == "failed" and "worker lost" in lost["reason"], lost
+            assert time.monotonic() - t0 < 15  # a few heartbeats
+            assert lost["samples_count"] > 0
+            assert c2.call("GET", f"/runs/{rid2}/samples", "viewer").status_code == 200
+            st = c2.call("GET", "/stations/lab-1", "viewer").json()
+            assert st["state"] == "fault" and "worker lost" in st["fault"] and st["run_id"] is None
+            assert c2.call("POST", "/runs", "operator", json=body).status_code == 409
+
+            # a restarted worker stops the axes, then the station's reset goes through it
+            worker2 = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker2.log")
+            procs.append(worker2)
+            deadline = time.monotonic() + 30
+            while True:
+                r = c2.call("POST", "/stations/lab-1/reset", "operator")
+                if r.status_code == 200 or time.monotonic() > deadline:
+                    break
+                time.sleep(0.5)
+            assert r.status_code == 200 and r.json()["state"] == "idle", r.text
+            table = info["station"].table
+            assert all(ax.mode not in ("move", "jog") for ax in table.axes.values())  # nothing left turning
+            rid3 = c2.call("POST", "/runs", "operator", json={**body, "procedure": "rotate_z",
+                                                              "parameters": {"samples": 10, "step_deg": 90}}).json()["id"]
+            assert c2.wait(rid3, lambda j: j["status"] in ("completed", "failed", "aborted"))["status"] == "completed"
+    finally:
+        for p in procs:
+            _kill(p)

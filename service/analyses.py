@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration, json_safe
 from procedures.states import ACTIVE
-from service.api import unprocessable
+from service.runtime import invalid as unprocessable  # raised: a 422 naming the field
 from service.auth import Caller, audit, require
 from service.db import Analysis, Calibration, Device, Run, Sample
 

@@ -817,7 +817,7 @@ def serve(
     config = uvicorn.Config("service.api:app_from_env", factory=True, host=host, port=port, workers=workers)
     if workers > 1:
         from uvicorn.supervisors import Multiprocess
-        Multiprocess(config, target=uvicorn.Server(config).run, sockets=[sock]).run()
+        Multiprocess(config, sockets=[sock]).run()
     else:
         uvicorn.Server(config).run(sockets=[sock])
 

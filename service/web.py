@@ -49,7 +49,7 @@ router = APIRouter(include_in_schema=False)
 # ------------------------------------------------------------------------------------------ helpers
 
 def _software_version() -> str:
-    from service.api import SOFTWARE_VERSION  # late: service.api includes this module's router
+    from service.runtime import SOFTWARE_VERSION
     return SOFTWARE_VERSION
 
 

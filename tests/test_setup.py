@@ -61,3 +61,40 @@ def test_readme_says_how_to_get_the_command_and_choose_the_database():
     readme = (ROOT / "README.md").read_text()
     assert ".venv/bin/compasscal" in readme and "source .venv/bin/activate" in readme
     assert "make run DB=./compasscal.db" in readme
+
+
+def test_the_compose_file_is_the_production_line_topology():
+    """docker-compose.yml: PostgreSQL, the API as several processes leaving the stations to their
+    workers, one worker per simulated station; every command is one the CLI accepts. `docker compose
+    config` checks it as Docker would wherever the compose plugin is installed."""
+    import shlex
+    import shutil
+    import subprocess
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    root = Path(__file__).resolve().parent.parent
+    compose = yaml.safe_load((root / "docker-compose.yml").read_text())
+    services = compose["services"]
+    url = {s.get("environment", {}).get("COMPASSCAL_DATABASE_URL") for n, s in services.items() if n != "db" and "sim" not in n}
+    assert len(url) == 1 and next(iter(url)).startswith("postgresql://")
+    api = shlex.split(services["api"]["command"])
+    assert api[:2] == ["compasscal", "serve"] and int(api[api.index("--workers") + 1]) > 1
+    workers = {n: shlex.split(s["command"]) for n, s in services.items() if s.get("command", "").startswith("compasscal worker")}
+    sims = [n for n, s in services.items() if s.get("command", "").startswith("compasscal sim")]
+    assert len(workers) == len(sims) == 2
+    assert len({w[w.index("--station") + 1] for w in workers.values()}) == 2
+    runner = CliRunner()
+    for name, s in services.items():
+        if "command" in s:
+            args = shlex.split(s["command"])[1:]
+            r = runner.invoke(app, [args[0], "--help"])
+            assert r.exit_code == 0, (name, r.output)
+            options = {a.split("=")[0] for a in args[1:] if a.startswith("--")}
+            assert all(o in r.output for o in options), (name, options, r.output)
+    if shutil.which("docker") and subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
+        r = subprocess.run(["docker", "compose", "-f", str(root / "docker-compose.yml"), "config"], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr

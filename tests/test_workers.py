@@ -162,3 +162,61 @@ def test_runs_survive_an_api_kill_and_a_lost_worker_is_reported(tmp_path: Path):
     finally:
         for p in procs:
             _kill(p)
+
+
+def test_the_production_line_topology_two_api_processes_two_stations_two_workers(tmp_path: Path):
+    """The README's topology without Docker: PostgreSQL, `serve --workers 2`, two simulated stations
+    with a worker each; two calibrations at once while the unit's history is queried."""
+    url = fresh_database("postgresql", tmp_path)
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        port = _free_port()
+        procs.append(_start(["serve", "--port", str(port), "--workers", "2"], url, tmp_path / "api.log"))
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert procs[0].poll() is None and time.monotonic() < deadline, (tmp_path / "api.log").read_text()
+            time.sleep(0.2)
+        from service.auth import create_key
+        from service.db import make_engine, sessions
+        engine = make_engine(url)
+        with sessions(engine)() as s:
+            keys = {role: create_key(s, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
+        engine.dispose()
+        c = Client(port, keys)
+        with sim_station(reference_config(seed=5, time_scale=20)) as a, sim_station(reference_config(seed=6, time_scale=20)) as b:
+            runs = []
+            for name, info in (("line-1", a), ("line-2", b)):
+                r = c.call("PUT", f"/stations/{name}", json={"modbus": info["modbus"], "time_scale": 20,
+                                                               "compasses": [x["url"] for x in info["compasses"]]})
+                assert r.status_code == 200, r.text
+                procs.append(_start(["worker", "--station", name], url, tmp_path / f"{name}.log"))
+            for name, serial in (("line-1", "LINE1-UNIT"), ("line-2", "LINE2-UNIT")):
+                r = c.call("POST", "/runs", "operator", json={"station": name, "parameters": {"samples": 20},
+                                                              "serials": {"0": serial}})
+                assert r.status_code == 202, r.text
+                runs.append(r.json()["id"])
+            answered = 0
+            while any(c.run(r)["status"] in ("queued", "running", "paused") for r in runs):
+                for serial in ("LINE1-UNIT", "LINE2-UNIT"):  # history queries, through either API process
+                    h = c.call("GET", f"/devices/{serial}/calibrations", "viewer")
+                    assert h.status_code in (200, 404)
+                    answered += 1
+                time.sleep(0.2)
+            assert answered > 10
+            for r, serial in zip(runs, ("LINE1-UNIT", "LINE2-UNIT")):
+                j = c.run(r)
+                assert j["status"] == "completed", j["reason"]
+                assert j["result"]["units"]["0"]["verdict"] in ("PASS", "MARGINAL")
+                hist = c.call("GET", f"/devices/{serial}/calibrations", "viewer").json()
+                assert [h["run_id"] for h in hist] == [r]
+            # each station's run was driven by its own worker (the stations' rows name them)
+            stations = c.call("GET", "/stations", "viewer").json()
+            assert len({s["worker"] for s in stations}) == 2 and all(s["worker_alive"] for s in stations)
+    finally:
+        for p in procs:
+            _kill(p)

@@ -173,3 +173,18 @@ def sim_station(cfg: Any) -> Iterator[dict[str, Any]]:
     finally:
         loop.call_soon_threadsafe(stop.set)
         thread.join(10)
+
+
+def parse_sse(lines: Any) -> list[tuple[int, str, dict[str, Any]]]:
+    """Server-sent events as (id, event, data) from a stream's lines (id -1 where none was sent)."""
+    import json
+
+    events, ident, kind = [], -1, ""
+    for line in lines:
+        if line.startswith("id: "):
+            ident = int(line[4:])
+        elif line.startswith("event: "):
+            kind = line[7:]
+        elif line.startswith("data: "):
+            events.append((ident, kind, json.loads(line[6:])))
+    return events

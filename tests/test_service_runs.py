@@ -5,14 +5,13 @@ and a batch answered prompt by prompt."""
 
 from __future__ import annotations
 
-import json
 import time
 from typing import Any
 
 import pytest
 from sqlalchemy import select
 
-from conftest import Api, sim_station
+from conftest import Api, parse_sse, sim_station
 from drivers.sim.config import parse_fault, reference_config
 from physics.recording import parse_recording
 from service.db import AuditLog
@@ -48,18 +47,10 @@ def read_event_ids(api: Api, run_id: int) -> list[int]:
 
 
 def _stream(api: Api, run_id: int, last: int | None) -> list[tuple[int, str, dict[str, Any]]]:
-    events, kind, ident = [], None, -1
     headers = {"X-API-Key": api.keys["viewer"], **({"Last-Event-ID": str(last)} if last is not None else {})}
     with api.client.stream("GET", f"/runs/{run_id}/events", headers=headers) as r:
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
-        for line in r.iter_lines():
-            if line.startswith("id: "):
-                ident = int(line[4:])
-            elif line.startswith("event: "):
-                kind = line[7:]
-            elif line.startswith("data: "):
-                events.append((ident, kind, json.loads(line[6:])))
-    return events
+        return parse_sse(r.iter_lines())
 
 
 def audited(api: Api, action: str) -> list[AuditLog]:

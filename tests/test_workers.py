@@ -6,7 +6,6 @@ restarted worker stops the axes first, and the station's reset goes through it."
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -17,9 +16,8 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import pytest
 
-from conftest import fresh_database, sim_station
+from conftest import fresh_database, parse_sse, sim_station
 from drivers.sim.config import reference_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -61,16 +59,8 @@ class Client:
 
     def events(self, run_id: int, last: int | None = None) -> list[tuple[int, str, dict[str, Any]]]:
         headers = {"X-API-Key": self.keys["viewer"], **({"Last-Event-ID": str(last)} if last is not None else {})}
-        out, ident, kind = [], -1, ""
         with httpx.stream("GET", f"{self.base}/runs/{run_id}/events", headers=headers, timeout=120) as r:
-            for line in r.iter_lines():
-                if line.startswith("id: "):
-                    ident = int(line[4:])
-                elif line.startswith("event: "):
-                    kind = line[7:]
-                elif line.startswith("data: "):
-                    out.append((ident, kind, json.loads(line[6:])))
-        return out
+            return parse_sse(r.iter_lines())
 
 
 def _api(url: str, tmp: Path, name: str) -> tuple[subprocess.Popen[bytes], int]:

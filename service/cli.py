@@ -824,10 +824,13 @@ def serve(
 
 @app.command(cls=_Command)
 def worker(
-    station: list[str] = typer.Option(..., "--station", help="The station this worker drives (repeat for several)."),
+    station: list[str] = typer.Option([], "--station", help="The station this worker drives (repeat for several)."),
+    analyses: bool = typer.Option(True, "--analyses/--no-analyses",
+                                  help="Also compute discrepancy analyses (--no-analyses keeps the PC for its table)."),
 ) -> None:
     """The station agent: owns the station's table and compasses, takes its runs from the job queue
-    (PostgreSQL), publishes their events; first stops the axes and ends what a previous worker left."""
+    (PostgreSQL), publishes their events; first stops the axes and ends what a previous worker left.
+    Without --station, a worker of analyses only."""
     import asyncio
 
     from service.db import default_url
@@ -839,10 +842,13 @@ def worker(
     if not url.startswith("postgresql"):
         _fail(f"database {database}: a station worker needs PostgreSQL (COMPASSCAL_DATABASE_URL=postgresql://...); "
               "on the SQLite default `compasscal serve` drives the stations itself")
-    console.print(f"database: {database}; worker of station(s) {', '.join(station)}", soft_wrap=True, markup=False,
-                  highlight=False)
+    if not station and not analyses:
+        _fail("--station: give a station to drive, or leave --analyses on (a worker with nothing to do)")
+    what = [f"station(s) {', '.join(station)}"] if station else []
+    console.print(f"database: {database}; worker of {' and '.join(what + (['analyses'] if analyses else []))}",
+                  soft_wrap=True, markup=False, highlight=False)
     try:
-        asyncio.run(serve_worker(url, list(station)))
+        asyncio.run(serve_worker(url, list(station), analyses=analyses))
     except DomainError as e:
         _fail(f"--station: {e.detail}")
     except KeyboardInterrupt:

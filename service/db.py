@@ -193,13 +193,22 @@ class Calibration(Base):
 
 
 class Analysis(Base):
-    """A discrepancy report on a run (the discrepancy engine's output)."""
+    """A discrepancy analysis of one unit (slot) of a run: a job (``queued``, ``running``, then
+    ``completed`` with the analyser's result in ``report``, or ``failed`` with the reason)."""
 
     __tablename__ = "analyses"
     id: Mapped[int] = mapped_column(primary_key=True)
-    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"), index=True)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
-    report: Mapped[dict[str, Any]] = mapped_column(JSON)
+    report: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    status: Mapped[str] = mapped_column(String(16), default="completed")
+    slot: Mapped[int | None] = mapped_column(Integer)
+    request: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # null_sims, calibration_id, operator
+    progress: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # {"stage": ..., "percent": ...}
+    reason: Mapped[str | None] = mapped_column(Text)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+    version: Mapped[int] = mapped_column(Integer, default=0)  # bumped at each change: the stream's event id
 
 
 class ApiKey(Base):

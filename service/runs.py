@@ -25,7 +25,6 @@ from __future__ import annotations
 import asyncio
 import json
 import uuid
-from collections.abc import AsyncIterator
 from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
@@ -40,16 +39,12 @@ from procedures.calibrate import BATCH, BatchCalibrateParams
 from procedures.states import ACTIVE, OPERATOR_TRANSITIONS as TRANSITIONS, RunState
 from service.auth import Caller, audit, require
 from service.db import Batch, Calibration, Device, Run, Station
+from service.deps import event_stream
 from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, Conflict, Invalid, NotFound, Unavailable, batch_json,
                              create_run, events_after, field_errors, finish_unstarted, invalid, queue_answer,
                              request_state, run_json, station_json, wait_for)
 from service.store import load_recording
 from service.worker import station_queue
-
-#: Seconds between SSE keep-alive comments (proxies close idle streams).
-KEEPALIVE_S = 15.0
-#: Seconds between two reads of a run's event log while streaming (notifications wake it sooner).
-POLL_S = 1.0
 
 router = APIRouter()
 
@@ -307,10 +302,6 @@ async def put_run_state(run_id: int, body: StateIn, request: Request,
     return {**out, "requested": body.state, "action": what}
 
 
-def _sse(index: int, kind: str, data: dict[str, Any]) -> str:
-    return f"id: {index}\nevent: {kind}\ndata: {json.dumps(data, default=str)}\n\n"
-
-
 @router.get("/runs/{run_id}/events", tags=["runs"])
 async def run_events(run_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> StreamingResponse:
     """Server-sent events (state, step, progress, samples, prompt, result): the run's history from
@@ -318,40 +309,13 @@ async def run_events(run_id: int, request: Request, _: Caller = Depends(require(
     ``Last-Event-ID`` header resumes after that event (ids increase; any API process understands them)."""
     with _sessions(request)() as s:
         _get_run(s, run_id)
-    last = request.headers.get("last-event-id", "")
-    start = int(last) if last.isdigit() else 0
-    notifier = request.app.state.notifier
 
     def read(after: int) -> tuple[list[tuple[int, str, dict[str, Any]]], bool]:
         with _sessions(request)() as s:
             rows = [(e.id, e.kind, e.data) for e in events_after(s, run_id, after)]
             status = s.scalar(select(Run.status).where(Run.id == run_id))
         return rows, status not in ACTIVE
-
-    async def stream() -> AsyncIterator[str]:
-        after, quiet = start, 0.0
-        while True:
-            rows, over = await asyncio.to_thread(read, after)
-            for i, kind, data in rows:
-                yield _sse(i, kind, data)
-                after = i
-                if kind == "state" and data.get("state") not in ACTIVE:
-                    return
-            if over and not rows:
-                return
-            if rows:
-                quiet = 0.0
-                continue
-            if quiet >= KEEPALIVE_S:
-                quiet = 0.0
-                yield ": keep-alive\n\n"
-            t0 = asyncio.get_running_loop().time()
-            await notifier.wait(run_id, POLL_S)
-            quiet += asyncio.get_running_loop().time() - t0
-    return StreamingResponse(stream(), media_type="text/event-stream", headers=_SSE_HEADERS)
-
-
-_SSE_HEADERS = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+    return event_stream(request, run_id, read)
 
 
 @router.get("/runs/{run_id}/samples", tags=["runs"])

@@ -48,6 +48,8 @@ HEARTBEAT_S = 2.0
 LOST_AFTER_S = 4 * HEARTBEAT_S
 #: The PostgreSQL channel a worker notifies after each event it commits (payload: the run id).
 CHANNEL = "compasscal_events"
+#: The statuses of an analysis that has ended.
+ANALYSIS_FINAL = ("completed", "failed")
 #: Seconds an API call waits for a worker to act on a command it must confirm (a reset, an answer).
 CONFIRM_S = 20.0
 
@@ -119,8 +121,7 @@ def publish(session: Session, run_id: int, kind: str, data: dict[str, Any]) -> N
             if data["state"] in FINAL:
                 run.prompts = {}
                 run.reason = data.get("reason")
-    if session.get_bind().dialect.name == "postgresql":
-        session.execute(text("SELECT pg_notify(:channel, :run)"), {"channel": CHANNEL, "run": str(run_id)})
+    notify(session, run_id)
 
 
 def events_after(session: Session, run_id: int, after: int, limit: int = 500) -> list[RunEvent]:
@@ -129,14 +130,26 @@ def events_after(session: Session, run_id: int, after: int, limit: int = 500) ->
                                 .order_by(RunEvent.id).limit(limit)))
 
 
+def analysis_topic(analysis_id: int) -> str:
+    """What an analysis's changes are notified as (a run's are its id)."""
+    return f"analysis:{analysis_id}"
+
+
+def notify(session: Session, topic: int | str) -> None:
+    """On PostgreSQL, notify every listening API process of ``topic`` when the session commits."""
+    if session.get_bind().dialect.name == "postgresql":
+        session.execute(text("SELECT pg_notify(:channel, :topic)"), {"channel": CHANNEL, "topic": str(topic)})
+
+
 class Notifier:
     """Wakes the API's event streams when a worker publishes: PostgreSQL's LISTEN on one connection
-    per API process, or :meth:`poke` from a worker in this process. Streams also re-read the log
-    every second, so a lost notification delays an event, never loses it."""
+    per API process, or :meth:`poke` from a worker in this process. A topic is a run's id or
+    :func:`analysis_topic`. Streams also re-read the database every second, so a lost notification
+    delays an event, never loses it."""
 
     def __init__(self, database_url: str | None) -> None:
         self.url = database_url if database_url and database_url.startswith("postgresql") else None
-        self._waiters: dict[int, asyncio.Event] = {}
+        self._waiters: dict[str, asyncio.Event] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
 
@@ -159,33 +172,32 @@ class Notifier:
                 async with await psycopg.AsyncConnection.connect(conninfo, autocommit=True) as conn:
                     await conn.execute(f"LISTEN {CHANNEL}")
                     async for n in conn.notifies():
-                        if n.payload.isdigit():
-                            self._wake(int(n.payload))
+                        self._wake(n.payload)
             except asyncio.CancelledError:
                 raise
             except Exception:  # noqa: BLE001 - the database restarted: listen again (streams poll meanwhile)
                 await asyncio.sleep(1.0)
 
-    def _wake(self, run_id: int) -> None:
-        ev = self._waiters.pop(run_id, None)
+    def _wake(self, topic: str) -> None:
+        ev = self._waiters.pop(topic, None)
         if ev is not None:
             ev.set()
 
-    def poke(self, run_id: int) -> None:
-        """Wake the streams of ``run_id`` (thread-safe; a worker in this process calls it)."""
+    def poke(self, topic: int | str) -> None:
+        """Wake the streams of ``topic`` (thread-safe; a worker in this process calls it)."""
         if self._loop is None or self._loop.is_closed():
             return
         if threading.get_ident() == getattr(self._loop, "_thread_id", None):
-            self._wake(run_id)
+            self._wake(str(topic))
         else:
             try:
-                self._loop.call_soon_threadsafe(self._wake, run_id)
+                self._loop.call_soon_threadsafe(self._wake, str(topic))
             except RuntimeError:  # the loop has closed
                 pass
 
-    async def wait(self, run_id: int, timeout: float) -> None:
-        """Until the run publishes or ``timeout`` passes."""
-        ev = self._waiters.setdefault(run_id, asyncio.Event())
+    async def wait(self, topic: int | str, timeout: float) -> None:
+        """Until ``topic`` (a run's id, an analysis's topic) publishes or ``timeout`` passes."""
+        ev = self._waiters.setdefault(str(topic), asyncio.Event())
         try:
             await asyncio.wait_for(ev.wait(), timeout)
         except asyncio.TimeoutError:
@@ -406,5 +418,5 @@ async def wait_for(check: Any, timeout: float, every: float = 0.1) -> Waited:
 
 
 __all__ = ["DomainError", "NotFound", "Conflict", "Invalid", "Unavailable", "field_errors", "invalid", "publish",
-           "events_after", "Notifier", "station_json", "run_json", "batch_json", "create_run", "request_state",
+           "events_after", "notify", "analysis_topic", "Notifier", "station_json", "run_json", "batch_json", "create_run", "request_state",
            "finish_unstarted", "queue_answer", "reap_lost_workers", "worker_alive", "wait_for"]

@@ -22,11 +22,14 @@ import asyncio
 import os
 import socket
 import threading
+import time
 from collections.abc import Callable
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
+from datetime import timedelta
 from typing import Any
 
+import numpy as np
 from procrastinate import App, JobContext, PsycopgConnector
 from procrastinate.jobs import Status
 from procrastinate.testing import InMemoryConnector
@@ -39,8 +42,9 @@ from physics.calibration import Calibration as PhysCalibration, json_safe
 from procedures.calibrate import BATCH, PROCEDURES
 from procedures.engine import Engine, Event, open_station
 from procedures.states import ACTIVE, FINAL, RunState
-from service.db import Batch, Run, RunCommand, Station, utcnow
-from service.runtime import HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError, create_run, publish
+from service.db import Analysis, Batch, Calibration, Run, RunCommand, Station, utcnow
+from service.runtime import (ANALYSIS_FINAL, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError,
+                             analysis_topic, create_run, notify, publish)
 from service.store import DbSink, store_calibration
 
 #: Wall seconds allowed to connect a station's table and fixture, and to identify the compasses.
@@ -48,6 +52,10 @@ OPEN_TIMEOUT_S = 15.0
 IDENTIFY_TIMEOUT_S = 10.0
 #: Seconds between two looks at a run's commands.
 COMMAND_POLL_S = 0.1
+#: Seconds without a heartbeat of procrastinate's worker after which its analysis job is retried.
+STALLED_S = 30.0
+#: Seconds after its request an analysis without a job is taken as lost (and queued again).
+REQUEUE_AFTER_S = 10.0
 
 def station_queue(name: str) -> str:
     """The queue (and the lock) of a station's jobs."""
@@ -383,6 +391,122 @@ def batch_task(job: JobContext, batch_id: int, parameters: dict[str, Any], opera
     asyncio.run(execute_batch(_context(job), batch_id, parameters, operator))
 
 
+# --------------------------------------------------------------------------------- analyses
+
+#: The queue of discrepancy analyses: any worker that takes it computes them (no station needed).
+ANALYSIS_QUEUE = "analyses"
+#: Analyses computed at the same time in one process (each holds most of a core), and seconds
+#: between two progress writes of one analysis.
+ANALYSES_AT_ONCE = 2
+PROGRESS_EVERY_S = 0.5
+_analysis_slots = threading.BoundedSemaphore(ANALYSES_AT_ONCE)
+
+
+def _analysis_update(ctx: WorkerContext, analysis_id: int, **values: Any) -> None:
+    """Change an analysis's row, bump its version (its stream's event id) and notify its streams."""
+    with ctx.sessions() as s:
+        row = s.get(Analysis, analysis_id)
+        if row is None:
+            return
+        for k, v in values.items():
+            setattr(row, k, v)
+        row.version = (row.version or 0) + 1
+        notify(s, analysis_topic(analysis_id))
+        s.commit()
+    ctx.poke(analysis_topic(analysis_id))
+
+
+def execute_analysis(ctx: WorkerContext, analysis_id: int) -> None:
+    """Compute one analysis (a unit of an ended run against its nominal calibration) and store its
+    result, reporting progress on the row; ``failed`` with the reason when the recording cannot
+    support it. An analysis already ended is left as it is (a job retried after a lost worker)."""
+    from physics.discrepancy import analyze
+    from service.store import load_recording
+
+    with _analysis_slots:
+        with ctx.sessions() as s:
+            row = s.get(Analysis, analysis_id)
+            if row is None or row.status in ANALYSIS_FINAL:
+                return
+            run_id, slot, req = row.run_id, int(row.slot or 0), dict(row.request or {})
+            run = s.get(Run, run_id)
+            rec = load_recording(s, run, slot) if run is not None else None
+            cal_id = req.get("calibration_id")
+            cal = s.get(Calibration, cal_id) if cal_id is not None else None
+            cal_json = cal.data if cal is not None else None
+        if rec is None:
+            _analysis_update(ctx, analysis_id, status="failed", finished_at=utcnow(),
+                             reason=f"run {run_id} has no samples from slot {slot}")
+            return
+        _analysis_update(ctx, analysis_id, status="running", started_at=utcnow(), progress={"stage": "start", "percent": 0.0})
+        last = [0.0, ""]
+
+        def progress(stage: str, frac: float) -> None:  # from inside the analyser: a write at most twice a second
+            now = time.monotonic()
+            if stage != last[1] or now - last[0] >= PROGRESS_EVERY_S:
+                last[:] = [now, stage]
+                _analysis_update(ctx, analysis_id, progress={"stage": stage, "percent": round(100.0 * frac, 1)})
+
+        seed = [run_id, slot]  # the same run analysed twice gets the same null simulations, so the same p-values
+        null_sims = int(req.get("null_sims", 200))
+        try:
+            nominal = PhysCalibration.from_json(cal_json) if cal_json is not None else None
+        except (ValueError, TypeError, KeyError) as e:
+            _analysis_update(ctx, analysis_id, status="failed", finished_at=utcnow(),
+                             reason=f"calibration {cal_id} cannot be read: {e}")
+            return
+        try:
+            a = analyze(rec, nominal, null_sims=null_sims, rng=np.random.default_rng(seed), progress=progress)
+            report = json_safe({**a.to_json(), "run_id": run_id, "slot": slot, "serial": rec.serial or "",
+                                "null_sims": null_sims, "seed": seed, "calibration_id": cal_id})
+        except ValueError as e:  # the recording cannot support the analysis: say why
+            _analysis_update(ctx, analysis_id, status="failed", finished_at=utcnow(),
+                             reason=f"run {run_id} slot {slot} cannot be analysed: {e}")
+            return
+        except Exception as e:  # noqa: BLE001 - a bug: the analysis says so, the worker carries on
+            _analysis_update(ctx, analysis_id, status="failed", finished_at=utcnow(), reason=f"internal error: {_reason(e)}")
+            return
+        _analysis_update(ctx, analysis_id, status="completed", finished_at=utcnow(), report=report,
+                         progress={"stage": "done", "percent": 100.0})
+
+
+def analysis_task(job: JobContext, analysis_id: int) -> None:
+    """The job of one analysis (on the analyses queue)."""
+    execute_analysis(_context(job), analysis_id)
+
+
+async def _requeue_analyses(app: App, ctx: WorkerContext, pg: bool) -> None:
+    """Analyses whose job went with a process: on PostgreSQL the jobs of procrastinate workers that
+    stopped beating are retried; then every analysis not ended that has no job waiting or running
+    (its process stopped between writing the row and queueing the job, or the queue was in memory)
+    is queued again. Rows younger than :data:`REQUEUE_AFTER_S` are left to the request still queueing them."""
+    alive: set[int] = set()
+    if pg:
+        for job in await app.job_manager.get_stalled_jobs(queue=ANALYSIS_QUEUE, seconds_since_heartbeat=STALLED_S):
+            await app.job_manager.retry_job(job)
+        for job in await app.job_manager.list_jobs_async(queue=ANALYSIS_QUEUE, status="todo"):
+            alive.add(int(job.task_kwargs.get("analysis_id", 0)))
+        for job in await app.job_manager.list_jobs_async(queue=ANALYSIS_QUEUE, status="doing"):
+            alive.add(int(job.task_kwargs.get("analysis_id", 0)))
+    q = select(Analysis.id).where(Analysis.status.in_(("queued", "running")))
+    if pg:  # (in memory, this process is the only one: nothing is on its way)
+        q = q.where(Analysis.created_at < utcnow() - timedelta(seconds=REQUEUE_AFTER_S))
+    with ctx.sessions() as s:
+        ids = list(s.scalars(q))
+    for analysis_id in ids:
+        if analysis_id not in alive:
+            await app.configure_task("compasscal.analysis", queue=ANALYSIS_QUEUE).defer_async(analysis_id=analysis_id)
+
+
+async def _watch_analyses(app: App, ctx: WorkerContext) -> None:
+    while True:
+        await asyncio.sleep(STALLED_S / 2)
+        try:
+            await _requeue_analyses(app, ctx, True)
+        except Exception:  # noqa: BLE001 - the database is away for a moment
+            pass
+
+
 # ----------------------------------------------------------------------------------- resets
 
 async def reset_station(ctx: WorkerContext, name: str, token: str) -> None:
@@ -431,7 +555,8 @@ def reset_task(job: JobContext, station: str, token: str) -> None:
 # ----------------------------------------------------------------------------- the processes
 
 #: The jobs, by name (queued as ``compasscal.NAME``).
-JOBS: dict[str, Callable[..., None]] = {"run": run_task, "batch": batch_task, "reset": reset_task}
+JOBS: dict[str, Callable[..., None]] = {"run": run_task, "batch": batch_task, "reset": reset_task,
+                                        "analysis": analysis_task}
 
 
 def make_app(connector: Any) -> App:
@@ -508,9 +633,10 @@ async def _stop_axes(ctx: WorkerContext, stations: list[str]) -> None:
 
 
 async def _fail_stalled_jobs(app: App, queues: list[str] | None) -> None:
-    """Jobs left ``doing`` by a previous worker of these queues hold their station's lock: end them."""
+    """Jobs left ``doing`` by a previous worker of these stations' queues hold their station's lock:
+    end them. (The analyses' queue is shared by every worker: its stalled jobs are retried instead.)"""
     for job in await app.job_manager.list_jobs_async(status="doing"):
-        if queues is None or job.queue in queues:
+        if job.queue != ANALYSIS_QUEUE and (queues is None or job.queue in queues):
             await app.job_manager.finish_job_by_id_async(job.id, status=Status.FAILED, delete_job=False)
 
 
@@ -523,9 +649,10 @@ async def _beat(ctx: WorkerContext, stations: list[str] | None) -> None:
         await asyncio.sleep(HEARTBEAT_S)
 
 
-async def serve_worker(database_url: str, stations: list[str], concurrency: int = 4) -> None:
+async def serve_worker(database_url: str, stations: list[str], analyses: bool = True, concurrency: int = 4) -> None:
     """The station agent (``compasscal worker``): recover, stop the axes, then take the stations' jobs
-    until stopped. PostgreSQL only: the SQLite default runs its worker in the service."""
+    (and, with ``analyses``, the analyses' queue) until stopped. PostgreSQL only: the SQLite default
+    runs its worker in the service."""
     from service.db import make_engine, sessions, upgrade
 
     engine = make_engine(database_url)
@@ -542,14 +669,19 @@ async def serve_worker(database_url: str, stations: list[str], concurrency: int 
         await _fail_stalled_jobs(app, queues)
         await asyncio.to_thread(recover, ctx, stations, False, "worker lost: the station's worker stopped mid-run")
         await _stop_axes(ctx, stations)
-        beat = asyncio.create_task(_beat(ctx, stations))
+        tasks = [asyncio.create_task(_beat(ctx, stations))]
+        if analyses:
+            queues.append(ANALYSIS_QUEUE)
+            await _requeue_analyses(app, ctx, True)
+            tasks.append(asyncio.create_task(_watch_analyses(app, ctx)))
         try:
             await app.run_worker_async(queues=queues, concurrency=concurrency, name=ctx.name, wait=True,
                                        additional_context={"compasscal": ctx}, fetch_job_polling_interval=1.0,
-                                       shutdown_graceful_timeout=10.0)
+                                       update_heartbeat_interval=HEARTBEAT_S, shutdown_graceful_timeout=10.0)
         finally:
-            beat.cancel()
-            await asyncio.gather(beat, return_exceptions=True)
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
     engine.dispose()
 
 
@@ -599,7 +731,10 @@ class Jobs:
         self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
         app = self.app if not self.pg else make_app(pg_connector(self.url))
         async with app.open_async():  # in memory: opened here, so its notifications reach this loop
-            beat = asyncio.create_task(_beat(self.ctx, None))
+            await _requeue_analyses(app, self.ctx, self.pg)
+            tasks = [asyncio.create_task(_beat(self.ctx, None))]
+            if self.pg:
+                tasks.append(asyncio.create_task(_watch_analyses(app, self.ctx)))
             worker = asyncio.create_task(app.run_worker_async(
                 queues=None, concurrency=16, name=self.ctx.name, wait=True, install_signal_handlers=False,
                 additional_context={"compasscal": self.ctx}, fetch_job_polling_interval=0.5,
@@ -607,8 +742,9 @@ class Jobs:
             self._ready.set()
             await self._stop.wait()
             worker.cancel()
-            beat.cancel()
-            await asyncio.gather(worker, beat, return_exceptions=True)
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(worker, *tasks, return_exceptions=True)
 
     async def defer(self, task: str, queue: str, lock: str | None = None, **kwargs: Any) -> int:
         """Queue job ``compasscal.task``; its id."""
@@ -644,5 +780,5 @@ class Jobs:
             await self.app.close_async()
 
 
-__all__ = ["JOBS", "station_queue", "execute_run", "execute_batch", "reset_station", "make_app", "serve_worker",
-           "Jobs", "WorkerContext"]
+__all__ = ["JOBS", "ANALYSIS_QUEUE", "station_queue", "execute_run", "execute_batch", "execute_analysis", "reset_station",
+           "make_app", "serve_worker", "Jobs", "WorkerContext"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import re
 import sys
+import time
 import types
 from dataclasses import dataclass
 from pathlib import Path
@@ -354,6 +355,28 @@ def upload(api: Any, serial: str = "SN-AN", seed: int = 1) -> int:
     return r.json()["id"]
 
 
+def analysed(api: Any, run_id: int, timeout: float = 120.0, **kw: Any) -> list[dict[str, Any]]:
+    """POST an analysis of the run: it answers 202 at once with the analyses queued; each is then
+    polled at its url until it has ended. The ended analyses."""
+    r = api.post(f"/runs/{run_id}/analysis", role="operator", **kw)
+    assert r.status_code == 202, r.text
+    queued = r.json()["analyses"]
+    assert queued and r.json()["run_id"] == run_id and r.headers["location"] == f"/analyses/{queued[0]['id']}"
+    for a in queued:
+        assert a["status"] in ("queued", "running", "completed") and a["url"] == f"/analyses/{a['id']}"
+    done = []
+    for a in queued:
+        deadline = time.monotonic() + timeout
+        while True:
+            got = api.get(a["url"], role="viewer").json()
+            if got["status"] in ("completed", "failed"):
+                break
+            assert time.monotonic() < deadline, got
+            time.sleep(0.05)
+        done.append(got)
+    return done
+
+
 def audited(api: Any, action: str) -> list[AuditLog]:
     with api.client.app.state.sessions() as s:
         return list(s.scalars(select(AuditLog).where(AuditLog.action == action)))
@@ -368,11 +391,8 @@ def test_api_analysis_is_stored_and_read_back(api):
     r = api.post("/recordings", role="operator", content=format_recording(rec).encode())
     assert r.status_code == 201, r.text
     run_id = r.json()["id"]
-    r = api.post(f"/runs/{run_id}/analysis", role="operator", json={"null_sims": 20})
-    assert r.status_code == 201, r.text
-    body = r.json()
-    assert body["run_id"] == run_id and len(body["analyses"]) == 1
-    created = body["analyses"][0]
+    [created] = analysed(api, run_id, json={"null_sims": 20})
+    assert created["status"] == "completed" and created["report_url"] == f"/analyses/{created['id']}/report"
     assert created["slot"] == 0 and created["serial"] == "SN-AN" and created["verdict"] == "discrepancy"
     assert created["null_sims"] == 20 and created["calibration_id"] is None
     assert "stage_hard_iron" in named(created), created["findings"]
@@ -400,9 +420,7 @@ def test_api_analysis_is_stored_and_read_back(api):
 def test_api_analysis_of_an_uploaded_recording_without_table_angles(api):
     text = format_recording(without_angles(simulated("SN-HAND")))
     run_id = api.post("/recordings", role="operator", content=text.encode()).json()["id"]
-    r = api.post(f"/runs/{run_id}/analysis", role="operator", json={"null_sims": 10})
-    assert r.status_code == 201, r.text
-    created = r.json()["analyses"][0]
+    [created] = analysed(api, run_id, json={"null_sims": 10})
     assert created["model"] == "attitude_free" and created["serial"] == "SN-HAND"
     assert api.get(f"/analyses/{created['id']}", role="viewer").json() == created
     page = api.get(f"/analyses/{created['id']}/report", role="viewer")
@@ -420,21 +438,20 @@ def test_api_analysis_uses_the_run_calibration_or_the_one_asked(api, fake):
         s.commit()
         ids = cal.id, other.id
     # no body at all: every slot, the run's own (newest) calibration of the unit
-    r = api.post(f"/runs/{run_id}/analysis", role="operator")
-    assert r.status_code == 201, r.text
-    assert r.json()["analyses"][0]["calibration_id"] == ids[1] and fake.calls[-1]["calibration"].method == "ellipsoid"
-    r = api.post(f"/runs/{run_id}/analysis", role="operator", json={"slot": 0, "calibration_id": ids[0]})
-    assert r.status_code == 201 and r.json()["analyses"][0]["calibration_id"] == ids[0]
+    [a] = analysed(api, run_id)
+    assert a["calibration_id"] == ids[1] and fake.calls[-1]["calibration"].method == "ellipsoid"
+    [a] = analysed(api, run_id, json={"slot": 0, "calibration_id": ids[0]})
+    assert a["calibration_id"] == ids[0]
     assert fake.calls[-1]["calibration"].method == "joint"
     assert len(api.get(f"/runs/{run_id}/analyses", role="viewer").json()) == 2
     # a later run of the unit without a calibration of its own: the unit's current calibration
     later = upload(api, "SN-CAL", seed=7)
     current = api.get("/devices/SN-CAL/calibrations/current", role="viewer").json()["id"]
-    r = api.post(f"/runs/{later}/analysis", role="operator")
-    assert r.status_code == 201 and r.json()["analyses"][0]["calibration_id"] == current
+    [a] = analysed(api, later)
+    assert a["calibration_id"] == current
     # a unit never calibrated: none (the analyser's own fit is the nominal model)
-    r = api.post(f"/runs/{upload(api, 'SN-NEW')}/analysis", role="operator")
-    assert r.status_code == 201 and r.json()["analyses"][0]["calibration_id"] is None
+    [a] = analysed(api, upload(api, 'SN-NEW'))
+    assert a["calibration_id"] is None
     assert fake.calls[-1]["calibration"] is None
 
 
@@ -468,3 +485,108 @@ def test_api_analysis_roles_and_errors(api, fake):
     r = api.post(f"/runs/{active_id}/analysis", role="operator")
     assert r.status_code == 409 and "running" in r.json()["detail"]
     assert not fake.calls and not audited(api, "analysis.create")
+
+
+@pytest.fixture
+def gated(fake: Any, monkeypatch: pytest.MonkeyPatch) -> Any:
+    """The fake analyser, held after its first progress report until ``gated.open.set()``."""
+    import threading
+
+    import physics.discrepancy as mod
+
+    gate = threading.Event()
+
+    def held(rec: Recording, calibration: Any = None, **kw: Any) -> FakeAnalysis:
+        if kw.get("progress"):
+            kw["progress"]("compare", 0.25)
+        assert gate.wait(60), "the test never opened the gate"
+        return fake_analyze(rec, calibration, **kw)
+    monkeypatch.setattr(mod, "analyze", held)
+    held.open = gate  # type: ignore[attr-defined]
+    return held
+
+
+def test_api_analysis_answers_at_once_and_its_progress_is_pollable_and_streamable(api, gated):
+    """POST answers 202 before the analysis has ended; the analysis is pollable (running, with its
+    stage) and streamable (a state event per change, Last-Event-ID resumes); its report is 409
+    until it has completed; then every view agrees."""
+    from conftest import parse_sse
+
+    run_id = upload(api, "SN-JOB")
+    t0 = time.monotonic()
+    r = api.post(f"/runs/{run_id}/analysis", role="operator", json={"null_sims": 5})
+    assert r.status_code == 202 and time.monotonic() - t0 < 5.0, r.text
+    [queued] = r.json()["analyses"]
+    assert queued["status"] in ("queued", "running") and queued["serial"] == "SN-JOB" and queued["null_sims"] == 5
+    assert queued["report_url"] is None and "verdict" not in queued
+    deadline = time.monotonic() + 30
+    while (got := api.get(queued["url"], role="viewer").json())["status"] != "running" or not got["progress"] \
+            or got["progress"]["stage"] != "compare":
+        assert time.monotonic() < deadline, got
+        time.sleep(0.02)
+    assert got["progress"]["percent"] == 25.0 and got["started_at"] is not None and got["finished_at"] is None
+    r = api.get(f"/analyses/{queued['id']}/report", role="viewer")
+    assert r.status_code == 409 and "running" in r.json()["detail"]
+    [line] = api.get(f"/runs/{run_id}/analyses", role="viewer").json()
+    assert line["status"] == "running" and line["verdict"] is None and line["report_url"] is None
+    gated.open.set()
+    with api.client.stream("GET", queued["events_url"], headers={"X-API-Key": api.keys["viewer"]}) as s:
+        assert s.status_code == 200 and s.headers["content-type"].startswith("text/event-stream")
+        events = parse_sse(s.iter_lines())
+    states = [d["status"] for _, kind, d in events if kind == "state"]
+    assert states[-1] == "completed" and events[-1][2]["verdict"] == "discrepancy"
+    ids = [i for i, _, _ in events]
+    assert ids == sorted(ids) and len(set(ids)) == len(ids)
+    done = api.get(queued["url"], role="viewer").json()
+    assert done["status"] == "completed" and done["verdict"] == "discrepancy" and done["progress"]["percent"] == 100.0
+    # Last-Event-ID: only what came after
+    with api.client.stream("GET", queued["events_url"], headers={"X-API-Key": api.keys["viewer"],
+                                                                 "Last-Event-ID": str(ids[-1] - 1)}) as s:
+        again = parse_sse(s.iter_lines())
+    assert [i for i, _, _ in again] == [ids[-1]]
+    assert api.get(f"/analyses/{queued['id']}/report", role="viewer").status_code == 200
+
+
+def test_api_analysis_of_a_recording_that_cannot_support_it_fails_saying_why(api, fake, monkeypatch):
+    import physics.discrepancy as mod
+
+    def refuse(rec: Recording, calibration: Any = None, **kw: Any) -> Any:
+        raise ValueError("no static hold of 2 s or more")
+    monkeypatch.setattr(mod, "analyze", refuse)
+    run_id = upload(api, "SN-SHORT")
+    [a] = analysed(api, run_id)
+    assert a["status"] == "failed" and "cannot be analysed: no static hold" in a["reason"] and a["finished_at"]
+    assert api.get(f"/analyses/{a['id']}/report", role="viewer").status_code == 409
+
+
+def test_an_analysis_whose_job_was_lost_is_computed_when_the_service_starts_again(db_url, fake):
+    """The service stopped between storing an analysis request and computing it (on SQLite its queue
+    is in memory; on PostgreSQL its job was never queued): the next start queues it again."""
+    from datetime import timedelta
+
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.auth import create_key
+    from service.db import Analysis, utcnow
+
+    app = create_app(db_url)
+    with TestClient(app) as client:
+        with app.state.sessions() as s:
+            key = create_key(s, "op", "operator")
+        r = client.post("/recordings", headers={"X-API-Key": key}, content=format_recording(simulated("SN-LOST")).encode())
+        run_id = r.json()["id"]
+        with app.state.sessions() as s:
+            row = Analysis(run_id=run_id, slot=0, status="queued", created_at=utcnow() - timedelta(minutes=1),
+                           request={"null_sims": 3, "calibration_id": None, "serial": "SN-LOST"})
+            s.add(row)
+            s.commit()
+            lost = row.id
+    assert not fake.calls
+    app = create_app(db_url)
+    with TestClient(app) as client:
+        deadline = time.monotonic() + 60
+        while (got := client.get(f"/analyses/{lost}", headers={"X-API-Key": key}).json())["status"] != "completed":
+            assert time.monotonic() < deadline, got
+            time.sleep(0.05)
+    assert got["verdict"] == "discrepancy" and got["serial"] == "SN-LOST" and len(fake.calls) == 1

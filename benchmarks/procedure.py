@@ -25,10 +25,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from drivers.sim.config import StationConfig, parse_config, reference_config  # noqa: E402
 from drivers.sim.station import SimStation  # noqa: E402
+from drivers.station import open_station  # noqa: E402
 from physics.calibration import truth_summary  # noqa: E402
 from physics.sensor import angles_to_Mo  # noqa: E402
 from physics.simulate import truth_from_json  # noqa: E402
-from procedures.engine import open_station, run_procedure  # noqa: E402
+from procedures.engine import run_procedure  # noqa: E402
 
 
 def fixture(units: int, time_scale: float, seed: int = 1) -> StationConfig:

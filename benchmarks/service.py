@@ -167,7 +167,8 @@ def overhead() -> tuple[float, float]:
 
     from conftest import sim_station
     from drivers.sim.config import reference_config
-    from procedures.engine import open_station, run_procedure
+    from drivers.station import open_station
+    from procedures.engine import run_procedure
     from service.api import create_app
     from service.auth import create_key
 

@@ -8,7 +8,7 @@ Three layers:
 - `Compass`: the async driver. Plain pyserial in a reader thread (works with every URL: device paths,
   ``/dev/pts/N``, ``socket://host:port``) feeds the parser and hands events to the asyncio loop.
   Commands are matched to their replies by command name, with a timeout and one retry.
-- `Fixture`: several compasses (the slots of a batch-calibration fixture) driven concurrently.
+- `SerialFixture`: several compasses (the slots of a batch-calibration fixture) driven concurrently.
 
 Error policy, so that no received sample is ever lost: every sample is kept in the driver's history.
 `Compass.read` returns exactly the samples it asked for, or raises an error whose ``samples`` attribute
@@ -949,7 +949,7 @@ class Compass:
 
 
 # --------------------------------------------------------------------------------------------------
-# Fixture: several units at once
+# SerialFixture: several units at once
 # --------------------------------------------------------------------------------------------------
 
 
@@ -963,8 +963,9 @@ class FixtureError(CompassError):
         super().__init__(f"{what} failed on {len(self.errors)} slot(s): {detail}")
 
 
-class Fixture:
-    """The slots of a station's fixture, one `Compass` (and port) each, driven concurrently.
+class SerialFixture:
+    """The slots of a station's fixture, one `Compass` (and port) each, driven concurrently (the
+    serial implementation of the `drivers.Fixture` role).
 
     Every ``*_all`` call runs on all slots at once and returns ``{slot: result}``; if any slot fails
     it raises `FixtureError` after all finished, carrying the per-slot errors and the other results
@@ -998,7 +999,7 @@ class Fixture:
         """Close every slot."""
         await asyncio.gather(*(c.close() for c in self.compasses.values()), return_exceptions=True)
 
-    async def __aenter__(self) -> Fixture:
+    async def __aenter__(self) -> SerialFixture:
         await self.open()
         return self
 

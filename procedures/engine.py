@@ -9,6 +9,11 @@ Sample times are the compass's own sample clock mapped onto the host's (:func:`s
 arrival jitter does not reach the recording. During a :class:`~procedures.steps.Scan` the turning
 axis's encoder is polled throughout, and each sample gets the encoder angle at its time
 (:func:`encoder_track`).
+
+It knows the hardware only through the roles of :mod:`drivers` (:class:`~drivers.Table`,
+:class:`~drivers.Fixture`, paired in a :class:`~drivers.Station`): which drivers fill them is
+:func:`drivers.station.open_station`'s business, or a test's. What it reports are the events of
+:mod:`procedures.events`.
 """
 
 from __future__ import annotations
@@ -16,8 +21,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -25,13 +29,15 @@ from typing import Any, Protocol
 import numpy as np
 from pydantic import BaseModel
 
-from drivers import DriverError
+from drivers import DriverError, Sample, SampleStream, Station
+from drivers.compass import CompassError, CompassTimeout, FixtureError
 from drivers.protocol import fault_name
-from drivers.compass import CompassError, CompassSample, CompassTimeout, Fixture, FixtureError
-from drivers.turntable import MoveTimeout, Turntable
+from drivers.turntable import MoveTimeout
 from physics.recording import Recording, concat, format_recording
 from physics.table import Motion
 from procedures.calibrate import PROCEDURES
+from procedures.events import (Event, Progress, PromptAsked, Result, SamplesStored, StateChanged, StepRetried, StepStarted,
+                               StepWarning)
 from procedures.states import RunState
 from procedures.steps import TIMED_STEPS, Acquire, Checkpoint, Move, Outcome, Procedure, Prompt, Scan, Settle, Step, step_seconds
 
@@ -39,28 +45,6 @@ from procedures.steps import TIMED_STEPS, Acquire, Checkpoint, Move, Outcome, Pr
 SCAN_AXIS = {"psi": "z", "theta": "y", "phi": "x"}
 #: The other axes must hold within this (deg) during an acquisition or a scan.
 HOLD_TOLERANCE_DEG = 0.01
-
-
-@dataclass
-class Station:
-    """The hardware one run drives. ``time_scale`` > 1 for a simulator running faster than real time:
-    the engine then reports table time (simulated seconds) in the recording and its events."""
-
-    table: Turntable
-    fixture: Fixture
-    time_scale: float = 1.0
-    speed_dps: float = 30.0
-    accel_dps2: float = 60.0
-    sample_rate_hz: int = 20
-    name: str = "station"
-
-
-@dataclass
-class Event:
-    """A progress report: ``kind`` is state, step, progress, samples, prompt or result."""
-
-    kind: str
-    data: dict[str, Any]
 
 
 class Sink(Protocol):
@@ -166,7 +150,7 @@ class Engine:
                 except StopIteration as stop:
                     outcome = stop.value
                     break
-                self.on_event(Event("step", {"step": _describe(step), "t": self.table_time()}))
+                self.on_event(StepStarted(step, self.table_time()))
                 reply = await self._do(step)
                 if isinstance(step, TIMED_STEPS):
                     # a data-dependent tail beyond the plan counts as nothing left of it
@@ -175,10 +159,9 @@ class Engine:
                     elapsed = self._table_used = self.table_time()
                     frac = min(1.0, max(0.0, 1.0 - left_nominal / total))
                     left = elapsed / frac * (1.0 - frac) if frac > 0 else left_nominal
-                    self.on_event(Event("progress", {"percent": round(100.0 * frac, 1), "table_s": elapsed,
-                                                     "left_s": left, "samples": self._samples}))
+                    self.on_event(Progress(round(100.0 * frac, 1), elapsed, left, self._samples))
             self._set_state(RunState.completed)
-            self.on_event(Event("result", {"units": sorted(outcome.results) if outcome else []}))
+            self.on_event(Result(tuple(sorted(outcome.results)) if outcome else ()))
         except Aborted:
             await self._stop_axes()
             self._set_state(RunState.aborted, self._abort)
@@ -240,7 +223,7 @@ class Engine:
             fut: asyncio.Future[str] = asyncio.get_running_loop().create_future()
             self._answers[step.id] = fut
             self._streaming = False
-            self.on_event(Event("prompt", {"id": step.id, "text": step.text}))
+            self.on_event(PromptAsked(step.id, step.text))
             try:
                 return await fut
             except asyncio.CancelledError:
@@ -261,7 +244,7 @@ class Engine:
             except timeout_type as e:
                 if attempt == self.retries:
                     raise
-                self.on_event(Event("step", {"retry": attempt + 1, "reason": _reason(e)}))
+                self.on_event(StepRetried(attempt + 1, _reason(e)))
         raise AssertionError("unreachable")
 
     async def _acquire(self, step: Acquire) -> dict[int, Recording]:
@@ -286,8 +269,9 @@ class Engine:
         need = step.samples - min(have.values(), default=0)
         timeout = need / self.station.sample_rate_hz / self.station.time_scale + self.acquire_margin_s
         error: CompassError | None = None
+        got: dict[Any, Sequence[Sample]]
         try:
-            got = await self.station.fixture.read_all(need, timeout=timeout)
+            got = dict(await self.station.fixture.read_all(need, timeout=timeout))
         except FixtureError as e:
             got = dict(e.results)
             got.update({slot: err.samples for slot, err in e.errors.items() if isinstance(err, CompassError)})
@@ -309,7 +293,7 @@ class Engine:
         table, fixture = self.station.table, self.station.fixture
         name, i = SCAN_AXIS[step.axis], step.index
         before = await table.positions()
-        got: dict[Any, list[CompassSample]] = {slot: [] for slot in fixture.compasses}
+        got: dict[Any, list[Sample]] = {slot: [] for slot in fixture.compasses}
         # a compass whose stream stalls for this long fails the scan (wall seconds)
         stale = 3.0 / self.station.sample_rate_hz / self.station.time_scale + self.acquire_margin_s
         collectors = [asyncio.create_task(_collect(c, got[slot], stale)) for slot, c in fixture.compasses.items()]
@@ -340,14 +324,14 @@ class Engine:
             raise DriverError(f"an axis that should hold moved {moved:.3f} deg during scan {step.step}")
         return out
 
-    def _keep_scan(self, step: Scan, got: dict[Any, list[CompassSample]], t_begin: float,
+    def _keep_scan(self, step: Scan, got: dict[Any, list[Sample]], t_begin: float,
                    trace: list[tuple[float, float, float]], held: tuple[float, float, float]) -> dict[int, Recording]:
         """Keep the samples of a scan received between its start and its last encoder poll."""
         t_end = trace[-1][1]
         scale = self.station.time_scale
         encoder = encoder_track(trace, held[step.index], step.stop_deg, step.speed_dps * scale,
                                 self.station.accel_dps2 * scale * scale)
-        kept: dict[Any, list[CompassSample]] = {}
+        kept: dict[Any, list[Sample]] = {}
         angles: dict[Any, np.ndarray] = {}
         times: dict[Any, np.ndarray] = {}
         for slot, samples in got.items():
@@ -360,7 +344,7 @@ class Engine:
             kept[slot], angles[slot], times[slot] = samples, np.round(a, 6), t
         return self._keep(step.step, kept, angles, times)
 
-    def _keep(self, label: str, got: dict[Any, list[CompassSample]], angles: Any,
+    def _keep(self, label: str, got: dict[Any, list[Sample]], angles: Any,
               times: dict[Any, np.ndarray] | None = None) -> dict[int, Recording]:
         """Send samples to the sink (before anything else can go wrong) and return them as recordings.
         ``angles``: the held (psi, theta, phi), or per slot an (n, 3) array; ``times``: per slot host
@@ -375,10 +359,10 @@ class Engine:
             self.sink.add(int(slot), rec)
             out[int(slot)] = rec
             self._samples += len(samples)
-        self.on_event(Event("samples", {"step": label, "count": self._samples}))
+        self.on_event(SamplesStored(label, self._samples))
         return out
 
-    def _sample_times(self, slot: Any, samples: list[CompassSample]) -> np.ndarray:
+    def _sample_times(self, slot: Any, samples: list[Sample]) -> np.ndarray:
         """The samples' times on the compass's clock, continuing the slot's previous step."""
         seq = np.array([s.seq for s in samples])
         t = sample_clock(np.array([s.t_host for s in samples]), seq,
@@ -386,7 +370,7 @@ class Engine:
         self._clock[slot] = (float(t[-1]), int(seq[-1]))
         return t
 
-    def _recording(self, slot: int, samples: list[CompassSample], step: str, angles: np.ndarray,
+    def _recording(self, slot: int, samples: list[Sample], step: str, angles: np.ndarray,
                    t_host: np.ndarray) -> Recording:
         n = len(samples)
         return Recording.from_arrays(
@@ -404,14 +388,14 @@ class Engine:
         try:
             await asyncio.wait_for(self.station.table.stop_all(), timeout=2.0)
         except Exception as e:  # noqa: BLE001 - report it, but the run's own reason comes first
-            self.on_event(Event("step", {"warning": f"stopping the axes failed: {_reason(e)}"}))
+            self.on_event(StepWarning(f"stopping the axes failed: {_reason(e)}"))
 
     def _set_state(self, state: RunState, reason: str | None = None) -> None:
         self.state, self.reason = state, reason
-        self.on_event(Event("state", {"state": state.value, "reason": reason, "t": self.table_time()}))
+        self.on_event(StateChanged(state, reason, self.table_time()))
 
 
-async def _collect(compass: Any, into: list[CompassSample], timeout: float) -> None:
+async def _collect(compass: SampleStream, into: list[Sample], timeout: float) -> None:
     """Append every sample ``compass`` streams to ``into`` until cancelled (raises what the stream raises)."""
     async for sample in compass.samples(timeout=timeout):
         into.append(sample)
@@ -431,7 +415,7 @@ async def _cancel_all(tasks: list[asyncio.Task[Any]]) -> None:
             t.exception()  # retrieved (raised by the caller if it matters)
 
 
-async def _until_after(got: dict[Any, list[CompassSample]], t: float, timeout: float) -> None:
+async def _until_after(got: dict[Any, list[Sample]], t: float, timeout: float) -> None:
     """Wait (at most ``timeout`` wall seconds) until every slot has a sample received after ``t``."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -550,12 +534,6 @@ def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float,
     return t
 
 
-def _describe(step: Step) -> dict[str, Any]:
-    d = {"kind": type(step).__name__.lower()}
-    d.update({k: v for k, v in step.__dict__.items()})
-    return d
-
-
 def _reason(e: BaseException) -> str:
     return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
 
@@ -586,23 +564,6 @@ class RecordingSink:
         rec = concat(self.parts[slot])
         rec.meta.update(self.meta)
         return rec
-
-
-@asynccontextmanager
-async def open_station(modbus: str, compasses: list[str], *, time_scale: float = 1.0,
-                       sample_rate_hz: int = 20, name: str = "station") -> AsyncIterator[Station]:
-    """Connect a station's table (Modbus URL) and fixture (one serial URL per slot); close both after."""
-    table = Turntable(modbus)
-    fixture = Fixture({slot: url for slot, url in enumerate(compasses)})
-    await table.connect()
-    try:
-        await fixture.open()
-        try:
-            yield Station(table, fixture, time_scale=time_scale, sample_rate_hz=sample_rate_hz, name=name)
-        finally:
-            await fixture.close()
-    finally:
-        await table.close()
 
 
 async def run_procedure(station: Station, name: str, parameters: dict[str, Any] | None = None, *,

@@ -188,7 +188,7 @@ def create_app(database_url: str | None = None, worker: bool = True) -> FastAPI:
     from service.analyses import router as analyses_router
     from service.db import default_url
     from service.runs import router as runs_router
-    from service.runtime import HEARTBEAT_S, Notifier, reap_lost_workers
+    from service.runtime import HEARTBEAT_S, LOST_AFTER_S, Notifier, reap_lost_workers
     from service.web import router as web_router
     from service.worker import Jobs, WorkerContext
 
@@ -206,13 +206,22 @@ def create_app(database_url: str | None = None, worker: bool = True) -> FastAPI:
         await app.state.jobs.start()
 
         async def reap() -> None:  # runs whose worker died: failed, "worker lost"
+            loop = asyncio.get_running_loop()
+            reachable_since = loop.time()
             while True:
                 await asyncio.sleep(HEARTBEAT_S)
+                if loop.time() - reachable_since < LOST_AFTER_S:
+                    # after the database was away, workers need a few beats too: judge none before
+                    try:
+                        await asyncio.to_thread(reap_lost_workers, app.state.sessions, judge=False)
+                    except Exception:  # noqa: BLE001 - still away
+                        reachable_since = loop.time()
+                    continue
                 try:
                     for run_id in await asyncio.to_thread(reap_lost_workers, app.state.sessions):
                         app.state.notifier.poke(run_id)
                 except Exception:  # noqa: BLE001 - the database is away for a moment
-                    pass
+                    reachable_since = loop.time()
         reaper = asyncio.create_task(reap())
         try:
             yield

@@ -443,7 +443,10 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
     Returns the number of units that failed."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from procedures.engine import open_station, run_procedure
+    from drivers.station import open_station
+    from procedures.engine import run_procedure
+    from procedures import events
+    from procedures.steps import Acquire
     from service.plots import calibration_figure
 
     out.mkdir(parents=True, exist_ok=True)
@@ -451,13 +454,12 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                   TextColumn("{task.fields[info]}"), TimeRemainingColumn(), console=console, transient=False) as bar:
         task = bar.add_task("calibrate", total=100.0, info="")
 
-        def on_event(e: object) -> None:
-            if e.kind == "progress":  # type: ignore[attr-defined]
-                d = e.data  # type: ignore[attr-defined]
-                bar.update(task, completed=d["percent"],
-                           info=f"table {d['table_s']:.0f} s, {d['samples']} samples, ~{d['left_s']:.0f} s left")
-            elif e.kind == "step" and "step" in e.data and e.data["step"]["kind"] == "acquire":  # type: ignore[attr-defined]
-                bar.update(task, description=f"calibrate: {e.data['step']['step']}")  # type: ignore[attr-defined]
+        def on_event(e: events.Event) -> None:
+            if isinstance(e, events.Progress):
+                bar.update(task, completed=e.percent,
+                           info=f"table {e.table_s:.0f} s, {e.samples} samples, ~{e.left_s:.0f} s left")
+            elif isinstance(e, events.StepStarted) and isinstance(e.step, Acquire):
+                bar.update(task, description=f"calibrate: {e.step.step}")
 
         async with open_station(modbus, compasses, time_scale=time_scale) as station:
             result, serials, sink = await run_procedure(station, "calibrate", params, out_dir=out, on_event=on_event)
@@ -467,9 +469,12 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                 cals = {slot: r["calibration"].to_json() for slot, r in result.outcome.results.items() if "calibration" in r}
                 if cals:
                     eval_task = bar.add_task("evaluate", total=100.0, info="")
-                    check, _, _ = await run_procedure(
-                        station, "evaluate", {"calibrations": cals},
-                        on_event=lambda e: e.kind == "progress" and bar.update(eval_task, completed=e.data["percent"]))  # type: ignore[attr-defined]
+
+                    def on_evaluate_event(e: events.Event) -> None:
+                        if isinstance(e, events.Progress):
+                            bar.update(eval_task, completed=e.percent)
+
+                    check, _, _ = await run_procedure(station, "evaluate", {"calibrations": cals}, on_event=on_evaluate_event)
     console.print(f"run {result.state.value}" + (f": {escape(str(result.reason))}" if result.reason else "")
                   + f" after {result.table_seconds:.1f} s of table time, {result.samples} samples kept")
     for slot in sorted(serials):

@@ -256,7 +256,9 @@ def make_engine(url: str | None = None) -> Engine:
     if url.startswith("sqlite"):
         kw["connect_args"] = {"check_same_thread": False, "timeout": 30}
     else:
-        kw.update(pool_size=20, max_overflow=40, pool_pre_ping=True)
+        # pre-ping: a pooled connection cut by a database restart is replaced, not handed out;
+        # connect_timeout: a database that does not answer is an error in seconds, not a hang
+        kw.update(pool_size=20, max_overflow=40, pool_pre_ping=True, connect_args={"connect_timeout": 5})
     engine = create_engine(url, **kw)
     if url.startswith("sqlite"):
         @event.listens_for(engine, "connect")

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 from sqlalchemy import select, update
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
@@ -64,20 +64,6 @@ def load_recording(session: Session, run: Run, slot: int) -> Recording | None:
     meta.update({k: str(v) for k, v in (run.meta or {}).items() if isinstance(v, (str, int, float))})
     return Recording.from_arrays(t=a[:, 0], step=[r[1] for r in rows], psi_t=a[:, 1], theta_t=a[:, 2], phi_t=a[:, 3],
                                  mag=a[:, 4:7], acc=a[:, 7:10], temp_c=a[:, 10], meta=meta)
-
-
-class DbSink:
-    """The engine's sink: each acquisition's samples are committed as they arrive, so a fault or a crash
-    keeps everything acquired before it."""
-
-    def __init__(self, sessions: sessionmaker, run_id: int) -> None:
-        self.sessions, self.run_id = sessions, run_id
-
-    def add(self, slot: int, rec: Recording) -> None:
-        """Store one slot's samples of one acquisition."""
-        with self.sessions() as session:
-            insert_samples(session, self.run_id, slot, rec)
-            session.commit()
 
 
 def device(session: Session, serial: str, model: str | None = None, firmware: str | None = None) -> Device:

@@ -19,6 +19,7 @@ task in a thread): the worker's loop never waits on a Modbus poll or the fit at 
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import socket
 import threading
@@ -27,31 +28,40 @@ from collections.abc import Callable
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
 from datetime import timedelta
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from procrastinate import App, JobContext, PsycopgConnector
 from procrastinate.jobs import Status
 from procrastinate.testing import InMemoryConnector
 from sqlalchemy import select, update
-from sqlalchemy.orm import sessionmaker
+from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
+from sqlalchemy.orm import Session, sessionmaker
 
 from drivers.modbus import BusError
+from drivers.station import open_station
 from drivers.turntable import AxisError, Turntable
 from physics.calibration import Calibration as PhysCalibration, json_safe
+from physics.recording import Recording
 from procedures.calibrate import BATCH, PROCEDURES
-from procedures.engine import Engine, Event, open_station
+from procedures.engine import Engine
+from procedures.events import Event, PromptAnswered, Result, StateChanged
 from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, Station, utcnow
 from service.runtime import (ANALYSIS_FINAL, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError,
                              analysis_topic, create_run, notify, publish)
-from service.store import DbSink, store_calibration
+from service.store import insert_samples, store_calibration
+
+log = logging.getLogger("compasscal.worker")
+T = TypeVar("T")
 
 #: Wall seconds allowed to connect a station's table and fixture, and to identify the compasses.
 OPEN_TIMEOUT_S = 15.0
 IDENTIFY_TIMEOUT_S = 10.0
 #: Seconds between two looks at a run's commands.
 COMMAND_POLL_S = 0.1
+#: Seconds a worker keeps trying to write while the database is away (a restart) before giving up.
+DB_OUTAGE_S = 120.0
 #: Seconds without a heartbeat of procrastinate's worker after which its analysis job is retried.
 STALLED_S = 30.0
 #: Seconds after its request an analysis without a job is taken as lost (and queued again).
@@ -90,11 +100,91 @@ class WorkerContext:
     def publish(self, run_id: int, kind: str, data: dict[str, Any]) -> None:
         """Append one event to the run's log (committed) and wake the streams."""
         with self.sessions() as s:
-            publish(s, run_id, kind, data)
-            if kind == "state" and data.get("state") in (RunState.running.value, RunState.paused.value):
-                s.execute(update(Station).where(Station.run_id == run_id).values(state=data["state"]))
+            write_event(s, run_id, kind, data)
             s.commit()
         self.poke(run_id)
+
+    def retry(self, write: Callable[[], T], what: str, timeout: float | None = DB_OUTAGE_S) -> T:
+        """``write()``, tried again every second while the database is away (it restarts), for at
+        most ``timeout`` s (None: as long as it takes; a lost worker's run is then the reaper's)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                return write()
+            except DBAPIError as e:
+                if not db_away(e) or (deadline is not None and time.monotonic() > deadline):
+                    raise
+                log.warning("%s: the database is away (%s); trying again", what, type(e.orig).__name__)
+                time.sleep(1.0)
+
+
+def db_away(e: BaseException) -> bool:
+    """Whether a database error means the server cannot be reached (restarting), not a bad write."""
+    return isinstance(e, (OperationalError, InterfaceError)) or (isinstance(e, DBAPIError) and e.connection_invalidated)
+
+
+def write_event(s: Session, run_id: int, kind: str, data: dict[str, Any]) -> None:
+    """One event of a run, with the station's state when the run starts or pauses (not committed)."""
+    publish(s, run_id, kind, data)
+    if kind == "state" and data.get("state") in (RunState.running.value, RunState.paused.value):
+        s.execute(update(Station).where(Station.run_id == run_id).values(state=data["state"]))
+
+
+class Outbox:
+    """A running run's writes (its samples, as the engine's sink, and its events), in order. A write
+    the database cannot take now (a restart) waits here and goes with the next one, so the engine
+    never waits on the database and nothing is lost; :meth:`drain` empties it at the end."""
+
+    def __init__(self, ctx: WorkerContext, run_id: int) -> None:
+        self.ctx, self.run_id = ctx, run_id
+        self._pending: list[tuple[Callable[[Session], Any], int]] = []  # (write, samples in it)
+        self._lock = threading.Lock()
+
+    def add(self, slot: int, rec: Recording) -> None:
+        """The engine's sink: one slot's samples of one acquisition."""
+        self._put(lambda s: insert_samples(s, self.run_id, slot, rec), len(rec))
+
+    def publish(self, kind: str, data: dict[str, Any]) -> None:
+        """One event of the run."""
+        self._put(lambda s: write_event(s, self.run_id, kind, data), 0)
+
+    @property
+    def samples_waiting(self) -> int:
+        """Samples not yet in the database."""
+        with self._lock:
+            return sum(n for _, n in self._pending)
+
+    def _put(self, write: Callable[[Session], Any], samples: int) -> None:
+        with self._lock:
+            self._pending.append((write, samples))
+        self.flush()
+
+    def flush(self) -> bool:
+        """Write everything waiting, in order, in one transaction; False when the database is away."""
+        with self._lock:
+            if not self._pending:
+                return True
+            try:
+                with self.ctx.sessions() as s:
+                    for write, _ in self._pending:
+                        write(s)
+                    s.commit()
+            except DBAPIError as e:
+                if not db_away(e):
+                    raise
+                return False
+            self._pending.clear()
+        self.ctx.poke(self.run_id)
+        return True
+
+    async def drain(self, timeout: float) -> bool:
+        """Flush until empty (True) or ``timeout`` s have passed with the database still away."""
+        deadline = time.monotonic() + timeout
+        while not await asyncio.to_thread(self.flush):
+            if time.monotonic() > deadline:
+                return False
+            await asyncio.sleep(1.0)
+        return True
 
 
 def _context(job: JobContext) -> WorkerContext:
@@ -119,6 +209,7 @@ class RunControl:
 
     def __init__(self, ctx: WorkerContext, run_id: int) -> None:
         self.ctx, self.run_id = ctx, run_id
+        self.outbox = Outbox(ctx, run_id)
         self.engine: Engine | None = None
         self.abort_reason: str | None = None
         self.pending: list[RunCommand] = []
@@ -149,7 +240,8 @@ class RunControl:
             self.engine.abort(str(r.data.get("reason") or "aborted by the operator"))
         elif r.kind == "answer":
             if self.engine.answer(str(r.data["id"]), str(r.data.get("answer", ""))):
-                self.ctx.publish(self.run_id, "prompt", {"id": r.data["id"], "answered": True, "answer": r.data.get("answer", "")})
+                answered = PromptAnswered(r.data["id"], r.data.get("answer", ""))
+                self.outbox.publish(answered.kind, answered.data())
 
     def attach(self, engine: Engine) -> None:
         self.engine = engine
@@ -171,16 +263,21 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     """Run one queued run to its end: open the station, identify the units, drive the procedure's
     engine with the samples going to the database, store each unit's calibration, free the station.
     A run that is no longer ``queued`` (aborted before a worker took it) is left as it is."""
-    with ctx.sessions() as s:
-        run = s.get(Run, run_id)
-        if run is None or run.status != RunState.queued.value:
-            return
-        snapshot, given = dict(run.station_snapshot or {}), dict(run.serials or {})
-        proc = PROCEDURES[run.procedure]
-        params = proc.validate(run.parameters)
-        # this worker serves the station from now on (a station made since the last beat has none)
-        s.execute(update(Station).where(Station.run_id == run_id).values(heartbeat_at=utcnow(), worker=ctx.name))
-        s.commit()
+    def take() -> tuple[dict[str, Any], dict[str, str], str, dict[str, Any]] | None:
+        with ctx.sessions() as s:
+            run = s.get(Run, run_id)
+            if run is None or run.status != RunState.queued.value:
+                return None
+            # this worker serves the station from now on (a station made since the last beat has none)
+            s.execute(update(Station).where(Station.run_id == run_id).values(heartbeat_at=utcnow(), worker=ctx.name))
+            s.commit()
+            return dict(run.station_snapshot or {}), dict(run.serials or {}), run.procedure, dict(run.parameters or {})
+    taken = ctx.retry(take, f"run {run_id}")
+    if taken is None:
+        return
+    snapshot, given, name, parameters = taken
+    proc = PROCEDURES[name]
+    params = proc.validate(parameters)
     control = RunControl(ctx, run_id)
     ctx.executing[run_id] = control
     follower = asyncio.create_task(control.follow())
@@ -196,7 +293,9 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
         follower.cancel()
         await asyncio.gather(follower, return_exceptions=True)
         ctx.executing.pop(run_id, None)
-        _finish(ctx, run_id, fin, table_seconds)
+        # the run's end must reach the database: wait for it as long as it takes (a worker killed
+        # meanwhile leaves the run to the reaper)
+        ctx.retry(lambda: _finish(ctx, run_id, fin, table_seconds), f"run {run_id}", timeout=None)
 
 
 async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot: dict[str, Any], proc: Any,
@@ -226,20 +325,25 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                 s.commit()
 
         def on_event(e: Event) -> None:  # in this thread, inside the engine
-            if e.kind == "state" and e.data["state"] in FINAL:
+            if isinstance(e, StateChanged) and e.state.value in FINAL:
                 return  # held back: the run ends once its calibrations are stored
-            if e.kind == "result":
+            if isinstance(e, Result):
                 return  # replaced by the fuller result below
-            ctx.publish(run_id, e.kind, e.data)
+            control.outbox.publish(e.kind, e.data())
 
-        engine = Engine(station, proc, params, DbSink(ctx.sessions, run_id), on_event=on_event, serials=serials)
+        engine = Engine(station, proc, params, control.outbox, on_event=on_event, serials=serials)
         await asyncio.to_thread(control.take)
         if control.abort_reason is not None:
             return _Finish(RunState.aborted.value, control.abort_reason), None
         control.attach(engine)
         result = await engine.run()
         fin = _Finish(result.state.value, result.reason)
-        if result.state is RunState.failed:
+        if not await control.outbox.drain(DB_OUTAGE_S):  # samples the database could not take yet
+            lost = control.outbox.samples_waiting
+            fin = _Finish(RunState.failed.value, f"{lost} of {result.samples} samples lost: the database was away "
+                          f"for more than {DB_OUTAGE_S:g} s")
+            result.outcome = None
+        elif result.state is RunState.failed:
             fin.fault = await _probe(station, result.reason)
         elif result.state is RunState.completed and result.outcome is not None:
             if not idents:  # learn model and firmware now the unit is mounted (best effort)
@@ -249,7 +353,7 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                 except Exception:  # noqa: BLE001 - only the device row's model is missing then
                     pass
             try:
-                fin.summary = _store(ctx, run_id, result.outcome, serials, idents)
+                fin.summary = ctx.retry(lambda: _store(ctx, run_id, result.outcome, serials, idents), f"run {run_id}")
             except Exception as e:  # noqa: BLE001 - the data is kept; the run says what went wrong
                 fin = _Finish(RunState.failed.value, f"storing the calibrations failed: {_reason(e)}")
         fin.summary = {**fin.summary, "samples": result.samples}
@@ -404,15 +508,17 @@ _analysis_slots = threading.BoundedSemaphore(ANALYSES_AT_ONCE)
 
 def _analysis_update(ctx: WorkerContext, analysis_id: int, **values: Any) -> None:
     """Change an analysis's row, bump its version (its stream's event id) and notify its streams."""
-    with ctx.sessions() as s:
-        row = s.get(Analysis, analysis_id)
-        if row is None:
-            return
-        for k, v in values.items():
-            setattr(row, k, v)
-        row.version = (row.version or 0) + 1
-        notify(s, analysis_topic(analysis_id))
-        s.commit()
+    def write() -> None:
+        with ctx.sessions() as s:
+            row = s.get(Analysis, analysis_id)
+            if row is None:
+                return
+            for k, v in values.items():
+                setattr(row, k, v)
+            row.version = (row.version or 0) + 1
+            notify(s, analysis_topic(analysis_id))
+            s.commit()
+    ctx.retry(write, f"analysis {analysis_id}")
     ctx.poke(analysis_topic(analysis_id))
 
 

@@ -19,13 +19,15 @@ from pydantic import ValidationError
 from drivers.sim.config import ConfigError, StationConfig, load_config, parse_config, reference_config
 from drivers.sim.station import SimStation
 from drivers.sim.world import SimWorld
+from drivers.station import open_station
 from physics.effects import StageHardIron
 from physics.recording import Recording, parse_recording
 from physics.sensor import reference_unit
 from physics.simulate import Pose, Scan as PlanScan, World
 from physics.table import Motion
 from procedures.calibrate import PROCEDURES, CharacterizeParams, characterize_plan, plan_seconds
-from procedures.engine import Engine, Event, RecordingSink, RunState, encoder_track, open_station, run_procedure, sample_clock
+from procedures.engine import Engine, RecordingSink, RunState, encoder_track, run_procedure, sample_clock
+from procedures.events import Event, Progress, StateChanged, StepStarted
 from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, Scan, drive, step_seconds
 from conftest import FakeEngine
 
@@ -279,9 +281,9 @@ def test_scans_on_the_simulated_station_carry_the_encoder_angle_of_each_sample()
     assert 0 <= np.median(latency) < 0.02 and np.max(np.abs(latency)) < 0.04, (np.median(latency), np.max(np.abs(latency)))
     assert np.max(np.abs(rec.psi_t[scan] - r_psi[idx])) < 1.2
     # progress counts the scans, ends at 100, and the steps say so
-    progress = [e.data["percent"] for e in events if e.kind == "progress"]
+    progress = [e.percent for e in events if isinstance(e, Progress)]
     assert progress == sorted(progress) and progress[-1] == 100.0
-    assert any(e.kind == "step" and e.data.get("step", {}).get("kind") == "scan" for e in events)
+    assert any(isinstance(e, StepStarted) and isinstance(e.step, Scan) for e in events)
     res = result.outcome.results[0]
     assert res["calibration"] is not None, res["notes"]
     if res["analysis"] is not None:
@@ -325,9 +327,9 @@ def test_an_abort_mid_scan_stops_the_table_at_once_and_keeps_the_samples():
 
         def on_event(e: Event) -> None:
             inner(e)
-            if e.kind == "step" and e.data.get("step", {}).get("kind") == "scan":
+            if isinstance(e, StepStarted) and isinstance(e.step, Scan):
                 asyncio.get_running_loop().call_later(1.0, press)  # after the move to the start (0.2 s)
-            if e.kind == "state" and e.data["state"] == "aborted":
+            if isinstance(e, StateChanged) and e.state is RunState.aborted:
                 pressed["ended"] = time.monotonic()
         engine.on_event = on_event
     result, sink, st, engine, events, status, _ = _sim_run(reference_config(seed=5, time_scale=20),

@@ -21,10 +21,10 @@ from drivers.compass import (
     CompassNak,
     CompassSample,
     CompassTimeout,
-    Fixture,
     IdReply,
     NakReply,
     SentenceParser,
+    SerialFixture,
     TextLine,
     xor_checksum,
 )
@@ -761,7 +761,7 @@ def test_fixture_with_three_slots() -> None:
         clock = SimClock(10.0)
         sims = [CompassSim(make_reader(i), clock, serial=f"900{i}") for i in range(3)]
         urls = [await sims[0].start("pty"), await sims[1].start("tcp"), await sims[2].start("pty")]
-        fx = Fixture({f"S{i}": u for i, u in enumerate(urls)})
+        fx = SerialFixture({f"S{i}": u for i, u in enumerate(urls)})
         try:
             await fx.open()
             ids = await fx.identify_all()

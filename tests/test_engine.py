@@ -4,6 +4,7 @@ of several units, pause and resume, abort, prompts, and faults mid-run."""
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from pathlib import Path
 
@@ -11,12 +12,15 @@ import numpy as np
 
 from drivers.sim.config import StationConfig, parse_config, reference_config
 from drivers.sim.station import SimStation
+from drivers.station import open_station
 from physics.calibration import truth_summary
 from physics.recording import parse_recording
 from physics.sensor import random_unit
 from physics.simulate import truth_from_json
 from procedures.calibrate import PROCEDURES
-from procedures.engine import Engine, Event, RecordingSink, RunState, open_station, run_procedure
+from procedures.engine import Engine, RecordingSink, RunState, run_procedure
+from procedures.events import (Event, Progress, PromptAnswered, PromptAsked, Result, SamplesStored, StateChanged, StepRetried,
+                               StepStarted, StepWarning)
 from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, Prompt
 
 
@@ -64,9 +68,11 @@ def test_calibrate_two_units_at_time_scale_20(tmp_path: Path):
         cal = result.outcome.results[slot]["calibration"]
         s = truth_summary(cal, unit, world)
         assert s["level_max"] < 0.03 and s["tilted_max"] < 0.06, (serial, s)
-    progress = [e.data["percent"] for e in events if e.kind == "progress"]
+    progress = [e.percent for e in events if isinstance(e, Progress)]
     assert progress == sorted(progress) and progress[-1] == 100.0
-    assert [e.data["state"] for e in events if e.kind == "state"] == ["running", "completed"]
+    assert [e.state for e in events if isinstance(e, StateChanged)] == [RunState.running, RunState.completed]
+    assert [e.units for e in events if isinstance(e, Result)] == [tuple(sorted(serials))]
+    json.dumps([(e.kind, e.data()) for e in events])  # what the service stores and streams
 
 
 def test_an_axis_alarm_mid_run_fails_the_run_stops_the_table_and_keeps_the_samples(tmp_path: Path):
@@ -91,7 +97,7 @@ def test_a_compass_hiccup_is_retried_and_every_pose_keeps_exactly_its_planned_co
     def control(engine: Engine, st: SimStation) -> None:
         def on_event(e: Event, inner=engine.on_event) -> None:
             inner(e)
-            if e.kind == "step" and e.data.get("step", {}).get("kind") == "acquire" and engine._samples >= 2 * 60 and not fired:
+            if isinstance(e, StepStarted) and isinstance(e.step, Acquire) and engine._samples >= 2 * 60 and not fired:
                 fired["t"] = time.monotonic()  # a few samples into the third pose (0.15 s of wall time)
                 loop = asyncio.get_running_loop()
                 loop.call_later(0.05, st.compasses[0].go_silent, True)
@@ -99,7 +105,7 @@ def test_a_compass_hiccup_is_retried_and_every_pose_keeps_exactly_its_planned_co
         engine.on_event = on_event
     result, serials, sink, st, events, wall, status = run(cfg, "calibrate", {}, out=tmp_path, control=control)
     assert result.state is RunState.completed, result.reason
-    assert any(e.kind == "step" and e.data.get("retry") == 1 for e in events)
+    assert any(isinstance(e, StepRetried) and e.attempt == 1 for e in events)
     rec = parse_recording(sink.path(0).read_text())
     steps, counts = np.unique([f"{s}@{p:.1f},{t:.1f},{f:.1f}" for s, p, t, f in zip(rec.step, rec.psi_t, rec.theta_t, rec.phi_t)],
                               return_counts=True)
@@ -113,7 +119,7 @@ def test_a_compass_that_goes_silent_fails_the_run_within_seconds_with_the_sample
     def control(engine: Engine, st: SimStation) -> None:
         def on_event(e: Event, inner=engine.on_event) -> None:
             inner(e)
-            if e.kind == "samples" and e.data["count"] >= 3 * 60 and not fired:
+            if isinstance(e, SamplesStored) and e.count >= 3 * 60 and not fired:
                 fired["t"] = time.monotonic()
                 st.compasses[0].go_silent(True)
         engine.on_event = on_event
@@ -133,13 +139,13 @@ def test_pause_resume_and_abort_at_checkpoints():
 
         def on_event(e: Event) -> None:
             inner(e)
-            if e.kind == "state":
-                seen.append(e.data["state"])
-                if e.data["state"] == "paused":
+            if isinstance(e, StateChanged):
+                seen.append(e.state.value)
+                if e.state is RunState.paused:
                     asyncio.get_running_loop().call_later(0.3, engine.resume)
-            if e.kind == "samples" and e.data["count"] == 60:
+            if isinstance(e, SamplesStored) and e.count == 60:
                 engine.pause()
-            if e.kind == "samples" and e.data["count"] == 3 * 60:
+            if isinstance(e, SamplesStored) and e.count == 3 * 60:
                 engine.abort("operator pressed abort")
         engine.on_event = on_event
     result, *_ = run(cfg, "rotate_z", {"samples": 60}, control=control)
@@ -165,7 +171,7 @@ def test_prompts_wait_for_the_operator():
                 events: list[Event] = []
                 eng = Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append)
                 task = asyncio.create_task(eng.run())
-                while not any(e.kind == "prompt" for e in events):
+                while not any(isinstance(e, PromptAsked) for e in events):
                     await asyncio.sleep(0.01)
                 assert not eng.answer("other", "x")
                 assert eng.answer("mount", "mounted")
@@ -189,3 +195,27 @@ def test_a_run_on_a_table_already_in_fault_fails_before_moving():
     result, sink = asyncio.run(asyncio.wait_for(main(), 30))
     assert result.state is RunState.failed and "0x28 encoder error" in result.reason and "reset it first" in result.reason
     assert sink.parts == {}
+
+
+def test_events_keep_their_wire_format():
+    """The service stores ``(kind, data())`` in run_events and streams it as server-sent events:
+    each event class makes exactly the JSON its clients read."""
+    cases: list[tuple[Event, str, dict]] = [
+        (StateChanged(RunState.failed, "AxisFault: boom", 12.5), "state",
+         {"state": "failed", "reason": "AxisFault: boom", "t": 12.5}),
+        (StateChanged(RunState.running, None, 0.0), "state", {"state": "running", "reason": None, "t": 0.0}),
+        (StepStarted(Move(30.0, 5.0), 1.5), "step", {"step": {"kind": "move", "psi": 30.0, "theta": 5.0, "phi": 0.0}, "t": 1.5}),
+        (StepStarted(Acquire(60, "rotate_z"), 2.0), "step",
+         {"step": {"kind": "acquire", "samples": 60, "step": "rotate_z"}, "t": 2.0}),
+        (StepRetried(1, "MoveTimeout: late"), "step", {"retry": 1, "reason": "MoveTimeout: late"}),
+        (StepWarning("stopping the axes failed: x"), "step", {"warning": "stopping the axes failed: x"}),
+        (Progress(42.5, 10.0, 13.5, 600), "progress", {"percent": 42.5, "table_s": 10.0, "left_s": 13.5, "samples": 600}),
+        (SamplesStored("sweep_y", 660), "samples", {"step": "sweep_y", "count": 660}),
+        (PromptAsked("mount", "mount unit SN-7 in slot 0"), "prompt", {"id": "mount", "text": "mount unit SN-7 in slot 0"}),
+        (PromptAnswered("mount", "done"), "prompt", {"id": "mount", "answered": True, "answer": "done"}),
+        (Result((0, 1)), "result", {"units": [0, 1]}),
+        (Result(()), "result", {"units": []}),
+    ]
+    for event, kind, data in cases:
+        assert event.kind == kind and event.data() == data, event
+        assert json.loads(json.dumps(event.data())) == data

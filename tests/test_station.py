@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.compass import Compass, CompassTimeout, Fixture
+from drivers.compass import Compass, CompassTimeout, SerialFixture
 from drivers.sim.config import ConfigError, load_config, parse_config, reference_config
 from drivers.sim.station import SimStation
 from drivers.sim.world import Effect
@@ -86,7 +86,7 @@ def test_devices_report_what_the_world_predicts(tmp_path: Path):
             d = st.describe()
             assert d["modbus"].startswith("tcp://127.0.0.1:") and d["units"] == [1, 2, 3]
             assert d["compasses"][0]["url"].startswith("/dev/pts/") and d["compasses"][1]["url"].startswith("socket://")
-            async with Turntable(d["modbus"]) as table, Fixture({c["slot"]: c["url"] for c in d["compasses"]}) as fx:
+            async with Turntable(d["modbus"]) as table, SerialFixture({c["slot"]: c["url"] for c in d["compasses"]}) as fx:
                 ids = await fx.identify_all()
                 assert [ids[0][1], ids[1][1]] == ["SN-0001", "SN-0002"]
                 await table.move_to(120.0, 30.0, -45.0)

@@ -169,7 +169,7 @@ def overhead() -> tuple[float, float]:
     from drivers.sim.config import reference_config
     from drivers.station import open_station
     from procedures.engine import run_procedure
-    from service.api import create_app
+    from service.app import create_app
     from service.auth import create_key
 
     params = {"samples": 60}

@@ -631,7 +631,7 @@ async def _api_demo(cfg: object, sock: socket.socket, keep_serving: bool) -> int
     from rich.progress import BarColumn, Progress, TextColumn
 
     from drivers.sim.station import SimStation
-    from service.api import create_app
+    from service.app import create_app
     from service.auth import create_key
 
     async with SimStation(cfg, control_port=None) as st:  # type: ignore[arg-type]
@@ -818,8 +818,8 @@ def serve(
     sock = _listen(host, port)
     console.print(f"database: {database}; {workers} API process(es); stations driven "
                   + ("here" if embedded else "by their `compasscal worker`s"), soft_wrap=True, markup=False, highlight=False)
-    os.environ["COMPASSCAL_STATION_WORKER"] = "1" if embedded else "0"  # read by service.api:app_from_env
-    config = uvicorn.Config("service.api:app_from_env", factory=True, host=host, port=port, workers=workers)
+    os.environ["COMPASSCAL_STATION_WORKER"] = "1" if embedded else "0"  # read by service.app:app_from_env
+    config = uvicorn.Config("service.app:app_from_env", factory=True, host=host, port=port, workers=workers)
     if workers > 1:
         from uvicorn.supervisors import Multiprocess
         Multiprocess(config, sockets=[sock]).run()

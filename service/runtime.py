@@ -14,7 +14,7 @@ Runs, batches, station resets and analyses are jobs (service/worker.py). The API
 request, claims the station in one conditional UPDATE (so two API processes can never start two
 runs on one table), writes the run's row and defers its job; everything after that is the worker's.
 
-Errors are domain errors (:class:`DomainError` and its kinds); service/api.py maps them to HTTP in
+Errors are domain errors (:class:`DomainError` and its kinds); service/app.py maps them to HTTP in
 one handler.
 """
 
@@ -57,7 +57,7 @@ CONFIRM_S = 20.0
 # -------------------------------------------------------------------------------------- errors
 
 class DomainError(Exception):
-    """A request the run-time layer refuses; ``status`` is the HTTP code service/api.py answers."""
+    """A request the run-time layer refuses; ``status`` is the HTTP code service/app.py answers."""
 
     status = 400
 

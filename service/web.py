@@ -369,7 +369,7 @@ def run_page(request: Request, run_id: int) -> Response:
             percent = float(progress.get("percent") or 0.0)
         snap = row.station_snapshot or {}
         time_scale = float(snap.get("time_scale") or 1.0)
-        from service.analyses import analysis_summary
+        from service.routes.analyses import analysis_summary
         analyses = [analysis_summary(a) for a in s.scalars(select(Analysis).where(Analysis.run_id == run_id).order_by(Analysis.id))]
     return _render(request, who, "run.html", title=f"Run {run_id}", run=run, active=active, units=units,
                    errors=errors, percent=percent, time_scale=time_scale,
@@ -456,20 +456,6 @@ def certificate_page(request: Request, cal_id: int) -> Response:
     cert["tilted_svg"] = plots.svg(plots.tilted_figure(cal, rec, pairs), "tilted-curve",
                                    f"Heading error of {cert['serial']} at pitch and roll up to 60 deg")
     return _render(request, who, "certificate.html", title=f"Certificate {cert['number']}", cert=cert)
-
-
-@router.get("/calibrations/{cal_id}/certificate.pdf", tags=["devices"], include_in_schema=True)
-def certificate_pdf(request: Request, cal_id: int, _: Caller = Depends(require("viewer"))) -> Response:
-    """The calibration certificate as a PDF (A4: identification and parameters with uncertainties,
-    the heading-error curves, the acceptance limits and the verdict)."""
-    with request.app.state.sessions() as s:
-        row = s.get(Calibration, cal_id)
-        if row is None:
-            raise HTTPException(404, f"no calibration {cal_id}")
-        cert, cal, rec, limits = certificate_context(s, row)
-    pdf = plots.certificate_pdf(cert, cal, rec, limit_pairs(limits))
-    name = f"certificate-{cert['serial']}-{cert['number']}.pdf".replace('"', "")
-    return Response(pdf, media_type="application/pdf", headers={"Content-Disposition": f'inline; filename="{name}"'})
 
 
 __all__ = ["router", "calibration_tables", "certificate_context", "unit_view", "pm"]

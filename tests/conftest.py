@@ -85,7 +85,7 @@ def api(db_url: str) -> Iterator[Api]:
     """The service on a fresh database, with an admin, an operator and a viewer key."""
     from fastapi.testclient import TestClient
 
-    from service.api import create_app
+    from service.app import create_app
     from service.auth import create_key
 
     app = create_app(db_url)

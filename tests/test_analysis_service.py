@@ -566,7 +566,7 @@ def test_an_analysis_whose_job_was_lost_is_computed_when_the_service_starts_agai
 
     from fastapi.testclient import TestClient
 
-    from service.api import create_app
+    from service.app import create_app
     from service.auth import create_key
     from service.db import Analysis, utcnow
 

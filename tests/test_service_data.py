@@ -51,8 +51,8 @@ def test_a_bad_upload_names_the_line_and_an_oversized_one_is_refused(api, monkey
     bad = recording_text().replace("\n", "\nnot,a,row\n", 1)
     r = api.post("/recordings", role="operator", content=bad.encode())
     assert r.status_code == 422 and "line" in r.text
-    import service.api
-    monkeypatch.setattr(service.api, "MAX_UPLOAD_BYTES", 1000)
+    import service.routes.recordings
+    monkeypatch.setattr(service.routes.recordings, "MAX_UPLOAD_BYTES", 1000)
     r = api.post("/recordings", role="operator", content=recording_text().encode())
     assert r.status_code == 413
 
@@ -105,7 +105,7 @@ def test_limits_are_data_and_changes_are_audited(api):
 def test_the_service_upgrades_an_existing_database_without_losing_data(db_url):
     from fastapi.testclient import TestClient
 
-    from service.api import create_app
+    from service.app import create_app
     from service.auth import create_key
     app = create_app(db_url)
     with TestClient(app) as client:
@@ -116,3 +116,29 @@ def test_the_service_upgrades_an_existing_database_without_losing_data(db_url):
     with TestClient(app) as client:
         lim = {x["name"]: x for x in client.get("/limits", headers={"X-API-Key": key}).json()}
     assert lim["bias_lsb"]["fail"] == 6
+
+
+def test_openapi_describes_every_answer(api):
+    """Every API route declares its success answer: a JSON schema (a response model), or the media
+    type of what it sends instead (CSV, PDF, HTML, server-sent events); its refusals too."""
+    spec = api.get("/openapi.json", role=None).json()
+    seen = 0
+    for path, ops in spec["paths"].items():
+        for method, op in ops.items():
+            ok = [c for c in op["responses"] if c.startswith("2")]
+            assert len(ok) == 1, (method, path)
+            body = op["responses"][ok[0]].get("content") or {}
+            assert body, (method, path, "no content described")
+            for media, desc in body.items():
+                schema = desc.get("schema") or {}
+                if media == "application/json":
+                    assert schema and schema != {}, (method, path, "JSON without a schema")
+                    assert "$ref" in schema or "items" in schema, (method, path, schema)
+                else:
+                    assert schema.get("type") == "string", (method, path, media)
+            if path != "/health":
+                assert {"404", "422"} <= set(op["responses"]), (method, path)
+            seen += 1
+    assert seen >= 28
+    pdf = spec["paths"]["/calibrations/{cal_id}/certificate.pdf"]["get"]["responses"]["200"]["content"]
+    assert pdf["application/pdf"]["schema"]["format"] == "binary"

@@ -273,7 +273,7 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
 
 @pytest.mark.parametrize("target", ["running", "aborted"])
 def test_transition_table_is_explicit(target: str):
-    from service.runs import TRANSITIONS
+    from procedures.states import OPERATOR_TRANSITIONS as TRANSITIONS
     assert ("completed", target) not in TRANSITIONS and ("failed", target) not in TRANSITIONS
     assert ("queued", "paused") not in TRANSITIONS and ("paused", "running") in TRANSITIONS
 
@@ -281,7 +281,7 @@ def test_transition_table_is_explicit(target: str):
 def test_shutdown_aborts_active_runs_quickly_and_a_restart_recovers(db_url: str):
     from fastapi.testclient import TestClient
 
-    from service.api import create_app
+    from service.app import create_app
     from service.auth import create_key
     from service.db import Run
 

@@ -117,7 +117,7 @@ def site(tmp_path: Path, request: pytest.FixtureRequest, time_scale: float | Non
 
     The station outlives the server (the server's shutdown stops any run still using it); the
     browser contexts are closed before the server stops; the guards and screenshots are checked last."""
-    from service.api import create_app
+    from service.app import create_app
     from service.auth import create_key
 
     with ExitStack() as stack:

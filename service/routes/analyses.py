@@ -14,7 +14,6 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import HTMLResponse, StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -24,24 +23,13 @@ from service.auth import Caller, audit, require
 from service.db import Analysis, Calibration, Device, Run, Sample
 from service.deps import event_stream
 from service.runtime import ANALYSIS_FINAL, Conflict, NotFound, analysis_topic, invalid
+from service.schemas import ERRORS, AnalysesCreated, AnalysisIn, AnalysisLine, AnalysisOut, content
 from service.worker import ANALYSIS_QUEUE
 
 #: Keys the service adds to the analyser's result when it stores it (everything else is the result).
 STORED_KEYS = ("run_id", "slot", "serial", "calibration_id", "null_sims", "seed")
 
 router = APIRouter(tags=["analyses"])
-
-
-class AnalysisIn(BaseModel):
-    """What to analyse; every field optional (an empty body analyses every unit of the run)."""
-
-    model_config = ConfigDict(extra="forbid")  # a misspelt field is an error, not silently the default
-
-    slot: int | None = Field(None, ge=0, description="the fixture slot (unit) to analyse; default: every slot with samples")
-    null_sims: int = Field(200, ge=0, le=5000, description="simulated null recordings calibrating the tests' false-alarm rate")
-    calibration_id: int | None = Field(None, ge=1, description="a stored calibration as the unit's nominal model (the "
-                                       "recording's own fit is compared with it: shifted parameters are reported); "
-                                       "default: the run's own calibration of the unit, else the unit's current one")
 
 
 def analysis_json(row: Analysis) -> dict[str, Any]:
@@ -106,7 +94,7 @@ def _plan(s: Session, run_id: int, body: AnalysisIn) -> tuple[Run, dict[int, int
     return run, plan
 
 
-@router.post("/runs/{run_id}/analysis", status_code=202)
+@router.post("/runs/{run_id}/analysis", status_code=202, response_model=AnalysesCreated, responses=ERRORS)
 async def create_analysis(run_id: int, request: Request, response: Response, body: AnalysisIn | None = None,
                           caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
     """Analyse an ended run's recordings (operator): one analysis per unit (slot), or the one asked,
@@ -139,7 +127,7 @@ async def create_analysis(run_id: int, request: Request, response: Response, bod
         return {"run_id": run_id, "analyses": [analysis_json(r) for r in rows]}
 
 
-@router.get("/runs/{run_id}/analyses")
+@router.get("/runs/{run_id}/analyses", response_model=list[AnalysisLine], responses=ERRORS)
 def run_analyses(run_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
     """A run's analyses, oldest first: id, slot, serial, state, verdict and the names of the findings."""
     with request.app.state.sessions() as s:
@@ -156,13 +144,14 @@ def _get(request: Request, analysis_id: int) -> Analysis:
     return row
 
 
-@router.get("/analyses/{analysis_id}")
+@router.get("/analyses/{analysis_id}", response_model=AnalysisOut, responses=ERRORS)
 def get_analysis(analysis_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
     """One analysis: its state and progress, and once completed the analyser's result."""
     return analysis_json(_get(request, analysis_id))
 
 
-@router.get("/analyses/{analysis_id}/events")
+@router.get("/analyses/{analysis_id}/events", response_class=StreamingResponse,
+            responses=content("text/event-stream", "server-sent events: the analysis's state at each change"))
 async def analysis_events(analysis_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> StreamingResponse:
     """Server-sent events of an analysis: a ``state`` event (status, progress, reason) at each change
     until it has ended. The event id is the analysis's version: ``Last-Event-ID`` resumes after it."""
@@ -178,7 +167,8 @@ async def analysis_events(analysis_id: int, request: Request, _: Caller = Depend
     return event_stream(request, analysis_topic(analysis_id), read)
 
 
-@router.get("/analyses/{analysis_id}/report", response_class=HTMLResponse)
+@router.get("/analyses/{analysis_id}/report", response_class=HTMLResponse,
+            responses=content("text/html", "the analysis report, a self-contained page"))
 async def analysis_report(analysis_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> HTMLResponse:
     """The analysis as a self-contained HTML page (tables and the figures the stored result can
     draw; the per-sample plots are in the report ``compasscal analyze --html`` writes). 409 until
@@ -197,4 +187,4 @@ async def analysis_report(analysis_id: int, request: Request, _: Caller = Depend
     return HTMLResponse(await asyncio.to_thread(analysis_html, result, None, title, run_url))  # matplotlib: off the loop
 
 
-__all__ = ["router", "analysis_json", "analysis_summary", "AnalysisIn"]
+__all__ = ["router", "analysis_json", "analysis_summary"]

@@ -1,0 +1,65 @@
+"""Batches: units calibrated in turn on slot 0 of one station (``/batches``), each unit's run
+prompting its mounting; a failed unit does not stop the batch."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Depends, HTTPException, Request
+from pydantic import ValidationError
+from sqlalchemy import select, update
+
+from procedures.calibrate import BatchCalibrateParams
+from service.auth import Caller, audit, require
+from service.db import Batch, Station
+from service.deps import sessions
+from service.runtime import Conflict, Invalid, NotFound, batch_json, field_errors, invalid
+from service.schemas import ERRORS, BatchIn, BatchOut
+from service.worker import station_queue
+
+router = APIRouter(tags=["batches"])
+
+
+@router.post("/batches", status_code=202, response_model=BatchOut, responses=ERRORS)
+async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+    """Calibrate units in turn on slot 0 of a station (operator). Each unit's run first prompts
+    ``mount`` (answer it with ``POST /runs/{id}/prompts/mount``); a failed unit does not stop the batch."""
+    try:
+        BatchCalibrateParams.model_validate({**body.parameters, "serial": body.serials[0]})
+    except ValidationError as e:
+        raise Invalid(field_errors(e.errors(), ("body", "parameters"))) from None
+    for key in ("serial", "unmount"):
+        if key in body.parameters:
+            raise invalid(f"body.parameters.{key}", "set by the batch for each unit")
+    with sessions(request)() as s:
+        row = s.scalar(select(Station).where(Station.name == body.station))
+        if row is None:
+            raise NotFound(f"no station {body.station!r}")
+        batch = Batch(station_id=row.id, serials=list(body.serials), status="running", operator=caller.owner, summary={})
+        s.add(batch)
+        s.flush()
+        claimed = s.execute(update(Station).where(Station.id == row.id, Station.run_id.is_(None), Station.batch_id.is_(None),
+                                                  Station.state != "fault").values(batch_id=batch.id)).rowcount
+        if claimed != 1:
+            s.rollback()
+            s.refresh(row)
+            raise Conflict(f"station {row.name} is in fault ({row.reason}); POST /stations/{row.name}/reset first"
+                           if row.state == "fault" else
+                           f"station {row.name} is busy with " + (f"run {row.run_id}" if row.run_id else f"batch {row.batch_id}"))
+        audit(s, caller, "batch.start", f"batch {batch.id}", body.model_dump())
+        s.commit()
+        batch_id = batch.id
+    await request.app.state.jobs.defer("batch", queue=station_queue(body.station), lock=station_queue(body.station),
+                                       batch_id=batch_id, parameters=dict(body.parameters), operator=caller.owner)
+    with sessions(request)() as s:
+        return batch_json(s, s.get(Batch, batch_id))
+
+
+@router.get("/batches/{batch_id}", response_model=BatchOut, responses=ERRORS)
+async def get_batch(batch_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+    """A batch: status, one row per unit (run id, status, verdict), the waiting prompt and the summary."""
+    with sessions(request)() as s:
+        batch = s.get(Batch, batch_id)
+        if batch is None:
+            raise HTTPException(404, f"no batch {batch_id}")
+        return batch_json(s, batch)

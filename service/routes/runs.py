@@ -1,0 +1,178 @@
+"""Runs: start one, list and read them, pause, resume or abort, stream their events, download
+their samples, answer their prompts. Each answer comes from the database, so the API holds no run
+state and can run as several processes; the hardware is the workers' (service/worker.py), the
+rules (claiming a station, the run's state machine, commands) are the run-time layer's
+(service/runtime.py).
+
+A run is ``queued`` (created; waiting for its station's worker, which then opens the hardware), then
+``running``, ``paused``, and ends ``completed``, ``failed`` or ``aborted``. ``PUT /runs/{id}/state``
+accepts only the operator transitions of :mod:`procedures.states`; anything else is 409 naming from
+and to. A pause takes effect at the procedure's next checkpoint (the table holds still there): until
+the worker reports it, the run stays ``running`` with ``pause_requested`` true; ``running ->
+running`` then withdraws the request. A run is reported ``completed`` only after its calibrations are
+stored and its station is free again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import Any
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi.responses import Response, StreamingResponse
+from sqlalchemy import String, cast, select
+from sqlalchemy.orm import Session
+
+from physics.recording import format_recording
+from procedures.states import ACTIVE, RunState
+from service.auth import Caller, audit, require
+from service.db import Calibration, Device, Run, Station
+from service.deps import event_stream, sessions
+from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after,
+                             finish_unstarted, queue_answer, request_state, run_json, wait_for)
+from service.schemas import ERRORS, AnswerIn, AnswerOut, ErrorOut, RunDetail, RunIn, RunOut, RunStateOut, StateIn, content
+from service.store import load_recording
+from service.worker import station_queue
+
+router = APIRouter(tags=["runs"])
+
+
+def _get_run(s: Session, run_id: int) -> Run:
+    row = s.get(Run, run_id)
+    if row is None:
+        raise NotFound(f"no run {run_id}")
+    return row
+
+
+@router.post("/runs", status_code=202, response_model=RunOut, responses=ERRORS)
+async def create_run_route(body: RunIn, request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+    """Start a run (operator): 202 with the run (status ``queued``); follow it with ``GET /runs/{id}``
+    or ``GET /runs/{id}/events``. 404 unknown station, 422 bad procedure/parameters/serials, 409 busy."""
+    def create() -> Run:
+        with sessions(request)() as s:
+            return create_run(s, body.station, body.procedure, body.parameters, body.serials, caller.owner,
+                              SOFTWARE_VERSION)
+    run = await asyncio.to_thread(create)
+    job = await request.app.state.jobs.defer("run", queue=station_queue(body.station), lock=station_queue(body.station),
+                                             run_id=run.id)
+    with sessions(request)() as s:
+        row = s.get(Run, run.id)
+        row.meta = {**(row.meta or {}), "job_id": job}
+        audit(s, caller, "run.start", f"run {run.id}", {"station": body.station, "procedure": run.procedure,
+                                                         "parameters": run.parameters, "serials": run.serials})
+        s.commit()
+        return run_json(row)
+
+
+@router.get("/runs", response_model=list[RunOut], responses=ERRORS)
+async def list_runs(request: Request, station: str | None = None, status: str | None = None,
+                    procedure: str | None = None, serial: str | None = None,
+                    limit: int = Query(50, ge=1, le=1000), offset: int = Query(0, ge=0),
+                    _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
+    """Runs, newest first, filtered by station name, status, procedure and unit serial number."""
+    q = select(Run)
+    if station is not None:
+        q = q.join(Station, Station.id == Run.station_id).where(Station.name == station)
+    if status is not None:
+        q = q.where(Run.status == status)
+    if procedure is not None:
+        q = q.where(Run.procedure == procedure)
+    if serial is not None:
+        # serials is a small JSON object {"0": "SN-1"}; its text holds each serial JSON-quoted on both databases
+        needle = json.dumps(serial).replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+        q = q.where(cast(Run.serials, String).like(f"%{needle}%", escape="\\"))
+    with sessions(request)() as s:
+        rows = s.scalars(q.order_by(Run.created_at.desc(), Run.id.desc()).limit(limit).offset(offset)).all()
+        return [run_json(r) for r in rows]
+
+
+@router.get("/runs/{run_id}", response_model=RunDetail, responses=ERRORS)
+async def get_run(run_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+    """One run: provenance, live status, waiting prompts, progress, result and its calibrations."""
+    with sessions(request)() as s:
+        row = _get_run(s, run_id)
+        out = run_json(row)
+        cals = s.execute(select(Calibration, Device.serial).join(Device, Device.id == Calibration.device_id)
+                         .where(Calibration.run_id == run_id).order_by(Calibration.slot)).all()
+    out["calibrations"] = [{"id": c.id, "slot": c.slot, "serial": serial, "status": c.status, "verdict": c.verdict,
+                            "reasons": c.reasons} for c, serial in cals]
+    return out
+
+
+@router.put("/runs/{run_id}/state", status_code=202, response_model=RunStateOut, responses=ERRORS)
+async def put_run_state(run_id: int, body: StateIn, request: Request,
+                        caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+    """Pause, resume or abort (operator), checked against the run's state machine (409 otherwise).
+    202: a pause takes effect at the next checkpoint, an abort as soon as the current step ends."""
+    with sessions(request)() as s:
+        what, queued = request_state(s, run_id, body.state, body.reason)
+        job = (s.get(Run, run_id).meta or {}).get("job_id")
+    if queued and job is not None and await request.app.state.jobs.cancel(int(job)):
+        # no worker had taken it: end it here (else its worker sees the command before touching the table)
+        with sessions(request)() as s:
+            finish_unstarted(s, run_id, RunState.aborted.value, body.reason or "aborted by the operator")
+        request.app.state.notifier.poke(run_id)
+    with sessions(request)() as s:
+        audit(s, caller, "run.state", f"run {run_id}", {"state": body.state, "reason": body.reason, "action": what})
+        s.commit()
+        out = run_json(_get_run(s, run_id))
+    return {**out, "requested": body.state, "action": what}
+
+
+@router.get("/runs/{run_id}/events", response_class=StreamingResponse,
+            responses=content("text/event-stream", "server-sent events: state, step, progress, samples, prompt, result"))
+async def run_events(run_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> StreamingResponse:
+    """Server-sent events (state, step, progress, samples, prompt, result): the run's history from
+    the database, then live events until it ends, from whichever process runs it. A
+    ``Last-Event-ID`` header resumes after that event (ids increase; any API process understands them)."""
+    with sessions(request)() as s:
+        _get_run(s, run_id)
+
+    def read(after: int) -> tuple[list[tuple[int, str, dict[str, Any]]], bool]:
+        with sessions(request)() as s:
+            rows = [(e.id, e.kind, e.data) for e in events_after(s, run_id, after)]
+            status = s.scalar(select(Run.status).where(Run.id == run_id))
+        return rows, status not in ACTIVE
+    return event_stream(request, run_id, read)
+
+
+@router.get("/runs/{run_id}/samples", response_class=Response,
+            responses=content("text/csv", "the slot's samples as a RECORDING.md CSV"))
+async def run_samples(run_id: int, request: Request, slot: int = Query(0, ge=0),
+                      _: Caller = Depends(require("viewer"))) -> Response:
+    """One slot's samples as a RECORDING.md CSV (404 when it has none)."""
+    def build() -> str | None:
+        with sessions(request)() as s:
+            row = _get_run(s, run_id)
+            rec = load_recording(s, row, slot)
+        if rec is None:
+            return None
+        rec.meta.pop("result", None)  # the result summary is no recording metadata
+        rec.meta.pop("job_id", None)
+        return format_recording(rec)
+    text = await asyncio.to_thread(build)  # a long run has hundreds of thousands of rows
+    if text is None:
+        raise HTTPException(404, f"run {run_id} has no samples from slot {slot}")
+    return Response(text, media_type="text/csv",
+                    headers={"Content-Disposition": f'attachment; filename="run{run_id}-slot{slot}.csv"'})
+
+
+@router.post("/runs/{run_id}/prompts/{prompt_id}", response_model=AnswerOut, responses={**ERRORS, 503: {"model": ErrorOut, "description": "the run's worker did not take the answer"}})
+async def answer_prompt(run_id: int, prompt_id: str, body: AnswerIn, request: Request,
+                        caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+    """Answer a waiting operator prompt (operator); 404 when the run has no such prompt waiting.
+    Answers once the run's worker has taken the answer (503 if it does not within a few seconds)."""
+    with sessions(request)() as s:
+        queue_answer(s, run_id, prompt_id, body.answer)
+
+    def taken() -> bool | None:
+        with sessions(request)() as s:
+            row = s.get(Run, run_id)
+            return True if row is None or prompt_id not in (row.prompts or {}) or row.status not in ACTIVE else None
+    if not (await wait_for(taken, CONFIRM_S, every=0.05)).ok:
+        raise Unavailable(f"run {run_id}'s worker did not take the answer within {CONFIRM_S:g} s (it is kept for it)")
+    with sessions(request)() as s:
+        audit(s, caller, "run.prompt", f"run {run_id}", {"prompt": prompt_id, "answer": body.answer})
+        s.commit()
+    return {"run_id": run_id, "prompt": prompt_id, "answer": body.answer}

@@ -1,0 +1,119 @@
+"""Stations: ``/stations`` (list, create, change) and ``/stations/{name}/reset``.
+
+A station goes to ``fault`` when its hardware cannot be opened, a run fails on the table's account
+(an axis fault, Modbus), or its worker was lost mid-run. It stays there, refusing runs, until
+``POST /stations/{name}/reset`` (a job for its worker) resets the axis faults.
+"""
+
+from __future__ import annotations
+
+import uuid
+from typing import Any
+
+from fastapi import APIRouter, Depends, HTTPException, Request
+from sqlalchemy import select
+
+from service.auth import Caller, audit, require
+from service.db import Run, Station
+from service.deps import sessions
+from service.runtime import CONFIRM_S, Conflict, NotFound, Unavailable, run_json, station_json, wait_for
+from service.schemas import (ERRORS, ErrorOut, StationConfigIn, StationDetail, StationIn, StationOut,
+                             StationResetOut)
+from service.worker import station_queue
+
+router = APIRouter(tags=["stations"])
+
+
+@router.get("/stations", response_model=list[StationOut], responses=ERRORS)
+async def list_stations(request: Request, _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
+    """Every station with its state (idle, running, paused, fault), current run and worker."""
+    with sessions(request)() as s:
+        rows = s.scalars(select(Station).order_by(Station.name)).all()
+    return [station_json(r) for r in rows]
+
+
+@router.post("/stations", status_code=201, response_model=StationOut, responses=ERRORS)
+async def create_station(body: StationIn, request: Request, caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
+    """Add a station (admin). 409 if the name is taken."""
+    with sessions(request)() as s:
+        if s.scalar(select(Station.id).where(Station.name == body.name)) is not None:
+            raise HTTPException(409, f"station {body.name!r} exists")
+        row = Station(name=body.name, modbus=body.modbus, compasses=list(body.compasses), time_scale=body.time_scale,
+                      state="idle")
+        s.add(row)
+        audit(s, caller, "station.create", body.name, body.model_dump())
+        s.commit()
+        return station_json(row)
+
+
+@router.put("/stations/{name}", response_model=StationOut, responses=ERRORS)
+async def put_station(name: str, body: StationConfigIn, request: Request, caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
+    """Create a station or change its URLs (admin), e.g. after moving a table to another gateway.
+    409 while a run uses it; runs already made keep the configuration they ran with."""
+    full = StationIn(name=name, **body.model_dump())  # the same checks as POST
+    with sessions(request)() as s:
+        row = s.scalar(select(Station).where(Station.name == name))
+        if row is None:
+            row = Station(name=name, modbus=full.modbus, compasses=list(full.compasses), time_scale=full.time_scale,
+                          state="idle")
+            s.add(row)
+        else:
+            if row.run_id is not None:
+                raise HTTPException(409, f"station {name!r} is {row.state} (run {row.run_id}); change it when idle")
+            row.modbus, row.compasses, row.time_scale = full.modbus, list(full.compasses), full.time_scale
+        audit(s, caller, "station.put", name, full.model_dump())
+        s.commit()
+        return station_json(row)
+
+
+@router.get("/stations/{name}", response_model=StationDetail, responses=ERRORS)
+async def get_station(name: str, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+    """One station: configuration, state, current run (with its status and prompts), fault, worker."""
+    with sessions(request)() as s:
+        row = s.scalar(select(Station).where(Station.name == name))
+        if row is None:
+            raise HTTPException(404, f"no station {name!r}")
+        out = station_json(row)
+        run = s.get(Run, row.run_id) if row.run_id is not None else None
+        out["run"] = run_json(run) if run is not None else None
+    return out
+
+
+@router.post("/stations/{name}/reset", response_model=StationResetOut, responses={**ERRORS, 503: {"model": ErrorOut, "description": "the table or the station's worker does not answer"}})
+async def reset_station(name: str, request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+    """Reset the table's axis faults and make the station idle (operator), through the station's
+    worker. 409 while a run uses it; 503 when the table cannot be reached, still reports a fault, or
+    no worker of the station answers."""
+    with sessions(request)() as s:
+        row = s.scalar(select(Station).where(Station.name == name))
+        if row is None:
+            raise NotFound(f"no station {name!r}")
+        if row.run_id is not None:
+            raise Conflict(f"station {name} is busy with run {row.run_id}; abort it first")
+        before = row.reason
+    token = uuid.uuid4().hex
+    await request.app.state.jobs.defer("reset", queue=station_queue(name), lock=station_queue(name), station=name, token=token)
+
+    def outcome() -> dict[str, Any] | None:
+        with sessions(request)() as s:
+            r = s.scalar(select(Station).where(Station.name == name))
+            return r.reset if r is not None and (r.reset or {}).get("token") == token else None
+    got = await wait_for(outcome, CONFIRM_S)
+    if not got.ok:
+        raise Unavailable(f"no worker of station {name} took the reset within {CONFIRM_S:g} s; "
+                          f"is `compasscal worker --station {name}` running?")
+    out = {k: v for k, v in got.value.items() if k not in ("token", "ok", "status", "error")}
+    if not got.value.get("ok"):
+        with sessions(request)() as s:  # an attempt on the hardware: logged even when it failed
+            audit(s, caller, "station.reset", name, {"ok": False, "error": got.value.get("error")})
+            s.commit()
+        raise HTTPException(int(got.value.get("status") or 503), got.value.get("error"))
+    with sessions(request)() as s:
+        row = s.scalar(select(Station).where(Station.name == name))
+        if row.state == "fault":
+            audit(s, caller, "station.reset", name, {"ok": False, "error": row.reason, **out})
+            s.commit()
+            raise Unavailable(f"station {name}: {row.reason}")
+        audit(s, caller, "station.reset", name, {"ok": True, "fault": before, **out})
+        s.commit()
+        return {**station_json(row), **out}

@@ -1,0 +1,396 @@
+"""What the API takes and answers: every request body and every response, as pydantic models, so
+OpenAPI (``/docs``) describes each route's answer. The routes (service/routes/) build answers
+from the database rows with the view functions of service/runtime.py and service/routes/*.
+
+Response models whose documents carry open-ended physics (a calibration's JSON, an analysis's
+result) declare the fields the service adds and allow the rest (``extra="allow"``)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from drivers.modbus import BusURL
+
+# ------------------------------------------------------------------------------------------ errors
+
+
+class FieldProblem(BaseModel):
+    """One bad field of a request: its path (``body.parameters.samples``) and what is wrong."""
+
+    field: str
+    problem: str
+
+
+class ErrorOut(BaseModel):
+    """Every refusal: ``detail`` is a sentence, or for a 422 one entry per bad field."""
+
+    detail: str | list[FieldProblem] | dict[str, Any]
+
+
+#: The refusals every route may answer, for OpenAPI.
+ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorOut, "description": "no or unknown API key"},
+    403: {"model": ErrorOut, "description": "the key's role may not do this"},
+    404: {"model": ErrorOut, "description": "no such resource"},
+    409: {"model": ErrorOut, "description": "the resource's state forbids it now"},
+    422: {"model": ErrorOut, "description": "bad input: each field and its problem"},
+}
+
+# --------------------------------------------------------------------------------------- service
+
+
+class HealthOut(BaseModel):
+    """The service is up and its database answers."""
+
+    status: str
+    version: str
+    database: str = Field(description="sqlite or postgresql")
+
+# --------------------------------------------------------------------------------------- devices
+
+
+class DeviceOut(BaseModel):
+    """A unit known by its serial number."""
+
+    serial: str
+    model: str | None
+    firmware: str | None
+    created_at: datetime
+    calibrations: int
+    current_calibration_id: int | None
+
+
+class CalibrationOut(BaseModel):
+    """A stored calibration: the calibration JSON of PHYSICS.md (M_o, M_k, bias, ... as further
+    keys) with its id, run, time, status (current, superseded, rejected) and verdict."""
+
+    model_config = ConfigDict(extra="allow")
+
+    id: int
+    run_id: int | None
+    created_at: datetime
+    status: str
+    verdict: str | None
+    reasons: list[Any] | None
+    serial: str
+
+
+class HistoryEntry(BaseModel):
+    """One line of a unit's calibration history: the figures the acceptance limits judged."""
+
+    id: int
+    run_id: int | None
+    created_at: datetime
+    status: str
+    verdict: str | None
+    reasons: list[Any]
+    method: str | None
+    slot: int | None
+    figures: dict[str, Any] | None
+
+# ---------------------------------------------------------------------------------------- limits
+
+
+class LimitIn(BaseModel):
+    """An acceptance limit: above ``marginal`` MARGINAL, above ``fail`` FAIL."""
+
+    marginal: float = Field(ge=0)
+    fail: float = Field(ge=0)
+
+
+class LimitOut(BaseModel):
+    """An acceptance limit every new calibration is judged by."""
+
+    name: str
+    marginal: float
+    fail: float
+    unit: str
+    description: str | None = None
+
+# ------------------------------------------------------------------------------------ recordings
+
+
+class RecordingOut(BaseModel):
+    """An imported recording, stored as a completed run of procedure ``import``."""
+
+    id: int
+    status: str
+    procedure: str
+    samples: int
+    serial: str
+
+# -------------------------------------------------------------------------------------- stations
+
+
+class StationConfigIn(BaseModel):
+    """A station's configuration (the name is in the path)."""
+
+    modbus: str = Field(min_length=1, max_length=256, description="e.g. tcp://10.0.0.5:502")
+    compasses: list[str] = Field(min_length=1, description="the serial URL of slot 0, slot 1, ...")
+    time_scale: float = Field(1.0, gt=0, le=1000, description="> 1 only for a simulated station running faster")
+
+    @field_validator("modbus")
+    @classmethod
+    def _url(cls, v: str) -> str:
+        BusURL.parse(v)  # ValueError names the problem
+        return v
+
+    @field_validator("compasses")
+    @classmethod
+    def _urls(cls, v: list[str]) -> list[str]:
+        if any(not u.strip() for u in v):
+            raise ValueError("empty compass URL")
+        return v
+
+
+class StationIn(StationConfigIn):
+    """A new station: its name, its table's Modbus URL and one serial URL per fixture slot."""
+
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+class StationOut(BaseModel):
+    """A station: configuration, state (idle, running, paused, fault), current run and its worker."""
+
+    name: str
+    modbus: str
+    compasses: list[str]
+    time_scale: float
+    created_at: datetime
+    state: str
+    run_id: int | None
+    fault: str | None
+    batch_id: int | None
+    worker: str | None = Field(description="host:pid of the worker that last served it")
+    worker_alive: bool = Field(description="its worker beat within the last few heartbeats")
+    heartbeat_at: datetime | None
+
+# ------------------------------------------------------------------------------------------ runs
+
+
+class RunIn(BaseModel):
+    """A run to start."""
+
+    station: str
+    procedure: str = "calibrate"
+    parameters: dict[str, Any] = Field(default_factory=dict)
+    serials: dict[str, str] | None = Field(None, description='slot -> serial, e.g. {"0": "SN-1"}; '
+                                           "omitted: the compasses' own serial numbers")
+
+
+class StateIn(BaseModel):
+    """A requested state change of a run."""
+
+    state: str = Field(pattern="^(paused|running|aborted)$")
+    reason: str | None = Field(None, max_length=500)
+
+
+class AnswerIn(BaseModel):
+    """The operator's answer to a prompt."""
+
+    answer: str = Field("", max_length=1000)
+
+
+class PromptOut(BaseModel):
+    """An operator prompt the run waits on."""
+
+    id: str
+    text: str
+
+
+class RunOut(BaseModel):
+    """A run: provenance, live status, waiting prompts, progress and result."""
+
+    id: int
+    status: str = Field(description="queued, running, paused, completed, failed or aborted")
+    reason: str | None
+    station: str | None
+    procedure: str
+    procedure_version: str
+    parameters: dict[str, Any]
+    serials: dict[str, Any]
+    operator: str
+    batch_id: int | None
+    software_version: str
+    station_snapshot: dict[str, Any] | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    table_seconds: float | None
+    samples_count: int
+    result: dict[str, Any] | None
+    pause_requested: bool
+    prompts: list[PromptOut]
+    progress: dict[str, Any] | None
+
+
+class StationDetail(StationOut):
+    """One station with its current run."""
+
+    run: RunOut | None
+
+
+class StationResetOut(StationOut):
+    """A station after its reset: the axes whose faults were reset and any still faulted."""
+
+    reset_axes: list[str] = []
+    still_faulted: dict[str, str] = {}
+
+
+class RunCalibration(BaseModel):
+    """A calibration a run stored."""
+
+    id: int
+    slot: int | None
+    serial: str
+    status: str
+    verdict: str | None
+    reasons: list[Any] | None
+
+
+class RunDetail(RunOut):
+    """One run with the calibrations it stored."""
+
+    calibrations: list[RunCalibration]
+
+
+class RunStateOut(RunOut):
+    """A run after a state request: what was asked and what it does."""
+
+    requested: str
+    action: str
+
+
+class AnswerOut(BaseModel):
+    """An answer the run's worker took."""
+
+    run_id: int
+    prompt: str
+    answer: str
+
+# --------------------------------------------------------------------------------------- batches
+
+
+class BatchIn(BaseModel):
+    """Units to calibrate in turn on slot 0 of a station."""
+
+    station: str
+    serials: list[str] = Field(min_length=1, max_length=1000)
+    parameters: dict[str, Any] = Field(default_factory=dict, description="calibrate parameters for every unit")
+
+    @field_validator("serials")
+    @classmethod
+    def _distinct(cls, v: list[str]) -> list[str]:
+        v = [s.strip() for s in v]
+        if any(not s for s in v):
+            raise ValueError("empty serial number")
+        dup = sorted({s for s in v if v.count(s) > 1})
+        if dup:
+            raise ValueError(f"serial numbers listed twice: {', '.join(dup)}")
+        return v
+
+
+class BatchUnit(BaseModel):
+    """One unit of a batch: its run, status and verdict."""
+
+    serial: str
+    run_id: int | None
+    status: str
+    verdict: str | None
+    reason: str | None = None
+    calibration_id: int | None = None
+    calibration_status: str | None = None
+    prompts: list[PromptOut] = []
+
+
+class BatchPrompt(PromptOut):
+    """The prompt a batch waits on, with its run."""
+
+    run_id: int
+
+
+class BatchOut(BaseModel):
+    """A batch: status, one row per unit, the waiting prompt and the summary by serial."""
+
+    id: int
+    station: str | None
+    status: str
+    operator: str
+    serials: list[str]
+    created_at: datetime
+    finished_at: datetime | None
+    summary: dict[str, str]
+    units: list[BatchUnit]
+    prompt: BatchPrompt | None
+
+# -------------------------------------------------------------------------------------- analyses
+
+
+class AnalysisIn(BaseModel):
+    """What to analyse; every field optional (an empty body analyses every unit of the run)."""
+
+    model_config = ConfigDict(extra="forbid")  # a misspelt field is an error, not silently the default
+
+    slot: int | None = Field(None, ge=0, description="the fixture slot (unit) to analyse; default: every slot with samples")
+    null_sims: int = Field(200, ge=0, le=5000, description="simulated null recordings calibrating the tests' false-alarm rate")
+    calibration_id: int | None = Field(None, ge=1, description="a stored calibration as the unit's nominal model (the "
+                                       "recording's own fit is compared with it: shifted parameters are reported); "
+                                       "default: the run's own calibration of the unit, else the unit's current one")
+
+
+class AnalysisOut(BaseModel):
+    """An analysis: its state and progress; once ``completed``, the analyser's result (verdict,
+    findings, fit before and after, ... as further keys)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    id: int
+    run_id: int
+    slot: int | None
+    serial: str | None
+    status: str = Field(description="queued, running, completed or failed")
+    reason: str | None = Field(description="why it failed")
+    progress: dict[str, Any] | None = Field(description='{"stage": ..., "percent": ...}')
+    calibration_id: int | None
+    null_sims: int | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    url: str
+    events_url: str
+    report_url: str | None
+
+
+class AnalysesCreated(BaseModel):
+    """The analyses a request queued, one per unit."""
+
+    run_id: int
+    analyses: list[AnalysisOut]
+
+
+class AnalysisLine(BaseModel):
+    """One line of a run's analyses."""
+
+    id: int
+    run_id: int
+    slot: int | None
+    serial: str | None
+    created_at: datetime
+    status: str
+    reason: str | None
+    progress: dict[str, Any] | None
+    verdict: str | None
+    model: str | None
+    findings: list[str | None]
+    report_url: str | None
+
+# -------------------------------------------------------------------------- non-JSON answers
+
+
+def content(media_type: str, description: str, binary: bool = False) -> dict[int | str, dict[str, Any]]:
+    """The OpenAPI description of a success answer that is not JSON (a CSV, a PDF, HTML, events)."""
+    schema: dict[str, Any] = {"type": "string", **({"format": "binary"} if binary else {})}
+    return {200: {"description": description, "content": {media_type: {"schema": schema}}}, **ERRORS}

@@ -815,6 +815,18 @@ def serve(
     if workers > 1 and embedded:
         _fail("--station-worker with --workers > 1: each API process would drive every station; run one "
               "`compasscal worker --station NAME` per station instead")
+    if pg and embedded:  # a station with a worker of its own must not be driven from here too
+        import socket
+
+        from service.db import make_engine, sessions
+        from service.runtime import other_workers
+        from service.worker import served_elsewhere
+
+        engine = make_engine(default_url())
+        busy = other_workers(sessions(engine), None, f"{socket.gethostname()}:{os.getpid()}")
+        engine.dispose()
+        if busy:
+            _fail(f"--station-worker: {served_elsewhere(busy)}; or serve with --no-station-worker")
     sock = _listen(host, port)
     console.print(f"database: {database}; {workers} API process(es); stations driven "
                   + ("here" if embedded else "by their `compasscal worker`s"), soft_wrap=True, markup=False, highlight=False)

@@ -401,6 +401,25 @@ def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge
     return ended
 
 
+def other_workers(sessions: sessionmaker, stations: list[str] | None, me: str, wait_s: float = LOST_AFTER_S + 1.0,
+                  every: float = 0.5) -> dict[str, str]:
+    """Stations (None: every station) served by a live worker other than ``me``, by name: a second
+    worker of a station would compete with the first for its table. A worker that has just died
+    still looks alive for :data:`LOST_AFTER_S`: wait up to ``wait_s`` for its heartbeat to go stale."""
+    import time
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        with sessions() as s:
+            q = select(Station)
+            if stations is not None:
+                q = q.where(Station.name.in_(stations))
+            busy = {r.name: r.worker for r in s.scalars(q) if r.worker and r.worker != me and worker_alive(r)}
+        if not busy or time.monotonic() > deadline:
+            return busy
+        time.sleep(every)
+
+
 @dataclass
 class Waited:
     """What a confirmation wait saw."""
@@ -423,4 +442,4 @@ async def wait_for(check: Any, timeout: float, every: float = 0.1) -> Waited:
 
 __all__ = ["DomainError", "NotFound", "Conflict", "Invalid", "Unavailable", "field_errors", "invalid", "publish",
            "events_after", "notify", "analysis_topic", "Notifier", "station_json", "run_json", "batch_json", "create_run", "request_state",
-           "finish_unstarted", "queue_answer", "reap_lost_workers", "worker_alive", "wait_for"]
+           "finish_unstarted", "queue_answer", "reap_lost_workers", "worker_alive", "other_workers", "wait_for"]

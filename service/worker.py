@@ -49,7 +49,7 @@ from procedures.events import Event, PromptAnswered, Result, StateChanged
 from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, Station, utcnow
 from service.runtime import (ANALYSIS_FINAL, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError,
-                             analysis_topic, create_run, notify, publish)
+                             analysis_topic, create_run, notify, other_workers, publish)
 from service.store import insert_samples, store_calibration
 
 log = logging.getLogger("compasscal.worker")
@@ -66,6 +66,12 @@ DB_OUTAGE_S = 120.0
 STALLED_S = 30.0
 #: Seconds after its request an analysis without a job is taken as lost (and queued again).
 REQUEUE_AFTER_S = 10.0
+
+def served_elsewhere(busy: dict[str, str]) -> str:
+    """Why a worker may not start: these stations have a live worker already."""
+    return ("already served by a live worker: " + ", ".join(f"station {k} by {v}" for k, v in sorted(busy.items()))
+            + "; stop it first (two workers of one station would compete for its table)")
+
 
 def station_queue(name: str) -> str:
     """The queue (and the lock) of a station's jobs."""
@@ -769,6 +775,9 @@ async def serve_worker(database_url: str, stations: list[str], analyses: bool = 
     missing = [n for n in stations if n not in known]
     if missing:
         raise Conflict(f"no station {', '.join(repr(m) for m in missing)}; create it first (PUT /stations/NAME)")
+    busy = await asyncio.to_thread(other_workers, ctx.sessions, stations, ctx.name)
+    if busy:
+        raise Conflict(served_elsewhere(busy))
     queues = [station_queue(n) for n in stations]
     app = make_app(pg_connector(database_url))
     async with app.open_async():

@@ -271,3 +271,37 @@ def test_a_postgresql_restart_mid_run_loses_nothing(tmp_path: Path):
     finally:
         for p in procs:
             _kill(p)
+
+
+def test_a_station_never_has_two_workers(tmp_path: Path):
+    """A second `compasscal worker` of a station that has a live worker, or a single-process
+    `compasscal serve` that would drive every station from its own process, is refused naming the
+    station and its worker; the first worker carries on."""
+    url = fresh_database("postgresql", tmp_path)
+    from service.db import Station, make_engine, sessions, upgrade
+
+    engine = make_engine(url)
+    upgrade(engine)
+    with sessions(engine)() as s:
+        s.add(Station(name="lab-w", modbus="tcp://127.0.0.1:9", compasses=["tcp://127.0.0.1:9"], time_scale=1.0))
+        s.commit()
+    first = _start(["worker", "--station", "lab-w"], url, tmp_path / "first.log")
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            with sessions(engine)() as s:
+                row = s.query(Station).filter_by(name="lab-w").one()
+                if row.heartbeat_at is not None:
+                    break
+            assert first.poll() is None and time.monotonic() < deadline, (tmp_path / "first.log").read_text()
+            time.sleep(0.2)
+        env = {**os.environ, "COMPASSCAL_DATABASE_URL": url}
+        for args in (["worker", "--station", "lab-w"], ["serve", "--port", str(_free_port())]):
+            r = subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=ROOT, env=env, capture_output=True,
+                               text=True, timeout=90)
+            said = " ".join((r.stdout + r.stderr).split())
+            assert r.returncode == 2 and "station lab-w by" in said and "stop it first" in said, (args, said)
+        assert first.poll() is None
+    finally:
+        _kill(first)
+        engine.dispose()

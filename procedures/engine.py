@@ -36,13 +36,15 @@ from drivers.turntable import MoveTimeout
 from physics.recording import Recording, concat, format_recording
 from physics.table import Motion
 from procedures.calibrate import PROCEDURES
-from procedures.events import (Event, Progress, PromptAsked, Result, SamplesStored, StateChanged, StepRetried, StepStarted,
-                               StepWarning)
+from procedures.events import (Event, Progress, PromptAsked, Result, Resumed, SamplesStored, StateChanged, StepRetried,
+                               StepStarted, StepWarning)
 from procedures.states import RunState
 from procedures.steps import TIMED_STEPS, Acquire, Checkpoint, Move, Outcome, Procedure, Prompt, Scan, Settle, Step, step_seconds
 
 #: Table axis turned by each Scan axis.
 SCAN_AXIS = {"psi": "z", "theta": "y", "phi": "x"}
+#: Table seconds without a sample that separate two replayed scans of one label (a move between them).
+SCAN_GAP_S = 0.5
 #: The other axes must hold within this (deg) during an acquisition or a scan.
 HOLD_TOLERANCE_DEG = 0.01
 
@@ -69,6 +71,45 @@ class Aborted(Exception):
     """The operator aborted the run."""
 
 
+class ReplayError(Exception):
+    """The interrupted run cannot be replayed up to its last checkpoint (its recording lacks a step)."""
+
+
+@dataclass
+class Replay:
+    """What an interrupted run of the same procedure, parameters and units recorded up to the last
+    checkpoint it passed. The engine answers the steps until that checkpoint from it (its samples go
+    to this run's sink as if just taken, its prompts get the answers given then) instead of the table,
+    then carries on live: the run resumes where the other was cut off."""
+
+    run_id: int
+    checkpoints: int  # how many checkpoints the interrupted run passed
+    samples: dict[str, dict[int, Recording]]  # its samples by step label, then by slot, in order
+    answers: dict[str, str] = field(default_factory=dict)  # prompt id -> the answer given
+    taken: dict[tuple[str, int], int] = field(default_factory=dict)  # (label, slot) -> samples replayed so far
+
+    def take(self, step: Acquire | Scan) -> dict[int, Recording]:
+        """The samples that answered ``step`` then, by slot: an acquisition's next ``samples`` of its
+        label (several poses share a label), a scan's next stretch of its label without a gap."""
+        out: dict[int, Recording] = {}
+        for slot, rec in sorted(self.samples.get(step.step, {}).items()):
+            start = self.taken.get((step.step, slot), 0)
+            if isinstance(step, Acquire):
+                stop = start + step.samples
+            else:  # a scan streams without a pause; a move (a gap in table time) separates two scans
+                gaps = np.flatnonzero(np.diff(rec.t[start:]) > SCAN_GAP_S)
+                stop = start + int(gaps[0]) + 1 if len(gaps) else len(rec)
+            if stop > len(rec) or stop <= start:
+                raise ReplayError(f"run {self.run_id} has too few samples of step {step.step!r} (slot {slot}) before "
+                                  "its last checkpoint: it cannot be resumed")
+            self.taken[(step.step, slot)] = stop
+            out[slot] = rec.select(np.arange(start, stop))
+        if not out:
+            raise ReplayError(f"run {self.run_id} has no samples of step {step.step!r} before its last checkpoint: "
+                              "it cannot be resumed")
+        return out
+
+
 @dataclass
 class Engine:
     """Runs one procedure once. Control it from other tasks with :meth:`pause`, :meth:`resume`,
@@ -85,6 +126,7 @@ class Engine:
     state: RunState = RunState.queued
     reason: str | None = None
     serials: dict[int, str] = field(default_factory=dict)
+    replay: Replay | None = None  # resume an interrupted run from its last checkpoint
 
     def __post_init__(self) -> None:
         self._resume = asyncio.Event()
@@ -97,6 +139,7 @@ class Engine:
         self._clock: dict[Any, tuple[float, int]] = {}  # per slot: the last kept sample's (host time, seq)
         self._streaming = False
         self._table_used = 0.0  # table seconds until the last move, settle or acquisition ended
+        self._replayed_until = 0.0  # table time of the last sample a replay took over
 
     # ---------------------------------------------------------------------------------- control
     def pause(self) -> None:
@@ -141,6 +184,7 @@ class Engine:
         outcome: Outcome | None = None
         gen = self.procedure.run(self.params)
         reply: Any = None
+        replaying, passed = self.replay is not None and self.replay.checkpoints > 0, 0
         try:
             await self._prepare()
             while True:
@@ -150,8 +194,16 @@ class Engine:
                 except StopIteration as stop:
                     outcome = stop.value
                     break
-                self.on_event(StepStarted(step, self.table_time()))
-                reply = await self._do(step)
+                if replaying:
+                    reply = self._replayed(step)
+                    if isinstance(step, Checkpoint):
+                        passed += 1
+                        if passed == self.replay.checkpoints:
+                            replaying = False
+                            self._go_live(step.label)
+                else:
+                    self.on_event(StepStarted(step, self.table_time()))
+                    reply = await self._do(step)
                 if isinstance(step, TIMED_STEPS):
                     # a data-dependent tail beyond the plan counts as nothing left of it
                     left_nominal -= nominal[done] if done < len(nominal) else 0.0
@@ -230,6 +282,27 @@ class Engine:
                 self._check_abort()
                 raise
         raise TypeError(f"unknown step {step!r}")
+
+    def _replayed(self, step: Step) -> Any:
+        """A step answered from the interrupted run (see :class:`Replay`), not the table."""
+        assert self.replay is not None
+        if isinstance(step, (Acquire, Scan)):
+            recs = self.replay.take(step)
+            for slot, rec in sorted(recs.items()):
+                self.sink.add(slot, rec)
+                self._samples += len(rec)
+                self._replayed_until = max(self._replayed_until, float(rec.t[-1]))
+            return dict(recs)
+        if isinstance(step, Prompt):
+            return self.replay.answers.get(step.id, "")
+        return None
+
+    def _go_live(self, label: str) -> None:
+        """The replay has reached its last checkpoint: table time goes on after its last sample."""
+        assert self.replay is not None
+        t = self._replayed_until + 1.0
+        self._t0 = time.monotonic() - t / self.station.time_scale
+        self.on_event(Resumed(self.replay.run_id, label, self._samples, t))
 
     async def _stream(self) -> None:
         if not self._streaming:

@@ -5,7 +5,7 @@ run's event log (the run_events table) and streams it as a server-sent event, th
 progress bar from them. ``kind`` and ``data()`` are therefore a wire format: the JSON each class
 makes is exactly what clients of ``GET /runs/{id}/events`` read, and must not change with the class.
 
-Several classes share a kind on the wire (``step``: started, retried, warning; ``prompt``: asked,
+Several classes share a kind on the wire (``step``: started, retried, warning, resumed; ``prompt``: asked,
 answered), told apart there by their keys; here by their type, so a reader matches on the class
 (``isinstance(e, Progress)``) rather than on strings and dict keys.
 """
@@ -69,6 +69,22 @@ class StepWarning:
     def data(self) -> dict[str, Any]:
         """The event's JSON body."""
         return {"warning": self.warning}
+
+
+@dataclass(frozen=True)
+class Resumed:
+    """The steps up to checkpoint ``checkpoint`` were answered from interrupted run ``from_run``'s
+    recording (``samples`` samples taken over); the table goes on live from there at table time ``t``."""
+
+    kind: ClassVar[str] = "step"
+    from_run: int
+    checkpoint: str
+    samples: int
+    t: float
+
+    def data(self) -> dict[str, Any]:
+        """The event's JSON body."""
+        return {"resumed_from": self.from_run, "checkpoint": self.checkpoint, "samples": self.samples, "t": self.t}
 
 
 @dataclass(frozen=True)
@@ -141,8 +157,8 @@ class Result:
 
 
 #: Any event of a run.
-Event: TypeAlias = (StateChanged | StepStarted | StepRetried | StepWarning | Progress | SamplesStored | PromptAsked
-                    | PromptAnswered | Result)
+Event: TypeAlias = (StateChanged | StepStarted | StepRetried | StepWarning | Resumed | Progress | SamplesStored
+                    | PromptAsked | PromptAnswered | Result)
 
 
 def describe_step(step: Step) -> dict[str, Any]:

@@ -274,13 +274,54 @@ def _busy(row: Station, batch_id: int | None = None) -> str | None:
     return None
 
 
-def create_run(s: Session, station_name: str, procedure: str, parameters: dict[str, Any] | None,
+def checkpoints_passed(s: Session, run_id: int) -> list[str]:
+    """The labels of the checkpoints a run passed, in order (from its event log)."""
+    rows = s.scalars(select(RunEvent.data).where(RunEvent.run_id == run_id, RunEvent.kind == "step")
+                     .order_by(RunEvent.id))
+    return [str(d["step"].get("label")) for d in rows
+            if isinstance(d, dict) and isinstance(d.get("step"), dict) and d["step"].get("kind") == "checkpoint"]
+
+
+def _resumable(s: Session, resume: int, station_name: str, procedure: str | None,
+               parameters: dict[str, Any] | None) -> tuple[Run, list[str]]:
+    """The interrupted run a new run resumes, checked: same station, an end that was not completion,
+    a checkpoint passed; the request's procedure and parameters, if given, must be its own."""
+    old = s.get(Run, resume)
+    if old is None:
+        raise invalid("body.resume", f"no run {resume}")
+    if old.status not in (RunState.failed.value, RunState.aborted.value):
+        raise Conflict(f"run {resume} is {old.status}; only a failed or aborted run can be resumed")
+    if (old.station_snapshot or {}).get("name") != station_name:
+        raise invalid("body.resume", f"run {resume} ran on station {(old.station_snapshot or {}).get('name')}, "
+                      f"not {station_name}: a run resumes on its own table")
+    if procedure is not None and procedure != old.procedure:
+        raise invalid("body.procedure", f"run {resume} was {old.procedure}; a resumed run is the same procedure")
+    if parameters and parameters != old.parameters:
+        raise invalid("body.parameters", f"run {resume}'s parameters are taken over; leave them out")
+    passed = checkpoints_passed(s, resume)
+    if not passed:
+        raise Conflict(f"run {resume} passed no checkpoint: nothing to resume from; start a new run")
+    return old, passed
+
+
+def create_run(s: Session, station_name: str, procedure: str | None, parameters: dict[str, Any] | None,
                serials: dict[str, str] | None, operator: str, software_version: str,
-               batch_id: int | None = None) -> Run:
+               batch_id: int | None = None, resume: int | None = None) -> Run:
     """Validate a run, write its row (``queued``, with its provenance) and claim the station for it,
-    in one transaction (committed). NotFound, Invalid (naming the field) or Conflict (busy, fault)."""
+    in one transaction (committed). NotFound, Invalid (naming the field) or Conflict (busy, fault).
+
+    ``resume``: a failed or aborted run of this station to continue from the last checkpoint it
+    passed: its procedure, parameters and units are taken over, and its worker replays its samples
+    up to there (``procedure`` None: the resumed run's, else "calibrate")."""
     from procedures.calibrate import PROCEDURES
 
+    resumed: dict[str, Any] | None = None
+    if resume is not None:
+        old, passed = _resumable(s, resume, station_name, procedure, parameters)
+        procedure, parameters = old.procedure, dict(old.parameters or {})
+        serials = {**{str(k): str(v) for k, v in (old.serials or {}).items() if v}, **(serials or {})}
+        resumed = {"run_id": old.id, "checkpoints": len(passed), "label": passed[-1], "serials": dict(old.serials or {})}
+    procedure = procedure or "calibrate"
     proc = PROCEDURES.get(procedure)
     if proc is None:
         raise invalid("body.procedure", f"unknown procedure {procedure!r}; known: {', '.join(sorted(PROCEDURES))}")
@@ -306,7 +347,8 @@ def create_run(s: Session, station_name: str, procedure: str, parameters: dict[s
               parameters=json_safe(params.model_dump()), status=RunState.queued.value, operator=operator,
               station_snapshot=snapshot, serials=given, software_version=software_version, prompts={},
               meta={"station": row.name, "sample_rate_hz": str(SAMPLE_RATE_HZ), "time_scale": f"{row.time_scale:g}",
-                    "parameters": params.model_dump_json()})
+                    "parameters": params.model_dump_json(),
+                    **({"resume": resumed, "resumed_from": str(resumed["run_id"])} if resumed else {})})
     s.add(run)
     s.flush()
     # the claim: one conditional UPDATE, so two API processes racing for one table cannot both win

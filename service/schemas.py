@@ -175,10 +175,13 @@ class RunIn(BaseModel):
     """A run to start."""
 
     station: str
-    procedure: str = "calibrate"
+    procedure: str | None = Field(None, description="default calibrate (with resume: the resumed run's)")
     parameters: dict[str, Any] = Field(default_factory=dict)
     serials: dict[str, str] | None = Field(None, description='slot -> serial, e.g. {"0": "SN-1"}; '
                                            "omitted: the compasses' own serial numbers")
+    resume: int | None = Field(None, ge=1, description="a failed or aborted run of this station to continue from the "
+                               "last checkpoint it passed (its procedure, parameters and units; its samples up to "
+                               "there are taken over, the same units must be mounted)")
 
 
 class StateIn(BaseModel):

@@ -44,13 +44,13 @@ from drivers.turntable import AxisError, Turntable
 from physics.calibration import Calibration as PhysCalibration, json_safe
 from physics.recording import Recording
 from procedures.calibrate import BATCH, PROCEDURES
-from procedures.engine import Engine
+from procedures.engine import Engine, Replay
 from procedures.events import Event, PromptAnswered, Result, StateChanged
 from procedures.states import ACTIVE, FINAL, RunState
-from service.db import Analysis, Batch, Calibration, Run, RunCommand, Station, utcnow
+from service.db import Analysis, Batch, Calibration, Run, RunCommand, RunEvent, Sample, Station, utcnow
 from service.runtime import (ANALYSIS_FINAL, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError,
                              analysis_topic, create_run, notify, other_workers, publish)
-from service.store import insert_samples, store_calibration
+from service.store import insert_samples, load_recording, store_calibration
 
 log = logging.getLogger("compasscal.worker")
 T = TypeVar("T")
@@ -269,7 +269,7 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     """Run one queued run to its end: open the station, identify the units, drive the procedure's
     engine with the samples going to the database, store each unit's calibration, free the station.
     A run that is no longer ``queued`` (aborted before a worker took it) is left as it is."""
-    def take() -> tuple[dict[str, Any], dict[str, str], str, dict[str, Any]] | None:
+    def take() -> tuple[dict[str, Any], dict[str, str], str, dict[str, Any], dict[str, Any] | None] | None:
         with ctx.sessions() as s:
             run = s.get(Run, run_id)
             if run is None or run.status != RunState.queued.value:
@@ -277,11 +277,12 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
             # this worker serves the station from now on (a station made since the last beat has none)
             s.execute(update(Station).where(Station.run_id == run_id).values(heartbeat_at=utcnow(), worker=ctx.name))
             s.commit()
-            return dict(run.station_snapshot or {}), dict(run.serials or {}), run.procedure, dict(run.parameters or {})
+            return (dict(run.station_snapshot or {}), dict(run.serials or {}), run.procedure, dict(run.parameters or {}),
+                    (run.meta or {}).get("resume"))
     taken = ctx.retry(take, f"run {run_id}")
     if taken is None:
         return
-    snapshot, given, name, parameters = taken
+    snapshot, given, name, parameters, resume = taken
     proc = PROCEDURES[name]
     params = proc.validate(parameters)
     control = RunControl(ctx, run_id)
@@ -290,7 +291,7 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     table_seconds: float | None = None
     fin = _Finish(RunState.failed.value)
     try:
-        fin, table_seconds = await _drive(ctx, run_id, control, snapshot, proc, params, given)
+        fin, table_seconds = await _drive(ctx, run_id, control, snapshot, proc, params, given, resume)
     except asyncio.CancelledError:  # the worker is going down: the engine has stopped the axes
         fin = _Finish(RunState.aborted.value, "worker shutting down")
     except Exception as e:  # noqa: BLE001 - a bug or closing the hardware failed: end the run, not the worker
@@ -305,7 +306,7 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
 
 
 async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot: dict[str, Any], proc: Any,
-                 params: Any, given: dict[str, str]) -> tuple[_Finish, float | None]:
+                 params: Any, given: dict[str, str], resume: dict[str, Any] | None = None) -> tuple[_Finish, float | None]:
     identify_first = proc.name != BATCH  # a batch's unit is mounted only after its prompt
     async with AsyncExitStack() as stack:
         try:
@@ -337,7 +338,16 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                 return  # replaced by the fuller result below
             control.outbox.publish(e.kind, e.data())
 
-        engine = Engine(station, proc, params, control.outbox, on_event=on_event, serials=serials)
+        replay = None
+        if resume is not None:
+            moved = {slot: (str(old), idents[int(slot)][1]) for slot, old in (resume.get("serials") or {}).items()
+                     if old and int(slot) in idents and idents[int(slot)][1] and idents[int(slot)][1] != str(old)}
+            if moved:
+                return _Finish(RunState.failed.value, f"cannot resume run {resume['run_id']}: " + ", ".join(
+                    f"slot {k} holds {new}, not {old}" for k, (old, new) in sorted(moved.items()))
+                    + "; mount the same units or start a new run"), None
+            replay = ctx.retry(lambda: load_replay(ctx, int(resume["run_id"]), int(resume["checkpoints"])), f"run {run_id}")
+        engine = Engine(station, proc, params, control.outbox, on_event=on_event, serials=serials, replay=replay)
         await asyncio.to_thread(control.take)
         if control.abort_reason is not None:
             return _Finish(RunState.aborted.value, control.abort_reason), None
@@ -364,6 +374,24 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                 fin = _Finish(RunState.failed.value, f"storing the calibrations failed: {_reason(e)}")
         fin.summary = {**fin.summary, "samples": result.samples}
         return fin, result.table_seconds
+
+
+def load_replay(ctx: WorkerContext, run_id: int, checkpoints: int) -> Replay:
+    """An interrupted run's samples (by step label and slot) and prompt answers, for a run resuming it."""
+    samples: dict[str, dict[int, Recording]] = {}
+    with ctx.sessions() as s:
+        run = s.get(Run, run_id)
+        slots = sorted(s.scalars(select(Sample.slot).where(Sample.run_id == run_id).distinct()))
+        for slot in slots:
+            rec = load_recording(s, run, slot)
+            if rec is None:
+                continue
+            for label in dict.fromkeys(rec.step.tolist()):
+                samples.setdefault(str(label), {})[int(slot)] = rec.select(rec.step == label)
+        answers = {str(d["id"]): str(d.get("answer", "")) for d in s.scalars(
+            select(RunEvent.data).where(RunEvent.run_id == run_id, RunEvent.kind == "prompt").order_by(RunEvent.id))
+            if isinstance(d, dict) and d.get("answered")}
+    return Replay(run_id, checkpoints, samples, answers)
 
 
 async def _probe(station: Any, reason: str | None) -> str | None:
@@ -533,7 +561,6 @@ def execute_analysis(ctx: WorkerContext, analysis_id: int) -> None:
     result, reporting progress on the row; ``failed`` with the reason when the recording cannot
     support it. An analysis already ended is left as it is (a job retried after a lost worker)."""
     from physics.discrepancy import analyze
-    from service.store import load_recording
 
     with _analysis_slots:
         with ctx.sessions() as s:

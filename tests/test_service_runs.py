@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import numpy as np
 import pytest
 from sqlalchemy import select
 
@@ -269,6 +270,61 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
             assert cur["run_id"] == u["run_id"]
         assert api.get("/stations/lab-1", role="viewer").json()["batch_id"] is None
         assert len(audited(api, "run.prompt")) == 2 and len(audited(api, "batch.start")) == 1
+
+
+def test_an_interrupted_calibration_resumes_from_its_last_checkpoint(api: Api):
+    """A calibration aborted mid-way is resumed by a new run (``resume``): the steps up to the last
+    checkpoint it passed are its samples, taken over as they were; the table goes on from there and
+    the calibration completes as a whole one would. Refusals name the field or the reason."""
+    with sim_station(reference_config(seed=11, time_scale=20)) as info:
+        make_station(api, info)
+        body = {"station": "lab-1", "procedure": "calibrate", "parameters": {"samples": 20}}
+        first = api.post("/runs", role="operator", json=body).json()["id"]
+        deadline = time.monotonic() + 60
+        while api.get(f"/runs/{first}", role="viewer").json()["samples_count"] < 6 * 20:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        api.put(f"/runs/{first}/state", role="operator", json={"state": "aborted", "reason": "power cut (test)"})
+        assert wait_run(api, first)["status"] == "aborted"
+        passed = [d["step"]["step"] if "step" in d["step"] else d["step"]["label"]
+                  for kind, d in read_events(api, first) if kind == "step" and d.get("step", {}).get("kind") == "checkpoint"]
+        assert len(passed) >= 6
+        old = parse_recording(api.get(f"/runs/{first}/samples", role="viewer").text)
+
+        for bad, field in (({"resume": 99999}, "body.resume"), ({"resume": first, "procedure": "rotate_z"}, "body.procedure"),
+                           ({"resume": first, "parameters": {"samples": 5}}, "body.parameters")):
+            r = api.post("/runs", role="operator", json={"station": "lab-1", **bad})
+            assert r.status_code == 422 and r.json()["detail"][0]["field"] == field, r.text
+        # another unit in the fixture than the one the run calibrated: refused, the table untouched
+        from service.db import Run
+        with api.client.app.state.sessions() as s:
+            row = s.get(Run, first)
+            serials, row.serials = dict(row.serials), {"0": "SN-OTHER"}
+            s.commit()
+        other = wait_run(api, api.post("/runs", role="operator", json={"station": "lab-1", "resume": first}).json()["id"])
+        assert other["status"] == "failed" and "slot 0 holds" in other["reason"] and "not SN-OTHER" in other["reason"]
+        assert other["samples_count"] == 0 and api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
+        with api.client.app.state.sessions() as s:
+            s.get(Run, first).serials = serials
+            s.commit()
+        second = api.post("/runs", role="operator", json={"station": "lab-1", "resume": first})
+        assert second.status_code == 202, second.text
+        done = wait_run(api, second.json()["id"], timeout=90)
+        assert done["status"] == "completed", done
+        assert done["procedure"] == "calibrate" and done["parameters"]["samples"] == 20
+        assert done["samples_count"] == 18 * 20 and done["result"]["units"]["0"].get("verdict") in ("PASS", "MARGINAL"), done["result"]
+        events = read_events(api, done["id"])
+        [resumed] = [d for kind, d in events if kind == "step" and "resumed_from" in d]
+        assert resumed["resumed_from"] == first and resumed["samples"] == 20 * len(passed)
+        new = parse_recording(api.get(f"/runs/{done['id']}/samples", role="viewer").text)
+        n = 20 * len(passed)  # the replayed part: exactly the first run's samples of the passed poses
+        keep = np.isin(old.step, [str(p) for p in passed])
+        assert keep.sum() == n and np.array_equal(new.mag[:n], old.mag[keep]) and np.array_equal(new.t[:n], old.t[keep])
+        assert np.all(np.diff(new.t) >= 0) and new.t[n] > new.t[n - 1]  # table time goes on after the replay
+        assert new.meta.get("resumed_from") == str(first)
+        # a completed run is not resumed
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "resume": done["id"]})
+        assert r.status_code == 409 and "only a failed or aborted run" in r.json()["detail"]
 
 
 @pytest.mark.parametrize("target", ["running", "aborted"])

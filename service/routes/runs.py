@@ -48,11 +48,12 @@ def _get_run(s: Session, run_id: int) -> Run:
 @router.post("/runs", status_code=202, response_model=RunOut, responses=ERRORS)
 async def create_run_route(body: RunIn, request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
     """Start a run (operator): 202 with the run (status ``queued``); follow it with ``GET /runs/{id}``
-    or ``GET /runs/{id}/events``. 404 unknown station, 422 bad procedure/parameters/serials, 409 busy."""
+    or ``GET /runs/{id}/events``. With ``resume``, continue an interrupted run from its last checkpoint.
+    404 unknown station, 422 bad procedure/parameters/serials/resume, 409 busy or nothing to resume."""
     def create() -> Run:
         with sessions(request)() as s:
             return create_run(s, body.station, body.procedure, body.parameters, body.serials, caller.owner,
-                              SOFTWARE_VERSION)
+                              SOFTWARE_VERSION, resume=body.resume)
     run = await asyncio.to_thread(create)
     job = await request.app.state.jobs.defer("run", queue=station_queue(body.station), lock=station_queue(body.station),
                                              run_id=run.id)
@@ -60,7 +61,8 @@ async def create_run_route(body: RunIn, request: Request, caller: Caller = Depen
         row = s.get(Run, run.id)
         row.meta = {**(row.meta or {}), "job_id": job}
         audit(s, caller, "run.start", f"run {run.id}", {"station": body.station, "procedure": run.procedure,
-                                                         "parameters": run.parameters, "serials": run.serials})
+                                                         "parameters": run.parameters, "serials": run.serials,
+                                                         **({"resume": body.resume} if body.resume else {})})
         s.commit()
         return run_json(row)
 

@@ -32,8 +32,10 @@ def _free_port() -> int:
 def _start(args: list[str], url: str, log: Path) -> subprocess.Popen[bytes]:
     env = {**os.environ, "COMPASSCAL_DATABASE_URL": url}
     with log.open("wb") as out:  # the child keeps its own copy of the descriptor
+        # a session of its own: kill -9 then takes the process and every process it started
+        # (`serve --workers N` runs its API processes as children)
         return subprocess.Popen([sys.executable, "-m", "service.cli", *args], cwd=ROOT, env=env,
-                                stdout=out, stderr=subprocess.STDOUT)
+                                stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
 
 
 class Client:
@@ -102,9 +104,12 @@ def _restart_postgres(down_s: float) -> None:
 
 
 def _kill(proc: subprocess.Popen[bytes]) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
+    """kill -9 of the process and of every process it started."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait(10)
 
 
 def test_runs_survive_an_api_kill_and_a_lost_worker_is_reported(tmp_path: Path):

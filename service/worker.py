@@ -756,11 +756,16 @@ def recover(ctx: WorkerContext, stations: list[str] | None, queued_too: bool, re
     return ended
 
 
-async def _stop_axes(ctx: WorkerContext, stations: list[str]) -> None:
-    """A restarted worker first stops its tables (a killed one may have left an axis turning)."""
+async def _stop_axes(ctx: WorkerContext, stations: list[str] | None) -> None:
+    """A restarted worker first stops its tables (None: every station's), all at once: a killed
+    worker or service may have left an axis turning."""
     with ctx.sessions() as s:
-        urls = [r.modbus for r in s.scalars(select(Station).where(Station.name.in_(stations)))]
-    for url in urls:
+        q = select(Station.modbus)
+        if stations is not None:
+            q = q.where(Station.name.in_(stations))
+        urls = sorted(set(s.scalars(q)))
+
+    async def stop(url: str) -> None:
         table = Turntable(url)
         try:
             await asyncio.wait_for(table.connect(), 5.0)
@@ -769,6 +774,7 @@ async def _stop_axes(ctx: WorkerContext, stations: list[str]) -> None:
             pass
         finally:
             await table.close()
+    await asyncio.gather(*(stop(u) for u in urls))
 
 
 async def _fail_stalled_jobs(app: App, queues: list[str] | None) -> None:
@@ -807,10 +813,10 @@ async def serve_worker(database_url: str, stations: list[str], analyses: bool = 
         raise Conflict(served_elsewhere(busy))
     queues = [station_queue(n) for n in stations]
     app = make_app(pg_connector(database_url))
+    await _stop_axes(ctx, stations)  # before anything else
     async with app.open_async():
         await _fail_stalled_jobs(app, queues)
         await asyncio.to_thread(recover, ctx, stations, False, "worker lost: the station's worker stopped mid-run")
-        await _stop_axes(ctx, stations)
         tasks = [asyncio.create_task(_beat(ctx, stations))]
         if analyses:
             queues.append(ANALYSIS_QUEUE)
@@ -872,6 +878,7 @@ class Jobs:
     async def _embedded(self) -> None:
         self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
         app = self.app if not self.pg else make_app(pg_connector(self.url))
+        await _stop_axes(self.ctx, None)  # a service killed mid-run may have left an axis turning
         async with app.open_async():  # in memory: opened here, so its notifications reach this loop
             await _requeue_analyses(app, self.ctx, self.pg)
             tasks = [asyncio.create_task(_beat(self.ctx, None))]

@@ -370,3 +370,26 @@ def test_shutdown_aborts_active_runs_quickly_and_a_restart_recovers(db_url: str)
         assert ev[-1] == ("state", {"state": "aborted", "reason": "service shutting down"})
         ghost = api.get("/runs?status=failed", role="viewer").json()
         assert [g["operator"] for g in ghost] == ["ghost"] and "stopped" in ghost[0]["reason"]
+
+
+def test_a_restarted_service_stops_every_axis_first(db_url: str):
+    """A service killed mid-run may leave an axis turning: the next start stops every station's axes
+    before it takes any job."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.auth import create_key
+
+    with sim_station(reference_config(seed=12, time_scale=20)) as info:
+        app = create_app(db_url)
+        with TestClient(app) as client:
+            with app.state.sessions() as s:
+                keys = {role: create_key(s, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
+            make_station(Api(client, keys), info)
+        axis = info["station"].table.axes["z"]
+        axis.enabled, axis.jog_dir, axis.mode = True, 1, "jog"  # as a killed service could have left it
+        time.sleep(0.2)
+        assert axis.mode == "jog"
+        app = create_app(db_url)
+        with TestClient(app):
+            assert axis.mode != "jog"

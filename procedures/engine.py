@@ -71,6 +71,10 @@ class Aborted(Exception):
     """The operator aborted the run."""
 
 
+class PromptTimeout(Exception):
+    """An operator prompt went unanswered for the engine's ``prompt_timeout_s``."""
+
+
 class ReplayError(Exception):
     """The interrupted run cannot be replayed up to its last checkpoint (its recording lacks a step)."""
 
@@ -127,6 +131,7 @@ class Engine:
     reason: str | None = None
     serials: dict[int, str] = field(default_factory=dict)
     replay: Replay | None = None  # resume an interrupted run from its last checkpoint
+    prompt_timeout_s: float | None = None  # wall seconds an operator prompt waits; None: for ever
 
     def __post_init__(self) -> None:
         self._resume = asyncio.Event()
@@ -277,7 +282,13 @@ class Engine:
             self._streaming = False
             self.on_event(PromptAsked(step.id, step.text))
             try:
-                return await fut
+                if self.prompt_timeout_s is None:
+                    return await fut
+                return await asyncio.wait_for(fut, self.prompt_timeout_s)
+            except asyncio.TimeoutError:
+                # nobody at the station: the run must not hold the table forever
+                self._answers.pop(step.id, None)
+                raise PromptTimeout(f"no answer to prompt {step.id!r} within {self.prompt_timeout_s:g} s") from None
             except asyncio.CancelledError:
                 self._check_abort()
                 raise

@@ -60,6 +60,8 @@ OPEN_TIMEOUT_S = 15.0
 IDENTIFY_TIMEOUT_S = 10.0
 #: Seconds between two looks at a run's commands.
 COMMAND_POLL_S = 0.1
+#: Wall seconds a run waits for an operator prompt's answer (COMPASSCAL_PROMPT_TIMEOUT_S overrides).
+PROMPT_TIMEOUT_S = 900.0
 #: Seconds a worker keeps trying to write while the database is away (a restart) before giving up.
 DB_OUTAGE_S = 120.0
 #: Seconds without a heartbeat of procrastinate's worker after which its analysis job is retried.
@@ -101,6 +103,9 @@ class WorkerContext:
     software_version: str
     poke: Callable[[int], None] = lambda run_id: None
     name: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
+    # wall seconds a run waits for an operator's answer before it fails (the station is freed)
+    prompt_timeout_s: float = field(default_factory=lambda: float(os.environ.get("COMPASSCAL_PROMPT_TIMEOUT_S")
+                                                                    or PROMPT_TIMEOUT_S))
     executing: dict[int, "RunControl"] = field(default_factory=dict)  # runs executing in this process
 
     def publish(self, run_id: int, kind: str, data: dict[str, Any]) -> None:
@@ -347,7 +352,8 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                     f"slot {k} holds {new}, not {old}" for k, (old, new) in sorted(moved.items()))
                     + "; mount the same units or start a new run"), None
             replay = ctx.retry(lambda: load_replay(ctx, int(resume["run_id"]), int(resume["checkpoints"])), f"run {run_id}")
-        engine = Engine(station, proc, params, control.outbox, on_event=on_event, serials=serials, replay=replay)
+        engine = Engine(station, proc, params, control.outbox, on_event=on_event, serials=serials, replay=replay,
+                        prompt_timeout_s=ctx.prompt_timeout_s)
         await asyncio.to_thread(control.take)
         if control.abort_reason is not None:
             return _Finish(RunState.aborted.value, control.abort_reason), None

@@ -393,3 +393,30 @@ def test_a_restarted_service_stops_every_axis_first(db_url: str):
         app = create_app(db_url)
         with TestClient(app):
             assert axis.mode != "jog"
+
+
+def test_an_unanswered_prompt_frees_the_station(db_url: str, monkeypatch: pytest.MonkeyPatch):
+    """Nobody answers a batch's mount prompt: after the prompt timeout the unit's run fails saying
+    so, the batch goes on to the next unit (which times out too), and the station is free, not in
+    fault."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.auth import create_key
+
+    monkeypatch.setenv("COMPASSCAL_PROMPT_TIMEOUT_S", "1")
+    app = create_app(db_url)
+    with sim_station(reference_config(seed=13, time_scale=20)) as info, TestClient(app) as client:
+        with app.state.sessions() as s:
+            keys = {role: create_key(s, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
+        api = Api(client, keys)
+        make_station(api, info)
+        bid = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SN-P1", "SN-P2"]}).json()["id"]
+        deadline = time.monotonic() + 30
+        while (b := api.get(f"/batches/{bid}", role="viewer").json())["status"] == "running":
+            assert time.monotonic() < deadline, b
+            time.sleep(0.05)
+        assert [u["status"] for u in b["units"]] == ["failed", "failed"], b
+        assert all("no answer to prompt 'mount' within 1 s" in u["reason"] for u in b["units"]), b["units"]
+        st = api.get("/stations/lab-1", role="viewer").json()
+        assert st["state"] == "idle" and st["run_id"] is None and st["batch_id"] is None

@@ -62,6 +62,19 @@ MAPPING_HELP = ("TOML mapping that says how to read a file no built-in reader kn
 Method = Enum("Method", {m.replace("-", "_"): m for m in METHODS}, type=str)  # type: ignore[misc]
 
 
+def _only_service(url: str) -> None:
+    """Refuse a second service on one SQLite database (its job queue lives in the first's memory)."""
+    from service.runtime import DomainError
+    from service.worker import sqlite_service_lock
+
+    try:
+        held = sqlite_service_lock(url)
+    except DomainError as e:
+        _fail(str(e.detail))
+    if held is not None:
+        held.close()
+
+
 def _fail(message: str) -> NoReturn:
     """End the command: the message on stderr (taken literally, not as rich markup: ``M[xm,xb]``), exit 2."""
     err_console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
@@ -634,6 +647,10 @@ async def _api_demo(cfg: object, sock: socket.socket, keep_serving: bool) -> int
     from service.app import create_app
     from service.auth import create_key
 
+    from service.db import default_url
+
+    if default_url().startswith("sqlite"):
+        _only_service(default_url())
     async with SimStation(cfg, control_port=None) as st:  # type: ignore[arg-type]
         d = st.describe()
         app = create_app()
@@ -815,6 +832,8 @@ def serve(
     if workers > 1 and embedded:
         _fail("--station-worker with --workers > 1: each API process would drive every station; run one "
               "`compasscal worker --station NAME` per station instead")
+    if not pg:
+        _only_service(default_url())
     if pg and embedded:  # a station with a worker of its own must not be driven from here too
         import socket
 

@@ -28,7 +28,7 @@ from collections.abc import Callable
 from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
 from datetime import timedelta
-from typing import Any, TypeVar
+from typing import IO, Any, TypeVar
 
 import numpy as np
 from procrastinate import App, JobContext, PsycopgConnector
@@ -839,6 +839,32 @@ async def serve_worker(database_url: str, stations: list[str], analyses: bool = 
     engine.dispose()
 
 
+def sqlite_service_lock(database_url: str) -> IO[bytes] | None:
+    """The lock of the one service allowed on a SQLite database (its job queue is in that service's
+    memory: a second service would end the first's runs as lost and start runs on its busy
+    stations). An exclusive lock on ``DB.service-lock`` beside the database file, held while the
+    returned file is open; Conflict naming the holder's pid when another service holds it."""
+    import fcntl
+
+    path = database_url.split("sqlite:///", 1)[-1] if database_url.startswith("sqlite:///") else ""
+    if not path or path == ":memory:":
+        return None
+    lock = open(f"{path}.service-lock", "a+b")  # noqa: SIM115 - held open for the service's life
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().decode(errors="replace").strip() or "unknown"
+        lock.close()
+        raise Conflict(f"another compasscal service (pid {holder}) uses the database {path}; stop it first, "
+                       "or give this one its own database (COMPASSCAL_DATABASE_URL)") from None
+    lock.seek(0)
+    lock.truncate()
+    lock.write(str(os.getpid()).encode())
+    lock.flush()
+    return lock
+
+
 class Jobs:
     """The service's side of the queue: defers jobs, cancels queued ones, and (unless the stations
     have workers of their own) runs a worker for every station in a thread of this process."""
@@ -852,6 +878,7 @@ class Jobs:
         self._stop: asyncio.Event | None = None
         self._ready = threading.Event()
         self._error: BaseException | None = None
+        self._lock: IO[bytes] | None = None
 
     async def start(self) -> None:
         if self.pg:
@@ -863,6 +890,7 @@ class Jobs:
         elif not self.embedded:
             raise ValueError("SQLite keeps its job queue in memory: its worker must run in the service")
         else:
+            self._lock = sqlite_service_lock(self.url)
             self.app = make_app(InMemoryConnector())
         if self.embedded:
             # runs left active by a previous process: on PostgreSQL their queued jobs survive; in memory they do not
@@ -933,6 +961,9 @@ class Jobs:
             await asyncio.to_thread(self._thread.join, 5.0)
         if self.pg and self.app is not None:
             await self.app.close_async()
+        if self._lock is not None:
+            self._lock.close()  # releases the lock
+            self._lock = None
 
 
 __all__ = ["JOBS", "ANALYSIS_QUEUE", "station_queue", "execute_run", "execute_batch", "execute_analysis", "reset_station",

@@ -135,6 +135,29 @@ def test_serve_listens_on_the_port_asked_and_prints_its_database(data_dir: Path,
     assert f"database: sqlite:///{data_dir / 'compasscal.db'}" in r.stdout
 
 
+def test_a_second_service_on_one_sqlite_database_is_refused(data_dir: Path, nothing_starts: None):
+    """SQLite's job queue lives in its service's memory: a second `serve` (or `demo --api`) on the same
+    database would end the first's runs as lost and start runs on its busy stations. Refused, naming
+    the first's pid; an in-process start is refused the same way; the lock goes with the service."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.db import default_url
+    from service.runtime import Conflict
+
+    first = create_app()
+    with TestClient(first):
+        said = refused(["serve", "--port", str(free_port())], "another compasscal service", f"pid {os.getpid()}")
+        assert str(data_dir / "compasscal.db") in said
+        refused(["demo", "--api", "--port", str(free_port())], "another compasscal service")
+        with pytest.raises(Conflict):
+            with TestClient(create_app()):
+                pass
+    with TestClient(create_app()):  # the first has stopped: its lock is free
+        pass
+    assert default_url().startswith("sqlite")
+
+
 def test_demo_api_names_a_port_in_use(busy_port: int, data_dir: Path, nothing_starts: None):
     refused(["demo", "--api", "--port", str(busy_port)], f"--port {busy_port}", "in use")
 

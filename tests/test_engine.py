@@ -112,6 +112,32 @@ def test_a_compass_hiccup_is_retried_and_every_pose_keeps_exactly_its_planned_co
     assert len(steps) == 18 and set(counts) == {60}, dict(zip(steps, counts))
 
 
+def test_an_axis_that_goes_silent_mid_acquisition_keeps_every_sample_received(tmp_path: Path):
+    """The fault probe's case: an axis controller stops answering while a pose is acquiring. The
+    table's position cannot be read back after the samples, so the run fails, but every sample that
+    pose received is kept (they go to the sink before the table is asked again)."""
+    cfg = reference_config(seed=6, time_scale=20)
+    fired = {}
+
+    def control(engine: Engine, st: SimStation) -> None:
+        def on_event(e: Event, inner=engine.on_event) -> None:
+            inner(e)
+            if isinstance(e, StepStarted) and isinstance(e.step, Acquire) and engine._samples >= 2 * 60 and not fired:
+                fired["t"] = time.monotonic()  # while the third pose acquires (0.15 s of wall time)
+                asyncio.get_running_loop().call_later(0.03, st.table.silence, "z", True)
+            if isinstance(e, StateChanged) and e.state is RunState.failed:
+                st.table.silence("z", False)  # answers again for the final status read
+        engine.on_event = on_event
+    result, serials, sink, st, events, wall, status = run(cfg, "calibrate", {}, out=tmp_path, control=control)
+    assert fired and result.state is RunState.failed, result.reason
+    rec = parse_recording(sink.path(0).read_text())
+    poses, counts = np.unique([f"{p:.1f},{t:.1f},{f:.1f}" for p, t, f in zip(rec.psi_t, rec.theta_t, rec.phi_t)],
+                              return_counts=True)
+    assert len(rec) == 3 * 60 and set(counts) == {60}, (result.reason, dict(zip(poses, counts)))
+    last = [e for e in events if isinstance(e, StepStarted)][-1]
+    assert isinstance(last.step, Acquire) and "axis z" in result.reason  # it failed in that acquisition
+
+
 def test_a_compass_that_goes_silent_fails_the_run_within_seconds_with_the_samples_kept(tmp_path: Path):
     cfg = reference_config(seed=4, time_scale=20)
     fired = {}

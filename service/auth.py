@@ -49,6 +49,40 @@ def create_key(session: Session, owner: str, role: str) -> str:
     return key
 
 
+def list_keys(session: Session) -> list[ApiKey]:
+    """Every key (never its secret: its first characters, owner, role, whether revoked), oldest first."""
+    return list(session.scalars(select(ApiKey).order_by(ApiKey.id)))
+
+
+def find_key(session: Session, ident: str) -> ApiKey:
+    """A key by its id or by the first characters it was shown with (``cc_AbCdEfG``). LookupError
+    when none matches, ValueError when a prefix matches several."""
+    if ident.isdigit():
+        row = session.get(ApiKey, int(ident))
+        if row is None:
+            raise LookupError(f"no key with id {ident}")
+        return row
+    rows = list(session.scalars(select(ApiKey).where(ApiKey.prefix.startswith(ident, autoescape=True))))
+    if not rows:
+        raise LookupError(f"no key starts with {ident!r}")
+    if len(rows) > 1:
+        raise ValueError(f"{ident!r} starts {len(rows)} keys (ids {', '.join(str(r.id) for r in rows)}); give the id")
+    return rows[0]
+
+
+def revoke_key(session: Session, row: ApiKey, by: Caller) -> None:
+    """Revoke a key, audited (committed). Services trust a looked-up key for :data:`KEY_CACHE_S` at most."""
+    row.revoked = True
+    audit(session, by, "key.revoke", f"key {row.id}", {"prefix": row.prefix, "owner": row.owner, "role": row.role})
+    session.commit()
+
+
+def key_json(row: ApiKey) -> dict[str, Any]:
+    """A key as listed: id, the characters it starts with, owner, role, revoked, created_at."""
+    return {"id": row.id, "prefix": row.prefix, "owner": row.owner, "role": row.role, "revoked": row.revoked,
+            "created_at": row.created_at}
+
+
 def lookup(session: Session, key: str | None) -> Caller | None:
     """The caller a key belongs to, or None."""
     if not key:

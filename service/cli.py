@@ -799,6 +799,48 @@ def keys_create(
     print(key)
 
 
+@keys_app.command("list", cls=_Command)
+def keys_list() -> None:
+    """Every key: id, the characters it starts with, owner, role, revoked (never the key itself)."""
+    from rich.table import Table
+
+    from service.auth import list_keys
+    from service.db import make_engine, sessions
+
+    _open_database()
+    engine = make_engine()
+    with sessions(engine)() as session:
+        rows = list_keys(session)
+        table = Table("id", "starts with", "owner", "role", "revoked", "created")
+        for r in rows:
+            table.add_row(str(r.id), r.prefix, escape(r.owner), r.role, "yes" if r.revoked else "",
+                          r.created_at.strftime("%Y-%m-%d %H:%M"))
+    console.print(table)
+
+
+@keys_app.command("revoke", cls=_Command)
+def keys_revoke(
+    key: str = typer.Argument(..., metavar="ID|PREFIX", help="The key's id, or the characters it starts with (keys list)."),
+) -> None:
+    """Revoke a key (audited); services stop accepting it within 10 s."""
+    import getpass
+
+    from service.auth import Caller, find_key, revoke_key
+    from service.db import make_engine, sessions
+
+    _open_database()
+    engine = make_engine()
+    with sessions(engine)() as session:
+        try:
+            row = find_key(session, key)
+        except (LookupError, ValueError) as e:
+            _fail(f"ID|PREFIX: {e.args[0]}")
+        if row.revoked:
+            _fail(f"ID|PREFIX: key {row.id} ({row.prefix}, {row.owner}) is already revoked")
+        revoke_key(session, row, Caller(f"cli:{getpass.getuser()}", "admin"))
+        console.print(f"revoked key {row.id} ({row.prefix}, {escape(row.owner)}, {row.role})")
+
+
 @db_app.command("upgrade", cls=_Command)
 def db_upgrade() -> None:
     """Bring the database schema to the newest migration (the service also does this on start)."""

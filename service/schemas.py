@@ -397,3 +397,29 @@ def content(media_type: str, description: str, binary: bool = False) -> dict[int
     """The OpenAPI description of a success answer that is not JSON (a CSV, a PDF, HTML, events)."""
     schema: dict[str, Any] = {"type": "string", **({"format": "binary"} if binary else {})}
     return {200: {"description": description, "content": {media_type: {"schema": schema}}}, **ERRORS}
+
+# ------------------------------------------------------------------------------------------- keys
+
+
+class KeyIn(BaseModel):
+    """A key to create."""
+
+    owner: str = Field(min_length=1, max_length=64, description="who it belongs to (recorded with every change it makes)")
+    role: str = Field(description="viewer, operator or admin")
+
+
+class KeyOut(BaseModel):
+    """An API key as listed (its secret is never stored, only shown once at creation)."""
+
+    id: int
+    prefix: str = Field(description="the characters the key starts with")
+    owner: str
+    role: str
+    revoked: bool
+    created_at: datetime
+
+
+class KeyCreated(KeyOut):
+    """A new key, with the key itself: store it now, it cannot be shown again."""
+
+    key: str

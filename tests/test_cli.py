@@ -122,3 +122,28 @@ def test_keys_create_prints_the_key_alone_on_the_last_line(tmp_path: Path, monke
     assert caller is not None and caller.owner == "alice" and caller.role == "operator"
     bad = runner.invoke(app, ["keys", "create", "--owner", "bob", "--role", "boss"])
     assert bad.exit_code == 2 and "role" in bad.output
+
+
+def test_keys_are_listed_and_revoked_from_the_command_line(tmp_path: Path, monkeypatch):
+    """`keys list` shows each key's id, first characters, owner and role, never a secret; `keys
+    revoke` takes an id or those characters, is audited, and the key stops working."""
+    url = f"sqlite:///{tmp_path / 'k.db'}"
+    monkeypatch.setenv("COMPASSCAL_DATABASE_URL", url)
+    keys = [runner.invoke(app, ["keys", "create", "--owner", o, "--role", "viewer"]).output.strip().splitlines()[-1]
+            for o in ("alice", "bob")]
+    listed = runner.invoke(app, ["keys", "list"])
+    assert listed.exit_code == 0 and "alice" in listed.output and "bob" in listed.output
+    assert keys[0][:10] in listed.output and keys[0] not in listed.output  # the prefix, not the key
+    r = runner.invoke(app, ["keys", "revoke", keys[1][:10]])
+    assert r.exit_code == 0 and "revoked key 2" in r.output, r.output
+    again = runner.invoke(app, ["keys", "revoke", "2"])
+    assert again.exit_code == 2 and "already revoked" in again.stderr
+    assert runner.invoke(app, ["keys", "revoke", "cc_nosuch"]).exit_code == 2
+    from sqlalchemy import select
+
+    from service.auth import lookup
+    from service.db import AuditLog, make_engine, sessions
+    with sessions(make_engine(url))() as session:
+        assert lookup(session, keys[1]) is None and lookup(session, keys[0]) is not None
+        [log] = session.scalars(select(AuditLog).where(AuditLog.action == "key.revoke")).all()
+        assert log.target == "key 2" and log.owner.startswith("cli:")

@@ -142,3 +142,30 @@ def test_openapi_describes_every_answer(api):
     assert seen >= 28
     pdf = spec["paths"]["/calibrations/{cal_id}/certificate.pdf"]["get"]["responses"]["200"]["content"]
     assert pdf["application/pdf"]["schema"]["format"] == "binary"
+
+
+def test_admins_list_create_and_revoke_keys_over_the_api(api):
+    """``/keys`` (admin): a list without secrets, a new key shown once, a revocation that takes
+    effect at once in this process, audited; the last admin key cannot be revoked."""
+    assert api.get("/keys", role="operator").status_code == 403
+    listed = api.get("/keys").json()
+    assert {k["owner"] for k in listed} == {"viewer-user", "operator-user", "admin-user"}
+    assert all(set(k) == {"id", "prefix", "owner", "role", "revoked", "created_at"} for k in listed)
+    r = api.post("/keys", json={"owner": "carol", "role": "viewer"})
+    assert r.status_code == 201 and r.json()["key"].startswith(r.json()["prefix"])
+    carol = r.json()
+    assert api.client.get("/limits", headers={"X-API-Key": carol["key"]}).status_code == 200
+    r = api.delete(f"/keys/{carol['id']}")
+    assert r.status_code == 200 and r.json()["revoked"] is True
+    assert api.client.get("/limits", headers={"X-API-Key": carol["key"]}).status_code == 401
+    assert api.post("/keys", json={"owner": "dave", "role": "boss"}).json()["detail"][0]["field"] == "body.role"
+    assert api.delete("/keys/9999").status_code == 404
+    admin = next(k for k in listed if k["role"] == "admin")
+    r = api.delete(f"/keys/{admin['id']}")
+    assert r.status_code == 409 and "last admin key" in r.json()["detail"]
+    from sqlalchemy import select
+
+    from service.db import AuditLog
+    with api.client.app.state.sessions() as s:
+        actions = [a.action for a in s.scalars(select(AuditLog).where(AuditLog.action.like("key.%")))]
+    assert actions == ["key.create", "key.revoke"]

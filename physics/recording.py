@@ -150,11 +150,13 @@ def _show(raw: str, limit: int = 80) -> str:
     return raw if len(raw) <= limit else raw[: limit - 3] + "..."
 
 
-def parse_recording(text: str, *, skip_bad_rows: bool = False) -> Recording:
+def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: int | None = None) -> Recording:
     """Parse recording CSV text (RECORDING.md) into a Recording.
 
     Every malformed row is reported ("line L: column C: problem ('raw')"); any such row rejects the whole
     text unless skip_bad_rows, which drops them and records their count in meta["skipped_rows"].
+    ``max_step_chars``: a step label longer than this is a malformed row too (a store whose column
+    holds no more, e.g. the service's 32 characters).
     """
     lines = _LINE_BREAK.split(text.removeprefix("\ufeff"))
     meta: dict[str, str] = {}
@@ -187,7 +189,7 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False) -> Recording:
         stripped = line.strip()
         if not stripped or stripped.startswith("#"):  # comments after the column line are ignored too
             continue
-        row, row_problems = _parse_row(line, lineno, names, col, numeric)
+        row, row_problems = _parse_row(line, lineno, names, col, numeric, max_step_chars)
         if not row_problems and row["t"] < last_t:
             row_problems.append(f"line {lineno}: column t: time goes backwards "
                                 f"(previous t={last_t:g} on line {last_t_line}) ('{row['raw_t']}')")
@@ -252,7 +254,7 @@ def _parse_column_line(line: str, lineno: int) -> list[str]:
 
 
 def _parse_row(line: str, lineno: int, names: list[str], col: dict[str, int],
-               numeric: list[str]) -> tuple[dict[str, Any], list[str]]:
+               numeric: list[str], max_step_chars: int | None = None) -> tuple[dict[str, Any], list[str]]:
     """Return the row's values by column name and the list of its problems (empty when the row is good)."""
     where = f"line {lineno}"
     try:
@@ -284,8 +286,20 @@ def _parse_row(line: str, lineno: int, names: list[str], col: dict[str, int],
     row["step"] = cells[col["step"]].strip()
     if not row["step"]:
         problems.append(f"{where}: column step: empty required cell ('')")
+    elif max_step_chars is not None and len(row["step"]) > max_step_chars:
+        problems.append(f"{where}: column step: label of {len(row['step'])} characters, at most {max_step_chars} "
+                        f"('{_show(row['step'])}')")
     row["extra"] = [cells[j] for j, c in enumerate(names) if c not in KNOWN_COLUMNS]  # verbatim
     return row, problems
+
+
+def _full(v: float, decimals: int) -> str:
+    """``v`` with at least ``decimals`` decimals and as many more as it needs to read back exactly."""
+    short = repr(v)
+    if "e" in short or "inf" in short:
+        return short if "inf" in short else np.format_float_positional(v, unique=True, trim="-")
+    fixed = f"{v:.{decimals}f}"
+    return fixed if float(fixed) == v else short
 
 
 def format_recording(rec: Recording) -> str:
@@ -305,9 +319,11 @@ def format_recording(rec: Recording) -> str:
     writer.writerow([*KNOWN_COLUMNS, *extra_names])
 
     def fmt(values: np.ndarray | None, decimals: int) -> list[str]:
+        # every digit the value has (the shortest text that reads back to the same float), so that an
+        # export is what was recorded; ``decimals`` is how many a reading at least carries
         if values is None:
             return [""] * len(rec)
-        return ["" if math.isnan(v) else f"{v:.{decimals}f}" for v in np.asarray(values, dtype=float)]
+        return ["" if math.isnan(v) else _full(v, decimals) for v in np.asarray(values, dtype=float).tolist()]
 
     acc_cols = [None if rec.acc is None else np.asarray(rec.acc, dtype=float)[:, k] for k in range(3)]
     mag = np.asarray(rec.mag, dtype=float)

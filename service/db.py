@@ -172,6 +172,18 @@ class Sample(Base):
     __table_args__ = (Index("ix_samples_run_slot", "run_id", "slot", "id"),)
 
 
+class SampleExtra(Base):
+    """An imported recording's extra column (RECORDING.md: kept and ignored), its values as text in
+    the order of the slot's samples."""
+
+    __tablename__ = "sample_extras"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), index=True)
+    slot: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str] = mapped_column(String(64))
+    values: Mapped[list[Any]] = mapped_column(JSON)
+
+
 class Calibration(Base):
     """A unit's calibration from one run; never overwritten (current, superseded or rejected)."""
 
@@ -233,6 +245,18 @@ class Limit(Base):
     fail: Mapped[float]
     unit: Mapped[str] = mapped_column(String(16))
     description: Mapped[str] = mapped_column(Text)
+
+
+class WebSession(Base):
+    """A browser session of the web pages: the cookie carries a random token, stored here only as
+    its hash, tied to the key that logged in and ending at ``expires_at`` (or at logout, or when
+    that key is revoked)."""
+
+    __tablename__ = "web_sessions"
+    token_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
+    key_id: Mapped[int] = mapped_column(ForeignKey("api_keys.id", ondelete="CASCADE"), index=True)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[datetime]
 
 
 class AuditLog(Base):

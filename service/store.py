@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
-from service.db import Calibration, Device, Limit, Run, Sample
+from service.db import Calibration, Device, Limit, Run, Sample, SampleExtra
 
 
 
@@ -47,6 +47,13 @@ def insert_samples(session: Session, run_id: int, slot: int, rec: Recording) -> 
     else:
         conn.exec_driver_sql(f"INSERT INTO samples ({', '.join(_SAMPLE_COLS)}) VALUES ({', '.join('?' * len(_SAMPLE_COLS))})", rows)
     session.execute(update(Run).where(Run.id == run_id).values(samples_count=Run.samples_count + n))
+    for name, values in rec.extra.items():  # an import's extra columns, kept in sample order
+        row = session.scalar(select(SampleExtra).where(SampleExtra.run_id == run_id, SampleExtra.slot == slot,
+                                                       SampleExtra.name == name))
+        if row is None:
+            session.add(SampleExtra(run_id=run_id, slot=slot, name=name, values=[str(v) for v in values]))
+        else:
+            row.values = [*row.values, *(str(v) for v in values)]
     return n
 
 
@@ -62,8 +69,11 @@ def load_recording(session: Session, run: Run, slot: int) -> Recording | None:
     meta = {"serial": str(run.serials.get(str(slot), "")), "run_id": str(run.id), "procedure": run.procedure,
             "procedure_version": run.procedure_version, "operator": run.operator, "slot": str(slot)}
     meta.update({k: str(v) for k, v in (run.meta or {}).items() if isinstance(v, (str, int, float))})
+    extra = {e.name: list(e.values) for e in session.scalars(
+        select(SampleExtra).where(SampleExtra.run_id == run.id, SampleExtra.slot == slot).order_by(SampleExtra.id))
+        if len(e.values) == len(rows)}
     return Recording.from_arrays(t=a[:, 0], step=[r[1] for r in rows], psi_t=a[:, 1], theta_t=a[:, 2], phi_t=a[:, 3],
-                                 mag=a[:, 4:7], acc=a[:, 7:10], temp_c=a[:, 10], meta=meta)
+                                 mag=a[:, 4:7], acc=a[:, 7:10], temp_c=a[:, 10], meta=meta, extra=extra)
 
 
 def device(session: Session, serial: str, model: str | None = None, firmware: str | None = None) -> Device:

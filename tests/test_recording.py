@@ -328,8 +328,9 @@ def test_format_layout() -> None:
     assert lines[0] == "# compasscal-recording: 1"
     assert lines[1] == "# serial: SN-1"
     assert lines[2] == HEADER + ",rig"
-    assert lines[3] == "0.000,level,1.2346,0.0000,0.0000,1.00,2.00,3.00,1.00,2.00,3.00,,A"
-    assert lines[4] == '0.051,"a ""q"", b",0.0000,0.0000,-0.5000,4.00,5.00,6.00,,5.00,6.00,22.12,B'
+    # at least the usual decimals, and every digit a value has (an export is what was recorded)
+    assert lines[3] == "0.000,level,1.23456,0.0000,0.0000,1.005,2.00,3.00,1.00,2.00,3.00,,A"
+    assert lines[4] == '0.0505,"a ""q"", b",0.0000,0.0000,-0.5000,4.00,5.00,6.00,,5.00,6.00,22.125,B'
     assert len(lines) == 5
 
 

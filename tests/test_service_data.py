@@ -169,3 +169,18 @@ def test_admins_list_create_and_revoke_keys_over_the_api(api):
     with api.client.app.state.sessions() as s:
         actions = [a.action for a in s.scalars(select(AuditLog).where(AuditLog.action.like("key.%")))]
     assert actions == ["key.create", "key.revoke"]
+
+
+def test_an_import_is_exported_as_it_came_extra_columns_and_every_digit(api):
+    """RECORDING.md: extra columns are kept; an export is what was stored, at full precision."""
+    text = ("# compasscal-recording: 1\n# serial: SN-X\nt,step,psi_t,theta_t,phi_t,mx,my,mz,ax,ay,az,temp_c,lux,note\n"
+            + "".join(f"{i * 0.0501234567:.10f},level,{i * 1.000001},0,0,{1000.123456789 + i},-2000.5,300.25,,,,"
+                      f"21.123456,{i * 7},n{i}\n" for i in range(30)))
+    r = api.post("/recordings", role="operator", content=text.encode())
+    assert r.status_code == 201, r.text
+    back = api.get(f"/runs/{r.json()['id']}/samples", role="viewer").text
+    from physics.recording import parse_recording
+    a, b = parse_recording(text), parse_recording(back)
+    assert np.array_equal(a.t, b.t) and np.array_equal(a.mag, b.mag) and np.array_equal(a.psi_t, b.psi_t)
+    assert np.array_equal(a.temp_c, b.temp_c)
+    assert b.extra == {"lux": [str(i * 7) for i in range(30)], "note": [f"n{i}" for i in range(30)]}

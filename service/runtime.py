@@ -314,6 +314,7 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
     passed: its procedure, parameters and units are taken over, and its worker replays its samples
     up to there (``procedure`` None: the resumed run's, else "calibrate")."""
     from procedures.calibrate import PROCEDURES
+    from service.schemas import check_serial
 
     resumed: dict[str, Any] | None = None
     if resume is not None:
@@ -336,9 +337,10 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
     for key, serial in (serials or {}).items():
         if not (key.isascii() and key.isdigit() and int(key) < len(row.compasses)):
             raise invalid(f"body.serials.{key}", f"not a slot of station {row.name} (slots 0 to {len(row.compasses) - 1})")
-        if not str(serial).strip():
-            raise invalid(f"body.serials.{key}", "empty serial number")
-        given[str(int(key))] = str(serial).strip()
+        try:  # the API checked it already; a batch's unit and a resumed run's serials come this way too
+            given[str(int(key))] = check_serial(str(serial))
+        except ValueError as e:
+            raise invalid(f"body.serials.{key}", str(e)) from None
     why = _busy(row, batch_id)
     if why:
         raise Conflict(why)

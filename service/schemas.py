@@ -7,10 +7,13 @@ result) declare the fields the service adds and allow the rest (``extra="allow"`
 
 from __future__ import annotations
 
+import math
+import re
+import string
 from datetime import datetime
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from drivers.modbus import BusURL
 
@@ -38,6 +41,117 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     409: {"model": ErrorOut, "description": "the resource's state forbids it now"},
     422: {"model": ErrorOut, "description": "bad input: each field and its problem"},
 }
+
+# ------------------------------------------------------------------------ what may be stored
+# Every string and number a request brings is checked here, where it enters, against the column it
+# ends in (service/db.py): SQLite does not enforce String(n) and takes 64-bit integers and NUL
+# characters, PostgreSQL refuses them with an exception. Checked at the edge, both answer the same
+# 422 naming the field, instead of a 500, or a run accepted that loses its calibration at the end.
+
+#: The largest id, slot or offset: PostgreSQL's ``integer`` (SQLite would take more, PostgreSQL not).
+INT32_MAX = 2**31 - 1
+#: Longest serial number (``devices.serial``), station, limit or other name, and step label (``samples.step``).
+SERIAL_MAX, NAME_MAX, STEP_MAX = 64, 64, 32
+#: A serial number's characters: printable ASCII letters, digits, ``- _ . : + #`` and (inside) the space.
+SERIAL_CHARS = frozenset(string.ascii_letters + string.digits + "-_.:+# ")
+SERIAL_PATTERN = r"^[A-Za-z0-9_.:+#-]([A-Za-z0-9_.:+# -]*[A-Za-z0-9_.:+#-])?$"
+SERIAL_RULE = ("1 to 64 printable ASCII characters: letters, digits, '-', '_', '.', ':', '+', '#' and spaces "
+               "between them (no '/', no control or non-ASCII characters)")
+STATION_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]*$"
+STATION_RULE = "1 to 64 letters, digits, '.', '_' or '-', starting with a letter or digit"
+
+
+def no_nul(value: str) -> str:
+    """Refuse a NUL character (PostgreSQL's text cannot hold one)."""
+    if "\x00" in value:
+        raise ValueError("contains a NUL character (\\x00)")
+    return value
+
+
+def check_serial(value: str) -> str:
+    """A serial number as stored: spaces at either end dropped, then 1 to 64 characters of
+    :data:`SERIAL_CHARS`, so it fits ``devices.serial`` on both databases, reads back through
+    ``/devices/{serial}`` and can name a file. ValueError names the problem."""
+    v = no_nul(value).strip(" ")
+    if not v:
+        raise ValueError("empty serial number")
+    if len(v) > SERIAL_MAX:
+        raise ValueError(f"serial number of {len(v)} characters; at most {SERIAL_MAX}")
+    bad = next((c for c in v if c not in SERIAL_CHARS), None)
+    if bad is not None:
+        raise ValueError(f"character {bad!r} at position {v.index(bad) + 1} is not allowed in a serial number: "
+                         + SERIAL_RULE)
+    return v
+
+
+def check_station_name(value: str) -> str:
+    """A station's name: :data:`STATION_RULE` (it names queues and files, and appears in URLs)."""
+    if not re.fullmatch(STATION_PATTERN, no_nul(value)):
+        raise ValueError(f"not a station name: {STATION_RULE}")
+    return value
+
+
+def _not_bool(value: Any) -> Any:
+    # pydantic's lax mode reads true as 1: a boolean where a number belongs is a mistake, not a number
+    if isinstance(value, bool):
+        raise ValueError("a number is required, not true or false")
+    return value
+
+
+def unstorable(value: Any) -> str | None:
+    """What in a request value (free-form objects included) no database column may hold: a NUL
+    character in a string or key, an infinite or NaN number (Python's JSON parser reads ``Infinity``
+    and ``NaN``). None when all is well, else the problem with where it is (``at ['x'][0]``)."""
+    todo: list[tuple[Any, str]] = [(value, "")]
+    while todo:  # a stack, not recursion: a deeply nested body must not exhaust the stack
+        v, at = todo.pop()
+        where = f" at {at}" if at else ""
+        if isinstance(v, str):
+            if "\x00" in v:
+                return f"contains a NUL character (\\x00){where}"
+        elif isinstance(v, float):
+            if not math.isfinite(v):
+                return f"numbers must be finite, not {v}{where}"
+        elif isinstance(v, dict):
+            for k, x in v.items():
+                if isinstance(k, str) and "\x00" in k:
+                    return f"contains a NUL character (\\x00) in a key{where}"
+                todo.append((x, f"{at}[{k!r}]"))
+        elif isinstance(v, (list, tuple)):
+            todo.extend((x, f"{at}[{i}]") for i, x in enumerate(v))
+    return None
+
+
+#: A unit's serial number, wherever one enters (bodies, the recording's metadata, paths, queries).
+Serial = Annotated[str, AfterValidator(check_serial), Field(
+    description=f"a unit's serial number: {SERIAL_RULE}; spaces at either end are dropped. In a URL, "
+                "percent-encode the space (%20), '#' (%23) and, in a query, '+' (%2B)",
+    json_schema_extra={"minLength": 1, "maxLength": SERIAL_MAX, "pattern": SERIAL_PATTERN})]
+#: A station's name (``stations.name``), in a body, a path or a query.
+StationName = Annotated[str, AfterValidator(check_station_name), Field(
+    min_length=1, max_length=NAME_MAX, description=f"a station's name: {STATION_RULE}",
+    json_schema_extra={"pattern": STATION_PATTERN})]
+#: Any other name or key a request may bring (a limit's name, a prompt's id, a status to filter by).
+Name = Annotated[str, AfterValidator(no_nul), Field(min_length=1, max_length=NAME_MAX)]
+#: A database id in a path or body: 1 to 2**31-1 (a larger one cannot exist; PostgreSQL would fail on it).
+Id = Annotated[int, Field(ge=1, le=INT32_MAX, description="an id: 1 to 2147483647"), BeforeValidator(_not_bool)]
+#: A fixture slot, an offset: 0 to 2**31-1.
+Index = Annotated[int, Field(ge=0, le=INT32_MAX), BeforeValidator(_not_bool)]
+#: A number of a request body: finite, and a number (not true/false, not a string of digits).
+Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+
+
+class In(BaseModel):
+    """Base of every request body: no field, however deep (``parameters``), may carry a NUL
+    character or a non-finite number; the 422 names the field and where in it."""
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _storable(cls, v: Any) -> Any:
+        problem = unstorable(v)
+        if problem:
+            raise ValueError(problem)
+        return v
 
 # --------------------------------------------------------------------------------------- service
 
@@ -94,11 +208,12 @@ class HistoryEntry(BaseModel):
 # ---------------------------------------------------------------------------------------- limits
 
 
-class LimitIn(BaseModel):
-    """An acceptance limit: above ``marginal`` MARGINAL, above ``fail`` FAIL."""
+class LimitIn(In):
+    """An acceptance limit: above ``marginal`` MARGINAL, above ``fail`` FAIL (finite numbers: an
+    infinite limit would pass every calibration)."""
 
-    marginal: float = Field(ge=0)
-    fail: float = Field(ge=0)
+    marginal: Finite = Field(ge=0)
+    fail: Finite = Field(ge=0)
 
 
 class LimitOut(BaseModel):
@@ -125,12 +240,13 @@ class RecordingOut(BaseModel):
 # -------------------------------------------------------------------------------------- stations
 
 
-class StationConfigIn(BaseModel):
+class StationConfigIn(In):
     """A station's configuration (the name is in the path)."""
 
     modbus: str = Field(min_length=1, max_length=256, description="e.g. tcp://10.0.0.5:502")
-    compasses: list[str] = Field(min_length=1, description="the serial URL of slot 0, slot 1, ...")
-    time_scale: float = Field(1.0, gt=0, le=1000, description="> 1 only for a simulated station running faster")
+    compasses: list[Annotated[str, AfterValidator(no_nul), Field(max_length=256)]] = Field(
+        min_length=1, max_length=64, description="the serial URL of slot 0, slot 1, ...")
+    time_scale: Finite = Field(1.0, gt=0, le=1000, description="> 1 only for a simulated station running faster")
 
     @field_validator("modbus")
     @classmethod
@@ -149,7 +265,7 @@ class StationConfigIn(BaseModel):
 class StationIn(StationConfigIn):
     """A new station: its name, its table's Modbus URL and one serial URL per fixture slot."""
 
-    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+    name: StationName
 
 
 class StationOut(BaseModel):
@@ -171,27 +287,28 @@ class StationOut(BaseModel):
 # ------------------------------------------------------------------------------------------ runs
 
 
-class RunIn(BaseModel):
+class RunIn(In):
     """A run to start."""
 
-    station: str
-    procedure: str | None = Field(None, description="default calibrate (with resume: the resumed run's)")
+    station: StationName
+    procedure: str | None = Field(None, min_length=1, max_length=32,
+                                  description="default calibrate (with resume: the resumed run's)")
     parameters: dict[str, Any] = Field(default_factory=dict)
-    serials: dict[str, str] | None = Field(None, description='slot -> serial, e.g. {"0": "SN-1"}; '
-                                           "omitted: the compasses' own serial numbers")
-    resume: int | None = Field(None, ge=1, description="a failed or aborted run of this station to continue from the "
-                               "last checkpoint it passed (its procedure, parameters and units; its samples up to "
-                               "there are taken over, the same units must be mounted)")
+    serials: dict[str, Serial] | None = Field(None, description='slot -> serial, e.g. {"0": "SN-1"}; '
+                                              "omitted: the compasses' own serial numbers. A serial number: " + SERIAL_RULE)
+    resume: Id | None = Field(None, description="a failed or aborted run of this station to continue from the "
+                              "last checkpoint it passed (its procedure, parameters and units; its samples up to "
+                              "there are taken over, the same units must be mounted)")
 
 
-class StateIn(BaseModel):
+class StateIn(In):
     """A requested state change of a run."""
 
     state: str = Field(pattern="^(paused|running|aborted)$")
     reason: str | None = Field(None, max_length=500)
 
 
-class AnswerIn(BaseModel):
+class AnswerIn(In):
     """The operator's answer to a prompt."""
 
     answer: str = Field("", max_length=1000)
@@ -277,19 +394,17 @@ class AnswerOut(BaseModel):
 # --------------------------------------------------------------------------------------- batches
 
 
-class BatchIn(BaseModel):
+class BatchIn(In):
     """Units to calibrate in turn on slot 0 of a station."""
 
-    station: str
-    serials: list[str] = Field(min_length=1, max_length=1000)
+    station: StationName
+    serials: list[Serial] = Field(min_length=1, max_length=1000, description="the units' serial numbers, each "
+                                  + SERIAL_RULE)
     parameters: dict[str, Any] = Field(default_factory=dict, description="calibrate parameters for every unit")
 
     @field_validator("serials")
     @classmethod
     def _distinct(cls, v: list[str]) -> list[str]:
-        v = [s.strip() for s in v]
-        if any(not s for s in v):
-            raise ValueError("empty serial number")
         dup = sorted({s for s in v if v.count(s) > 1})
         if dup:
             raise ValueError(f"serial numbers listed twice: {', '.join(dup)}")
@@ -332,16 +447,17 @@ class BatchOut(BaseModel):
 # -------------------------------------------------------------------------------------- analyses
 
 
-class AnalysisIn(BaseModel):
+class AnalysisIn(In):
     """What to analyse; every field optional (an empty body analyses every unit of the run)."""
 
     model_config = ConfigDict(extra="forbid")  # a misspelt field is an error, not silently the default
 
-    slot: int | None = Field(None, ge=0, description="the fixture slot (unit) to analyse; default: every slot with samples")
-    null_sims: int = Field(200, ge=0, le=5000, description="simulated null recordings calibrating the tests' false-alarm rate")
-    calibration_id: int | None = Field(None, ge=1, description="a stored calibration as the unit's nominal model (the "
-                                       "recording's own fit is compared with it: shifted parameters are reported); "
-                                       "default: the run's own calibration of the unit, else the unit's current one")
+    slot: Index | None = Field(None, description="the fixture slot (unit) to analyse; default: every slot with samples")
+    null_sims: Annotated[int, Field(ge=0, le=5000), BeforeValidator(_not_bool)] = Field(
+        200, description="simulated null recordings calibrating the tests' false-alarm rate")
+    calibration_id: Id | None = Field(None, description="a stored calibration as the unit's nominal model (the "
+                                      "recording's own fit is compared with it: shifted parameters are reported); "
+                                      "default: the run's own calibration of the unit, else the unit's current one")
 
 
 class AnalysisOut(BaseModel):
@@ -396,12 +512,16 @@ class AnalysisLine(BaseModel):
 def content(media_type: str, description: str, binary: bool = False) -> dict[int | str, dict[str, Any]]:
     """The OpenAPI description of a success answer that is not JSON (a CSV, a PDF, HTML, events)."""
     schema: dict[str, Any] = {"type": "string", **({"format": "binary"} if binary else {})}
-    return {200: {"description": description, "content": {media_type: {"schema": schema}}}, **ERRORS}
+    # refusals stay JSON: spelt out, since FastAPI would document a model under the route's media type
+    errors = {code: {"description": e["description"],
+                     "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
+              for code, e in ERRORS.items()}
+    return {200: {"description": description, "content": {media_type: {"schema": schema}}}, **errors}
 
 # ------------------------------------------------------------------------------------------- keys
 
 
-class KeyIn(BaseModel):
+class KeyIn(In):
     """A key to create."""
 
     owner: str = Field(min_length=1, max_length=64, description="who it belongs to (recorded with every change it makes)")

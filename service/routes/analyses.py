@@ -23,7 +23,7 @@ from service.auth import Caller, audit, require
 from service.db import Analysis, Calibration, Device, Run, Sample
 from service.deps import event_stream
 from service.runtime import ANALYSIS_FINAL, Conflict, NotFound, analysis_topic, invalid
-from service.schemas import ERRORS, AnalysesCreated, AnalysisIn, AnalysisLine, AnalysisOut, content
+from service.schemas import ERRORS, AnalysesCreated, AnalysisIn, AnalysisLine, AnalysisOut, Id, content
 from service.worker import ANALYSIS_QUEUE
 
 #: Keys the service adds to the analyser's result when it stores it (everything else is the result).
@@ -95,7 +95,7 @@ def _plan(s: Session, run_id: int, body: AnalysisIn) -> tuple[Run, dict[int, int
 
 
 @router.post("/runs/{run_id}/analysis", status_code=202, response_model=AnalysesCreated, responses=ERRORS)
-async def create_analysis(run_id: int, request: Request, response: Response, body: AnalysisIn | None = None,
+async def create_analysis(run_id: Id, request: Request, response: Response, body: AnalysisIn | None = None,
                           caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
     """Analyse an ended run's recordings (operator): one analysis per unit (slot), or the one asked,
     against the unit's calibration from this run, else its current one (or ``calibration_id``) as
@@ -128,7 +128,7 @@ async def create_analysis(run_id: int, request: Request, response: Response, bod
 
 
 @router.get("/runs/{run_id}/analyses", response_model=list[AnalysisLine], responses=ERRORS)
-def run_analyses(run_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
+def run_analyses(run_id: Id, request: Request, _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
     """A run's analyses, oldest first: id, slot, serial, state, verdict and the names of the findings."""
     with request.app.state.sessions() as s:
         if s.get(Run, run_id) is None:
@@ -145,14 +145,14 @@ def _get(request: Request, analysis_id: int) -> Analysis:
 
 
 @router.get("/analyses/{analysis_id}", response_model=AnalysisOut, responses=ERRORS)
-def get_analysis(analysis_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+def get_analysis(analysis_id: Id, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
     """One analysis: its state and progress, and once completed the analyser's result."""
     return analysis_json(_get(request, analysis_id))
 
 
 @router.get("/analyses/{analysis_id}/events", response_class=StreamingResponse,
             responses=content("text/event-stream", "server-sent events: the analysis's state at each change"))
-async def analysis_events(analysis_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> StreamingResponse:
+async def analysis_events(analysis_id: Id, request: Request, _: Caller = Depends(require("viewer"))) -> StreamingResponse:
     """Server-sent events of an analysis: a ``state`` event (status, progress, reason) at each change
     until it has ended. The event id is the analysis's version: ``Last-Event-ID`` resumes after it."""
     _get(request, analysis_id)
@@ -169,7 +169,7 @@ async def analysis_events(analysis_id: int, request: Request, _: Caller = Depend
 
 @router.get("/analyses/{analysis_id}/report", response_class=HTMLResponse,
             responses=content("text/html", "the analysis report, a self-contained page"))
-async def analysis_report(analysis_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> HTMLResponse:
+async def analysis_report(analysis_id: Id, request: Request, _: Caller = Depends(require("viewer"))) -> HTMLResponse:
     """The analysis as a self-contained HTML page (tables and the figures the stored result can
     draw; the per-sample plots are in the report ``compasscal analyze --html`` writes). 409 until
     the analysis has completed."""

@@ -14,7 +14,7 @@ from service.auth import Caller, audit, require
 from service.db import Batch, Station
 from service.deps import sessions
 from service.runtime import Conflict, Invalid, NotFound, batch_json, field_errors, invalid
-from service.schemas import ERRORS, BatchIn, BatchOut
+from service.schemas import ERRORS, BatchIn, BatchOut, Id
 from service.worker import station_queue
 
 router = APIRouter(tags=["batches"])
@@ -56,7 +56,7 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
 
 
 @router.get("/batches/{batch_id}", response_model=BatchOut, responses=ERRORS)
-async def get_batch(batch_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+async def get_batch(batch_id: Id, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
     """A batch: status, one row per unit (run id, status, verdict), the waiting prompt and the summary."""
     with sessions(request)() as s:
         batch = s.get(Batch, batch_id)

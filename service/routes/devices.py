@@ -4,7 +4,9 @@ engineers' most frequent query), one calibration and its PDF certificate."""
 from __future__ import annotations
 
 import json
+import re
 from typing import Any
+from urllib.parse import quote
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from sqlalchemy import Text, cast, func, select
@@ -14,7 +16,7 @@ from service import plots
 from service.auth import Caller, require
 from service.db import Calibration, Device
 from service.deps import db
-from service.schemas import ERRORS, CalibrationOut, DeviceOut, HistoryEntry, content
+from service.schemas import ERRORS, CalibrationOut, DeviceOut, HistoryEntry, Id, Index, Serial, content
 from service.web import certificate_context, limit_pairs
 
 router = APIRouter(tags=["devices"])
@@ -34,7 +36,7 @@ def _device(session: Session, serial: str) -> Device:
 
 
 @router.get("/devices/{serial}", response_model=DeviceOut, responses=ERRORS)
-def get_device(serial: str, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+def get_device(serial: Serial, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
     """A unit: model, firmware, number of calibrations and the current one's id."""
     dev = _device(session, serial)
     count = session.scalar(select(func.count()).select_from(Calibration).where(Calibration.device_id == dev.id))
@@ -49,8 +51,8 @@ def _utc(t: Any) -> str:
 
 
 @router.get("/devices/{serial}/calibrations", response_model=list[HistoryEntry], responses=ERRORS)
-async def device_calibrations(request: Request, serial: str, limit: int = Query(100, ge=1, le=1000),
-                              offset: int = Query(0, ge=0), _: Caller = Depends(require("viewer"))) -> Response:
+async def device_calibrations(request: Request, serial: Serial, limit: int = Query(100, ge=1, le=1000),
+                              offset: Index = 0, _: Caller = Depends(require("viewer"))) -> Response:
     """The unit's calibration history, newest first (status current, superseded or rejected), with
     the figures the acceptance limits judged; the full documents are at /calibrations/{id}."""
     # The quality engineers' most frequent query: one indexed query of small columns on the event
@@ -72,7 +74,7 @@ async def device_calibrations(request: Request, serial: str, limit: int = Query(
 
 
 @router.get("/devices/{serial}/calibrations/current", response_model=CalibrationOut, responses=ERRORS)
-def current_calibration(serial: str, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+def current_calibration(serial: Serial, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
     """The calibration in force (the physics calibration JSON plus id, run_id, created_at, verdict)."""
     dev = _device(session, serial)
     row = session.scalar(select(Calibration).where(Calibration.device_id == dev.id, Calibration.status == "current"))
@@ -82,7 +84,7 @@ def current_calibration(serial: str, session: Session = Depends(db), _: Caller =
 
 
 @router.get("/calibrations/{cal_id}", response_model=CalibrationOut, responses=ERRORS)
-def get_calibration(cal_id: int, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+def get_calibration(cal_id: Id, session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
     """One stored calibration by id."""
     row = session.get(Calibration, cal_id)
     if row is None:
@@ -92,7 +94,7 @@ def get_calibration(cal_id: int, session: Session = Depends(db), _: Caller = Dep
 
 @router.get("/calibrations/{cal_id}/certificate.pdf", response_class=Response,
             responses=content("application/pdf", "the certificate, A4", binary=True))
-def certificate_pdf(request: Request, cal_id: int, _: Caller = Depends(require("viewer"))) -> Response:
+def certificate_pdf(request: Request, cal_id: Id, _: Caller = Depends(require("viewer"))) -> Response:
     """The calibration certificate as a PDF (A4: identification and parameters with uncertainties,
     the heading-error curves, the acceptance limits and the verdict)."""
     with request.app.state.sessions() as s:
@@ -101,5 +103,15 @@ def certificate_pdf(request: Request, cal_id: int, _: Caller = Depends(require("
             raise HTTPException(404, f"no calibration {cal_id}")
         cert, cal, rec, limits = certificate_context(s, row)
     pdf = plots.certificate_pdf(cert, cal, rec, limit_pairs(limits))
-    name = f"certificate-{cert['serial']}-{cert['number']}.pdf".replace('"', "")
-    return Response(pdf, media_type="application/pdf", headers={"Content-Disposition": f'inline; filename="{name}"'})
+    name = f"certificate-{cert['serial']}-{cert['number']}.pdf"
+    return Response(pdf, media_type="application/pdf", headers={"Content-Disposition": content_disposition("inline", name)})
+
+
+def content_disposition(kind: str, name: str) -> str:
+    """A Content-Disposition header naming a file (RFC 6266): ``filename`` an ASCII fallback,
+    ``filename*`` the name in UTF-8, percent-encoded. Neither carries a path: a serial stored before
+    serials were checked (``../../etc/passwd``, ``a/b``) or outside Latin-1 (which a header cannot
+    carry raw) still gives a plain file name."""
+    name = re.sub(r"\.{2,}", ".", re.sub(r"[\x00-\x1f\x7f/\\]", "_", name))  # no directory, "..", control character
+    ascii_name = re.sub(r"[^A-Za-z0-9._+-]", "_", name)  # nothing a quoted string would need to escape
+    return f"{kind}; filename=\"{ascii_name}\"; filename*=UTF-8''{quote(name, safe='')}"

@@ -12,7 +12,7 @@ from service.auth import Caller, audit, require
 from service.db import Limit
 from service.deps import db
 from service.runtime import invalid
-from service.schemas import ERRORS, LimitIn, LimitOut
+from service.schemas import ERRORS, LimitIn, LimitOut, Name
 
 router = APIRouter(tags=["limits"])
 
@@ -25,7 +25,7 @@ def get_limits(session: Session = Depends(db), _: Caller = Depends(require("view
 
 
 @router.put("/limits/{name}", response_model=LimitOut, responses=ERRORS)
-def put_limit(name: str, body: LimitIn, session: Session = Depends(db), caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
+def put_limit(name: Name, body: LimitIn, session: Session = Depends(db), caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
     """Change one limit (admin). Calibrations already judged keep their verdicts."""
     row = session.get(Limit, name)
     if row is None:

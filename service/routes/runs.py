@@ -31,7 +31,8 @@ from service.db import Calibration, Device, Run, Station
 from service.deps import event_stream, sessions
 from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after,
                              finish_unstarted, queue_answer, request_state, run_json, wait_for)
-from service.schemas import ERRORS, AnswerIn, AnswerOut, ErrorOut, RunDetail, RunIn, RunOut, RunStateOut, StateIn, content
+from service.schemas import (ERRORS, AnswerIn, AnswerOut, ErrorOut, Id, Index, Name, RunDetail, RunIn, RunOut, RunStateOut,
+                             Serial, StateIn, StationName, content)
 from service.store import load_recording
 from service.worker import station_queue
 
@@ -68,9 +69,9 @@ async def create_run_route(body: RunIn, request: Request, caller: Caller = Depen
 
 
 @router.get("/runs", response_model=list[RunOut], responses=ERRORS)
-async def list_runs(request: Request, station: str | None = None, status: str | None = None,
-                    procedure: str | None = None, serial: str | None = None,
-                    limit: int = Query(50, ge=1, le=1000), offset: int = Query(0, ge=0),
+async def list_runs(request: Request, station: StationName | None = None, status: Name | None = None,
+                    procedure: Name | None = None, serial: Serial | None = None,
+                    limit: int = Query(50, ge=1, le=1000), offset: Index = 0,
                     _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
     """Runs, newest first, filtered by station name, status, procedure and unit serial number."""
     q = select(Run)
@@ -90,7 +91,7 @@ async def list_runs(request: Request, station: str | None = None, status: str | 
 
 
 @router.get("/runs/{run_id}", response_model=RunDetail, responses=ERRORS)
-async def get_run(run_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+async def get_run(run_id: Id, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
     """One run: provenance, live status, waiting prompts, progress, result and its calibrations."""
     with sessions(request)() as s:
         row = _get_run(s, run_id)
@@ -103,7 +104,7 @@ async def get_run(run_id: int, request: Request, _: Caller = Depends(require("vi
 
 
 @router.put("/runs/{run_id}/state", status_code=202, response_model=RunStateOut, responses=ERRORS)
-async def put_run_state(run_id: int, body: StateIn, request: Request,
+async def put_run_state(run_id: Id, body: StateIn, request: Request,
                         caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
     """Pause, resume or abort (operator), checked against the run's state machine (409 otherwise).
     202: a pause takes effect at the next checkpoint, an abort as soon as the current step ends."""
@@ -124,7 +125,7 @@ async def put_run_state(run_id: int, body: StateIn, request: Request,
 
 @router.get("/runs/{run_id}/events", response_class=StreamingResponse,
             responses=content("text/event-stream", "server-sent events: state, step, progress, samples, prompt, result"))
-async def run_events(run_id: int, request: Request, _: Caller = Depends(require("viewer"))) -> StreamingResponse:
+async def run_events(run_id: Id, request: Request, _: Caller = Depends(require("viewer"))) -> StreamingResponse:
     """Server-sent events (state, step, progress, samples, prompt, result): the run's history from
     the database, then live events until it ends, from whichever process runs it. A
     ``Last-Event-ID`` header resumes after that event (ids increase; any API process understands them)."""
@@ -141,7 +142,7 @@ async def run_events(run_id: int, request: Request, _: Caller = Depends(require(
 
 @router.get("/runs/{run_id}/samples", response_class=Response,
             responses=content("text/csv", "the slot's samples as a RECORDING.md CSV"))
-async def run_samples(run_id: int, request: Request, slot: int = Query(0, ge=0),
+async def run_samples(run_id: Id, request: Request, slot: Index = 0,
                       _: Caller = Depends(require("viewer"))) -> Response:
     """One slot's samples as a RECORDING.md CSV (404 when it has none)."""
     def build() -> str | None:
@@ -161,7 +162,7 @@ async def run_samples(run_id: int, request: Request, slot: int = Query(0, ge=0),
 
 
 @router.post("/runs/{run_id}/prompts/{prompt_id}", response_model=AnswerOut, responses={**ERRORS, 503: {"model": ErrorOut, "description": "the run's worker did not take the answer"}})
-async def answer_prompt(run_id: int, prompt_id: str, body: AnswerIn, request: Request,
+async def answer_prompt(run_id: Id, prompt_id: Name, body: AnswerIn, request: Request,
                         caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
     """Answer a waiting operator prompt (operator); 404 when the run has no such prompt waiting.
     Answers once the run's worker has taken the answer (503 if it does not within a few seconds)."""

@@ -17,7 +17,7 @@ from service.auth import Caller, audit, require
 from service.db import Run, Station
 from service.deps import sessions
 from service.runtime import CONFIRM_S, Conflict, NotFound, Unavailable, run_json, station_json, wait_for
-from service.schemas import (ERRORS, ErrorOut, StationConfigIn, StationDetail, StationIn, StationOut,
+from service.schemas import (ERRORS, ErrorOut, StationConfigIn, StationDetail, StationIn, StationName, StationOut,
                              StationResetOut)
 from service.worker import station_queue
 
@@ -47,10 +47,12 @@ async def create_station(body: StationIn, request: Request, caller: Caller = Dep
 
 
 @router.put("/stations/{name}", response_model=StationOut, responses=ERRORS)
-async def put_station(name: str, body: StationConfigIn, request: Request, caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
+async def put_station(name: StationName, body: StationConfigIn, request: Request,
+                      caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
     """Create a station or change its URLs (admin), e.g. after moving a table to another gateway.
     409 while a run uses it; runs already made keep the configuration they ran with."""
-    full = StationIn(name=name, **body.model_dump())  # the same checks as POST
+    # the same checks as POST: the name in the path has StationIn.name's type (a bad one: 422 path.name)
+    full = StationIn.model_construct(name=name, **body.model_dump())
     with sessions(request)() as s:
         row = s.scalar(select(Station).where(Station.name == name))
         if row is None:
@@ -67,7 +69,7 @@ async def put_station(name: str, body: StationConfigIn, request: Request, caller
 
 
 @router.get("/stations/{name}", response_model=StationDetail, responses=ERRORS)
-async def get_station(name: str, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
+async def get_station(name: StationName, request: Request, _: Caller = Depends(require("viewer"))) -> dict[str, Any]:
     """One station: configuration, state, current run (with its status and prompts), fault, worker."""
     with sessions(request)() as s:
         row = s.scalar(select(Station).where(Station.name == name))
@@ -80,7 +82,7 @@ async def get_station(name: str, request: Request, _: Caller = Depends(require("
 
 
 @router.post("/stations/{name}/reset", response_model=StationResetOut, responses={**ERRORS, 503: {"model": ErrorOut, "description": "the table or the station's worker does not answer"}})
-async def reset_station(name: str, request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+async def reset_station(name: StationName, request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
     """Reset the table's axis faults and make the station idle (operator), through the station's
     worker. 409 while a run uses it; 503 when the table cannot be reached, still reports a fault, or
     no worker of the station answers."""

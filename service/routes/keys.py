@@ -12,7 +12,7 @@ from service.auth import ROLES, Caller, audit, create_key, find_key, key_json, l
 from service.db import ApiKey
 from service.deps import sessions
 from service.runtime import Conflict, NotFound, invalid
-from service.schemas import ERRORS, KeyCreated, KeyIn, KeyOut
+from service.schemas import ERRORS, Id, KeyCreated, KeyIn, KeyOut
 
 router = APIRouter(tags=["keys"])
 
@@ -38,7 +38,7 @@ def post_key(body: KeyIn, request: Request, caller: Caller = Depends(require("ad
 
 
 @router.delete("/keys/{key_id}", response_model=KeyOut, responses=ERRORS)
-def delete_key(key_id: int, request: Request, caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
+def delete_key(key_id: Id, request: Request, caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
     """Revoke a key (admin); it stops working within seconds everywhere. Refused for the last
     admin key in force, which would lock every administrator out."""
     with sessions(request)() as s:

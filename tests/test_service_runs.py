@@ -270,6 +270,12 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
             assert cur["run_id"] == u["run_id"]
         assert api.get("/stations/lab-1", role="viewer").json()["batch_id"] is None
         assert len(audited(api, "run.prompt")) == 2 and len(audited(api, "batch.start")) == 1
+        # listed, newest first, filtered by station and status
+        listed = api.get("/batches", role="viewer").json()
+        assert [x["id"] for x in listed] == [bid] and listed[0]["summary"] == b["summary"]
+        assert api.get("/batches?station=lab-1&status=completed", role="viewer").json()[0]["id"] == bid
+        assert api.get("/batches?status=running", role="viewer").json() == []
+        assert api.get("/batches?station=nowhere", role="viewer").json() == []
 
 
 def test_an_interrupted_calibration_resumes_from_its_last_checkpoint(api: Api):

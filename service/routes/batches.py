@@ -3,9 +3,10 @@ prompting its mounting; a failed unit does not stop the batch."""
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from pydantic import ValidationError
 from sqlalchemy import select, update
 
@@ -14,7 +15,7 @@ from service.auth import Caller, audit, require
 from service.db import Batch, Station
 from service.deps import sessions
 from service.runtime import Conflict, Invalid, NotFound, batch_json, field_errors, invalid
-from service.schemas import ERRORS, BatchIn, BatchOut, Id
+from service.schemas import ERRORS, BatchIn, BatchOut, Id, Index, Name, StationName
 from service.worker import station_queue
 
 router = APIRouter(tags=["batches"])
@@ -53,6 +54,24 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
                                        batch_id=batch_id, parameters=dict(body.parameters), operator=caller.owner)
     with sessions(request)() as s:
         return batch_json(s, s.get(Batch, batch_id))
+
+
+@router.get("/batches", response_model=list[BatchOut], responses=ERRORS)
+async def list_batches(request: Request, station: StationName | None = None, status: Name | None = None,
+                       limit: int = Query(50, ge=1, le=1000), offset: Index = 0,
+                       _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
+    """Batches, newest first, filtered by station name and status (running, completed, failed)."""
+    q = select(Batch)
+    if station is not None:
+        q = q.join(Station, Station.id == Batch.station_id).where(Station.name == station)
+    if status is not None:
+        q = q.where(Batch.status == status)
+
+    def read() -> list[dict[str, Any]]:
+        with sessions(request)() as s:
+            rows = s.scalars(q.order_by(Batch.created_at.desc(), Batch.id.desc()).limit(limit).offset(offset)).all()
+            return [batch_json(s, b) for b in rows]
+    return await asyncio.to_thread(read)
 
 
 @router.get("/batches/{batch_id}", response_model=BatchOut, responses=ERRORS)

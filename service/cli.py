@@ -902,7 +902,8 @@ def serve(
 
 @app.command(cls=_Command)
 def worker(
-    station: list[str] = typer.Option([], "--station", help="The station this worker drives (repeat for several)."),
+    station: list[str] = typer.Option([], "--station", metavar="NAME",
+                                      help="The station this worker drives (repeat for several)."),
     analyses: bool = typer.Option(True, "--analyses/--no-analyses",
                                   help="Also compute discrepancy analyses (--no-analyses keeps the PC for its table)."),
 ) -> None:

@@ -425,9 +425,12 @@ def _store(ctx: WorkerContext, run_id: int, outcome: Any, serials: dict[int, str
             if ident and serial and ident[1] and ident[1] != serial:
                 entry["identified_serial"] = ident[1]  # the request's serial wins; say so
             cal = res.get("calibration")
+            bad_serial = _bad_serial(serial) if serial else None
             if isinstance(cal, PhysCalibration):
                 if not serial:
                     entry["error"] = "the compass reported no serial number; give serials in the request"
+                elif bad_serial:  # a compass's own answer, never checked at the edge: checked here
+                    entry["error"] = f"the compass reported the serial {serial!r}: {bad_serial}; give serials in the request"
                 else:
                     cal.serial = serial
                     row = store_calibration(s, run, slot, serial, json_safe(cal.to_json()),
@@ -441,6 +444,17 @@ def _store(ctx: WorkerContext, run_id: int, outcome: Any, serials: dict[int, str
             units[str(slot)] = entry
         s.commit()
     return {"units": units, "notes": list(outcome.notes)}
+
+
+def _bad_serial(serial: str) -> str | None:
+    """Why a serial number cannot be stored (the API's rule), or None."""
+    from service.schemas import check_serial
+
+    try:
+        check_serial(serial)
+    except ValueError as e:
+        return str(e)
+    return None
 
 
 def _finish(ctx: WorkerContext, run_id: int, fin: _Finish, table_seconds: float | None) -> None:

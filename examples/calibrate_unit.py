@@ -45,8 +45,16 @@ def call(method, path, body=None):
             fail(f"{method} {BASE + path}: the answer is not JSON; is COMPASSCAL_URL a compasscal service?")
 
 
+def wall_seconds_left(progress, time_scale):
+    """The time left as the run page shows it, in wall-clock seconds: ``left_wall_s`` (``left_s`` is
+    table time, which a simulated station runs time_scale times faster; an older service sends only that)."""
+    left = progress.get("left_wall_s")
+    return progress["left_s"] / time_scale if left is None else left
+
+
 def follow(run_id):
     """Print progress from the run's server-sent events until it ends; returns the final state."""
+    time_scale = float((call("GET", f"/runs/{run_id}").get("station_snapshot") or {}).get("time_scale") or 1.0)
     req = urllib.request.Request(f"{BASE}/runs/{run_id}/events", headers={"X-API-Key": KEY})
     state, kind = None, None
     with open_url(req) as stream:
@@ -57,7 +65,7 @@ def follow(run_id):
             elif line.startswith("data:"):
                 data = json.loads(line.split(":", 1)[1])
                 if kind == "progress":
-                    print(f"\r{data['percent']:5.1f} %  ~{data['left_s']:.0f} s left", end="", flush=True)
+                    print(f"\r{data['percent']:5.1f} %  ~{wall_seconds_left(data, time_scale):.0f} s left", end="", flush=True)
                 elif kind == "prompt":
                     print(f"\noperator: {data['text']}")
                     input("press Enter when done ")

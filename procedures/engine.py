@@ -215,8 +215,16 @@ class Engine:
                     done += 1
                     elapsed = self._table_used = self.table_time()
                     frac = min(1.0, max(0.0, 1.0 - left_nominal / total))
-                    left = elapsed / frac * (1.0 - frac) if frac > 0 else left_nominal
-                    self.on_event(Progress(round(100.0 * frac, 1), elapsed, left, self._samples))
+                    # the plan's remaining table time at the pace so far (table s per planned s), that
+                    # pace trusted as the plan gets done: early on it mostly measures the homing (a
+                    # run of 4 s once said "~44 s left" after its first short move)
+                    pace = elapsed / (total - left_nominal) if frac > 0 else 1.0
+                    trust = frac / (frac + 0.05)
+                    left = left_nominal * (trust * pace + 1.0 - trust)
+                    # to 0.1 s, and exactly 0 once done (not a rounding residue such as 2.56e-14)
+                    left = 0.0 if frac >= 1.0 else max(0.0, round(left, 1))
+                    self.on_event(Progress(round(100.0 * frac, 1), elapsed, left, self._samples,
+                                           left_wall_s=round(left / self.station.time_scale, 1)))
             self._set_state(RunState.completed)
             self.on_event(Result(tuple(sorted(outcome.results)) if outcome else ()))
         except Aborted:

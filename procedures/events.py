@@ -90,17 +90,24 @@ class Resumed:
 @dataclass(frozen=True)
 class Progress:
     """A timed step ended: ``percent`` of the plan's nominal table time done, ``table_s`` table seconds
-    elapsed, ``left_s`` the estimate of those still to go, ``samples`` kept so far."""
+    elapsed, ``left_s`` the estimate of those still to go, ``samples`` kept so far; ``left_wall_s``
+    the same estimate in wall-clock seconds (``left_s`` over the station's time scale: what people
+    wait), left out of the JSON when unknown."""
 
     kind: ClassVar[str] = "progress"
     percent: float
     table_s: float
     left_s: float
     samples: int
+    left_wall_s: float | None = None
 
     def data(self) -> dict[str, Any]:
         """The event's JSON body."""
-        return {"percent": self.percent, "table_s": self.table_s, "left_s": self.left_s, "samples": self.samples}
+        d: dict[str, Any] = {"percent": self.percent, "table_s": self.table_s, "left_s": self.left_s,
+                             "samples": self.samples}
+        if self.left_wall_s is not None:
+            d["left_wall_s"] = self.left_wall_s
+        return d
 
 
 @dataclass(frozen=True)

@@ -68,7 +68,9 @@ def create_app(database_url: str | None = None, worker: bool = True) -> FastAPI:
             await app.state.notifier.stop()
             engine.dispose()
 
-    app = FastAPI(title="compasscal", version=SOFTWARE_VERSION, lifespan=lifespan,
+    # docs_url=None: /docs is service/web.py's, with Swagger UI from the package (FastAPI's uses a CDN);
+    # no /redoc: it too would load from a CDN, a blank page offline
+    app = FastAPI(title="compasscal", version=SOFTWARE_VERSION, lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="Electronic-compass calibration station: stations, runs, batches, calibration history.")
 
     @app.exception_handler(DomainError)

@@ -9,17 +9,19 @@ import hashlib
 import secrets
 import time
 from dataclasses import dataclass
+from datetime import timedelta
 from typing import Any, Callable
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import APIKeyHeader
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from service.db import ApiKey, AuditLog
+from service.db import ApiKey, AuditLog, WebSession, utcnow
 
 ROLES = ("viewer", "operator", "admin")
-#: The session cookie of the web pages (HttpOnly, SameSite=Strict, no expiry: ends with the browser session).
+#: The session cookie of the web pages: a session token (see :func:`start_session`), HttpOnly,
+#: SameSite=Strict, Secure over HTTPS, expiring with the session.
 COOKIE = "compasscal_key"
 _header = APIKeyHeader(name="X-API-Key", auto_error=False, description="an API key from `compasscal keys create`")
 
@@ -97,8 +99,8 @@ def require(role: str) -> Callable[..., Caller]:
 
     # async: a cached key costs no thread-pool hop (a miss runs one short query on the loop)
     async def dep(request: Request, key: str | None = Depends(_header)) -> Caller:
-        # scripts send the header; the web pages' browser session carries the key in a cookie
-        caller = _cached(request, key or request.cookies.get(COOKIE))
+        # scripts send the header; the web pages' browser session carries a session token in a cookie
+        caller = caller_of(request, key)
         if caller is None:
             raise HTTPException(401, "a valid X-API-Key header is required", headers={"WWW-Authenticate": "X-API-Key"})
         if ROLES.index(caller.role) < need:
@@ -112,8 +114,9 @@ def require(role: str) -> Callable[..., Caller]:
 KEY_CACHE_S = 10.0
 
 
-def _cached(request: Request, key: str | None) -> Caller | None:
-    """:func:`lookup` with a short per-app cache: every request checks its key, most of them the same few."""
+def _cached(request: Request, key: str | None, find: Callable[[Session, str], Caller | None] | None = None) -> Caller | None:
+    """``find`` (default :func:`lookup`) with a short per-app cache: every request checks its key or
+    session token, most of them the same few."""
     if not key:
         return None
     state = request.app.state
@@ -124,11 +127,52 @@ def _cached(request: Request, key: str | None) -> Caller | None:
     if hit is not None and now - hit[0] < KEY_CACHE_S:
         return hit[1]
     with state.sessions() as session:
-        caller = lookup(session, key)
+        caller = (find or lookup)(session, key)
     if len(cache) > 10_000:
         cache.clear()
     cache[key] = (now, caller)
     return caller
+
+
+#: Hours a web session lasts from its login.
+SESSION_HOURS = 12
+
+
+def caller_of(request: Request, key: str | None = None) -> Caller | None:
+    """Who calls: the ``X-API-Key`` header's key (``key``, else read here), else the web session of
+    the cookie; None when neither is valid."""
+    key = key or request.headers.get("x-api-key")
+    if key:
+        return _cached(request, key)
+    token = request.cookies.get(COOKIE)
+    return _cached(request, token, session_caller) if token else None
+
+
+def start_session(session: Session, key: str) -> tuple[str, Caller] | None:
+    """Log in with an API key: a new session token (the cookie's value; only its hash is stored)
+    and the caller, or None when the key is not valid (committed)."""
+    row = session.scalar(select(ApiKey).where(ApiKey.key_hash == hash_key(key), ApiKey.revoked.is_(False)))
+    if row is None:
+        return None
+    token = "cs_" + secrets.token_urlsafe(32)
+    session.add(WebSession(token_hash=hash_key(token), key_id=row.id,
+                           expires_at=utcnow() + timedelta(hours=SESSION_HOURS)))
+    session.commit()
+    return token, Caller(row.owner, row.role)
+
+
+def session_caller(session: Session, token: str) -> Caller | None:
+    """The caller of a web session token: None when unknown, expired, or its key revoked."""
+    row = session.execute(select(ApiKey.owner, ApiKey.role).join(WebSession, WebSession.key_id == ApiKey.id)
+                          .where(WebSession.token_hash == hash_key(token), WebSession.expires_at > utcnow(),
+                                 ApiKey.revoked.is_(False))).first()
+    return Caller(row[0], row[1]) if row else None
+
+
+def end_session(session: Session, token: str) -> None:
+    """Log out: the session token stops working (committed)."""
+    session.execute(delete(WebSession).where(WebSession.token_hash == hash_key(token)))
+    session.commit()
 
 
 def audit(session: Session, caller: Caller, action: str, target: str, detail: dict[str, Any] | None = None) -> None:

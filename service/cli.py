@@ -75,6 +75,11 @@ def _only_service(url: str) -> None:
         held.close()
 
 
+def _wall_left(e: Any, time_scale: float) -> float:
+    """Seconds of wall time a run has left (what a person waits), from a progress event."""
+    return e.left_wall_s if e.left_wall_s is not None else e.left_s / time_scale
+
+
 def _fail(message: str) -> NoReturn:
     """End the command: the message on stderr (taken literally, not as rich markup: ``M[xm,xb]``), exit 2."""
     err_console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
@@ -470,7 +475,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
         def on_event(e: events.Event) -> None:
             if isinstance(e, events.Progress):
                 bar.update(task, completed=e.percent,
-                           info=f"table {e.table_s:.0f} s, {e.samples} samples, ~{e.left_s:.0f} s left")
+                           info=f"table {e.table_s:.0f} s, {e.samples} samples, ~{_wall_left(e, time_scale):.0f} s left")
             elif isinstance(e, events.StepStarted) and isinstance(e.step, Acquire):
                 bar.update(task, description=f"calibrate: {e.step.step}")
 

@@ -59,7 +59,7 @@ def calibration_figure(rec: Recording, cal: Calibration, path: Path) -> None:
 
 import io  # noqa: E402
 import uuid  # noqa: E402
-from datetime import datetime  # noqa: E402
+from datetime import datetime, timedelta  # noqa: E402
 from typing import Any, Mapping, Sequence  # noqa: E402
 
 from matplotlib.axes import Axes  # noqa: E402
@@ -128,6 +128,12 @@ def measured_tilted_errors(rec: Recording, cal: Calibration, max_tilt_deg: float
     return {"psi": poses[keep, 0], "theta": theta[keep], "phi": phi[keep], "error": err[keep], "sigma": sigma[keep]}
 
 
+def _legend_outside(ax: Axes, **kw: Any) -> None:
+    """The axes' legend to the right of it, outside: never over a curve or a limit line (a legend
+    inside, even at loc "best", sits on a limit line as soon as the data fill the axes)."""
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, **kw)
+
+
 def _limit_lines(ax: Axes, limits: Limits | None, name: str) -> None:
     """The acceptance limit as +- lines, so the engineer sees the margin at a glance."""
     if not limits or name not in limits:
@@ -155,8 +161,7 @@ def draw_staged(axes: Sequence[Axes], cal: Calibration, rec: Recording | None, l
            ylabel="heading error (deg)", xlim=(0, 360), xticks=np.arange(0, 361, 60))
     ax.grid(True, lw=0.4, alpha=0.6)
     if predicted or measured:
-        ax.legend(fontsize=7, loc="best", title="lines: model, o: measured" if measured and predicted else None,
-                  title_fontsize=7)
+        _legend_outside(ax, title="lines: model\no: measured" if measured and predicted else None, title_fontsize=7)
     if "full" in measured:
         zoom.plot(m_psi, measured["full"], "o-", color=STAGE_COLORS["full"], ms=3.5, lw=0.8, label="measured (pose means)")
     if "full" in predicted and np.max(np.abs(predicted["full"])) > 1e-6:  # a non-linear heading model's residual
@@ -166,7 +171,7 @@ def draw_staged(axes: Sequence[Axes], cal: Calibration, rec: Recording | None, l
              ylabel="heading error (deg)", xlim=(0, 360), xticks=np.arange(0, 361, 60))
     zoom.grid(True, lw=0.4, alpha=0.6)
     if "full" in measured:
-        zoom.legend(fontsize=7, loc="best")
+        _legend_outside(zoom)
     else:
         zoom.text(0.5, 0.5, "no level poses recorded", transform=zoom.transAxes, ha="center", color="0.4")
 
@@ -190,23 +195,24 @@ def draw_tilted(ax: Axes, cal: Calibration, rec: Recording | None, limits: Limit
                             ls="-" if mask is not both else "none", lw=0.8, ms=4, mfc="none", color=color,
                             capsize=2, label=label)
         headings = sorted({round(float(p), 1) for p in t["psi"]})
+        # said in the axis label, outside the axes: inside, a limit line ran through it
         note = "at table azimuth " + ", ".join(f"{h:g}" for h in headings[:6]) + (" ..." if len(headings) > 6 else "") + " deg"
-        ax.text(0.01, 0.02, note, transform=ax.transAxes, fontsize=7, color="0.35")
     else:
+        note = ""
         ax.text(0.5, 0.5, f"no tilted poses within +-{max_tilt_deg:g} deg recorded", transform=ax.transAxes,
                 ha="center", color="0.4")
     _limit_lines(ax, limits, "heading_error_tilted_deg")
     ax.set(title=f"Calibrated heading error at pitch and roll up to +-{max_tilt_deg:g} deg",
-           xlabel="tilt angle (deg)", ylabel="heading error (deg)", xlim=(-max_tilt_deg - 5, max_tilt_deg + 5),
-           xticks=np.arange(-max_tilt_deg, max_tilt_deg + 1, 15))
+           xlabel="tilt angle (deg)" + (f", {note}" if note else ""), ylabel="heading error (deg)",
+           xlim=(-max_tilt_deg - 5, max_tilt_deg + 5), xticks=np.arange(-max_tilt_deg, max_tilt_deg + 1, 15))
     ax.grid(True, lw=0.4, alpha=0.6)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7, loc="best")
+        _legend_outside(ax)
 
 
 def staged_figure(cal: Calibration, rec: Recording | None = None, limits: Limits | None = None) -> Figure:
     """The staged heading-error figure of a calibration (see :func:`draw_staged`)."""
-    fig = Figure(figsize=(11, 3.8))
+    fig = Figure(figsize=(12, 3.8))
     draw_staged(fig.subplots(1, 2), cal, rec, limits)
     fig.tight_layout()
     return fig
@@ -214,10 +220,41 @@ def staged_figure(cal: Calibration, rec: Recording | None = None, limits: Limits
 
 def tilted_figure(cal: Calibration, rec: Recording | None = None, limits: Limits | None = None) -> Figure:
     """The tilted heading-error figure of a calibration (see :func:`draw_tilted`)."""
-    fig = Figure(figsize=(8, 3.6))
+    fig = Figure(figsize=(9, 3.6))
     draw_tilted(fig.subplots(), cal, rec, limits)
     fig.tight_layout()
     return fig
+
+
+#: The narrowest span a trend's time axis shows: a single calibration, or several minutes apart,
+#: sit in a window this wide (matplotlib alone spans years around one date).
+MIN_TREND_SPAN = timedelta(minutes=2)
+#: Tick label formats by the span shown (up to, format): absolute dates and times, the date always
+#: there, so that no tick needs an offset text ("30 35 40" and "+2025-06-01 10:31" elsewhere).
+TREND_FORMATS = ((timedelta(hours=2), "%H:%M:%S\n%Y-%m-%d"), (timedelta(days=3), "%H:%M\n%Y-%m-%d"),
+                 (timedelta(days=3 * 365), "%Y-%m-%d"))
+
+
+def date_axis(ax: Axes, when: Sequence[datetime]) -> None:
+    """A time x axis (UTC) that reads well at any span: the data padded to at least MIN_TREND_SPAN,
+    3 to 7 ticks labelled in absolute dates or times, no offset text."""
+    import matplotlib.dates as mdates
+
+    lo, hi = min(when), max(when)
+    span = max(hi - lo, MIN_TREND_SPAN)
+    pad = (span - (hi - lo)) / 2 + span * 0.06  # centred in the minimum span, then a margin
+    ax.set_xlim(lo - pad, hi + pad)
+    shown = (hi - lo) + 2 * pad
+    fmt = next((f for limit, f in TREND_FORMATS if shown <= limit), "%Y-%m")
+    locator = mdates.AutoDateLocator(minticks=3, maxticks=7)
+    # finer steps than matplotlib's (1, 5, 10 minutes...): 7 minutes would otherwise get one tick
+    for freq, steps in ((mdates.SECONDLY, [1, 2, 3, 5, 10, 15, 20, 30]), (mdates.MINUTELY, [1, 2, 3, 5, 10, 15, 20, 30]),
+                        (mdates.HOURLY, [1, 2, 3, 4, 6, 8, 12]), (mdates.MONTHLY, [1, 2, 3, 4, 6])):
+        locator.intervald[freq] = steps
+    ax.xaxis.set_major_locator(locator)
+    ax.xaxis.set_major_formatter(mdates.DateFormatter(fmt))
+    ax.tick_params(axis="x", labelsize=7)
+    ax.set_xlabel("calibrated (UTC)", fontsize=7)
 
 
 def trend_figures(history: Sequence[Mapping[str, Any]]) -> dict[str, Figure]:
@@ -227,8 +264,6 @@ def trend_figures(history: Sequence[Mapping[str, Any]]) -> dict[str, Figure]:
     and ``figures`` (service.store.figures). Rejected calibrations are drawn with red crosses over
     their points: they are kept in the history but never used.
     """
-    import matplotlib.dates as mdates
-
     rows = sorted(history, key=lambda h: h["created_at"])
     when = [h["created_at"] for h in rows]
     cals = [Calibration.from_json(h["data"]) for h in rows]
@@ -272,9 +307,7 @@ def trend_figures(history: Sequence[Mapping[str, Any]]) -> dict[str, Figure]:
                         label="rejected" if j == 0 else None)
         ax.set(title=title, ylabel=unit)
         ax.title.set_fontsize(9)
-        locator = mdates.AutoDateLocator()
-        ax.xaxis.set_major_locator(locator)
-        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
+        date_axis(ax, when)
         ax.grid(True, lw=0.4, alpha=0.6)
         ax.tick_params(labelsize=7)
         if ax.get_legend_handles_labels()[0]:
@@ -306,20 +339,159 @@ def svg(fig: Figure, css_class: str, label: str) -> str:
     return head + f"><title>{escape(label)}</title>" + text[head_end + 1:]
 
 
-def _table(ax: Axes, title: str, header: Sequence[str], rows: Sequence[Sequence[str]], col_widths: Sequence[float] | None = None) -> None:
-    """A table filling an axes (certificate PDF)."""
-    ax.axis("off")
-    ax.set_title(title, loc="left", fontsize=10, fontweight="bold")
-    tab = ax.table(cellText=[list(r) for r in rows] or [["-"] * len(header)], colLabels=list(header), loc="upper left",
-                   cellLoc="left", colLoc="left", colWidths=list(col_widths) if col_widths else None)
-    tab.auto_set_font_size(False)
-    tab.set_fontsize(8)
-    tab.scale(1, 1.35)
-    for (r, _), cell in tab.get_celld().items():
-        cell.set_linewidth(0.4)
+#: Colours of the verdicts on the certificate.
+VERDICT_COLORS = {"PASS": "#1a7f37", "MARGINAL": "#b58100"}
+#: Left margin and text width of a certificate page (figure fraction of A4).
+PAGE_X, PAGE_W = 0.07, 0.86
+
+
+def _line_h(fig: Figure, fontsize: float, spacing: float = 1.3) -> float:
+    """The height of one line of text at ``fontsize`` in figure fraction."""
+    return fontsize * spacing / (fig.get_figheight() * 72.0)
+
+
+def _wrap(text: str, width_in: float, fontsize: float) -> list[str]:
+    """``text`` broken into lines that fit ``width_in`` inches at ``fontsize`` (DejaVu Sans is about
+    0.55 em per character on average)."""
+    import textwrap
+    chars = max(4, int(width_in * 72.0 / (fontsize * 0.55)))
+    return textwrap.wrap(str(text), chars) or [""]
+
+
+def _text_block(fig: Figure, y: float, lines: Sequence[str], fontsize: float = 8.5, x: float = PAGE_X,
+                **kw: Any) -> float:
+    """Lines of text from ``y`` (their top) down; returns the y below the last."""
+    step = _line_h(fig, fontsize, 1.45)
+    for line in lines:
+        fig.text(x, y, line, fontsize=fontsize, va="top", **kw)
+        y -= step
+    return y
+
+
+def _heading(fig: Figure, y: float, text: str, fontsize: float = 10.0, gap: float = 0.018) -> float:
+    """A section heading ``gap`` below ``y``; returns the y below it."""
+    y -= gap
+    fig.text(PAGE_X, y, text, fontsize=fontsize, fontweight="bold", va="top")
+    return y - _line_h(fig, fontsize, 1.55)
+
+
+def _draw_table(fig: Figure, y: float, header: Sequence[str], rows: Sequence[Sequence[str]],
+                widths: Sequence[float], numeric: Sequence[int] = (), fontsize: float = 8.0) -> float:
+    """A table of text drawn from ``y`` (its top, figure fraction) down, sized to its content: a
+    shaded header, thin rules between rows, each cell wrapped to its column (``widths``: fractions
+    of the text width), ``numeric`` columns right-aligned. Returns the y just below it.
+
+    (Drawn as text rather than with matplotlib's table in an axes of a guessed height: that left
+    large blank gaps under short tables.)"""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Rectangle
+
+    line, pad = _line_h(fig, fontsize), 0.45 * _line_h(fig, fontsize)
+    edges = np.r_[0.0, np.cumsum(widths)] / max(sum(widths), 1e-9) * PAGE_W + PAGE_X
+    cell_pad = 0.006
+
+    def rule(at: float, lw: float = 0.4) -> None:
+        fig.add_artist(Line2D([PAGE_X, PAGE_X + PAGE_W], [at, at], transform=fig.transFigure, lw=lw, color="0.55"))
+
+    for r, row in enumerate([list(header), *[list(x) for x in rows]] if rows else [list(header), ["-"] * len(header)]):
+        cells = [_wrap(c, (edges[j + 1] - edges[j] - 2 * cell_pad) * fig.get_figwidth(), fontsize)
+                 for j, c in enumerate(row)]
+        h = max(len(c) for c in cells) * line + 2 * pad
         if r == 0:
-            cell.set_facecolor("#e8eef5")
-            cell.set_text_props(fontweight="bold")
+            fig.add_artist(Rectangle((PAGE_X, y - h), PAGE_W, h, transform=fig.transFigure, facecolor="#e8eef5",
+                                     edgecolor="none", zorder=0))
+            rule(y, 0.6)
+        for j, c in enumerate(cells):
+            right = j in numeric  # numbers (and their heads) right-aligned: decimals line up
+            fig.text(edges[j + 1] - cell_pad if right else edges[j] + cell_pad, y - pad, "\n".join(c),
+                     fontsize=fontsize, va="top", ha="right" if right else "left", linespacing=1.3,
+                     fontweight="bold" if r == 0 else "normal")
+        y -= h
+        rule(y, 0.6 if r in (0, len(rows)) else 0.3)
+    return y
+
+
+def _footer(fig: Figure, cert: Mapping[str, Any], page: int, pages: int = 3) -> None:
+    fig.text(PAGE_X, 0.03, f"compasscal {cert['software_version']} - certificate {cert['number']} - "
+             f"page {page} of {pages}", fontsize=7, color="0.4")
+
+
+def certificate_pages(cert: Mapping[str, Any], cal: Calibration, rec: Recording | None,
+                      limits: Limits | None) -> list[Figure]:
+    """The certificate's three A4 pages as figures (see :func:`certificate_pdf`); separate so that
+    the layout can be checked, or drawn to PNG, without a PDF reader. Each page is laid out from
+    the top down, every element right below the one before (no fixed slots to leave blank)."""
+    a4 = (8.27, 11.69)
+    verdict_color = VERDICT_COLORS.get(cert["verdict"], "#c00000")
+
+    # --- page 1: who, what, where, and the parameters
+    fig = Figure(figsize=a4)
+    fig.text(PAGE_X, 0.955, "Calibration certificate", fontsize=18, fontweight="bold")
+    fig.text(PAGE_X, 0.93, f"No. {cert['number']}  -  electronic compass, three-axis magnetometer", fontsize=10)
+    fig.text(PAGE_X + PAGE_W, 0.955, cert["verdict"], fontsize=18, fontweight="bold", ha="right", color=verdict_color)
+    y = 0.905
+    step = _line_h(fig, 8.5, 1.6)
+    for label, value in cert["info"]:
+        fig.text(PAGE_X, y, label, fontsize=8.5, color="0.3", va="top")
+        fig.text(0.32, y, str(value), fontsize=8.5, va="top")
+        y -= step
+    y = _heading(fig, y, "Table 1: angles between sensor axes and body axes (deg, +- 1 sigma)")
+    y = _draw_table(fig, y, ["axis", "x_b", "y_b", "z_b"], cert["table1"], [0.16, 0.28, 0.28, 0.28], numeric=(1, 2, 3))
+    y = _heading(fig, y, "Table 2: sensitivities and biases (LSB, +- 1 sigma) and model residuals")
+    y = _draw_table(fig, y, ["axis", "sensitivity k", "bias b", "residual rms"], cert["table2"],
+                    [0.16, 0.3, 0.3, 0.24], numeric=(1, 2, 3))
+    y = _heading(fig, y, "Field and table")
+    y = _text_block(fig, y, cert["field"])
+    if cert.get("staged"):
+        y = _heading(fig, y, "Staged heading error on the recording (max |error|, deg)")
+        y = _draw_table(fig, y, ["correction stage", "max |heading error| (deg)"], cert["staged"], [0.6, 0.4],
+                        numeric=(1,))
+    _footer(fig, cert, 1)
+    pages = [fig]
+
+    # --- page 2: the curves (legends right of each plot, outside: see draw_staged)
+    fig = Figure(figsize=a4)
+    fig.text(PAGE_X, 0.955, f"Heading error - {cert['serial']}", fontsize=14, fontweight="bold")
+    fig.text(PAGE_X, 0.935, "Lines: the calibration's model over a full level turn at each correction stage; "
+             "markers: the recording's pose means.", fontsize=8, color="0.3")
+    ax_a, ax_b, ax_c = fig.subplots(3, 1)
+    draw_staged((ax_a, ax_b), cal, rec, limits)
+    draw_tilted(ax_c, cal, rec, limits)
+    fig.tight_layout(rect=(0.03, 0.05, 0.97, 0.925), h_pad=2.0)
+    _footer(fig, cert, 2)
+    pages.append(fig)
+
+    # --- page 3: limits, verdict, notes, signature
+    fig = Figure(figsize=a4)
+    fig.text(PAGE_X, 0.955, "Acceptance", fontsize=14, fontweight="bold")
+    y = _heading(fig, 0.935, "Acceptance limits (above marginal: MARGINAL; above fail: FAIL)", gap=0.0)
+    # each figure by its description, as the HTML certificate says it; its value and limits in one
+    # fixed-point format (service/web.py limit_rows)
+    y = _draw_table(fig, y, ["figure", "value", "marginal above", "fail above", "unit", "result"],
+                    [[r["description"] or r["name"], r["value_text"], r.get("marginal_text", f"{r['marginal']:g}"),
+                      r.get("fail_text", f"{r['fail']:g}"), r["unit"], r["result"]] for r in cert["limits"]],
+                    [0.43, 0.12, 0.13, 0.11, 0.08, 0.13], numeric=(1, 2, 3))
+    y -= 0.025
+    fig.text(PAGE_X, y, f"Verdict: {cert['verdict']}", fontsize=14, fontweight="bold", va="top", color=verdict_color)
+    y -= _line_h(fig, 14, 1.5)
+    y = _text_block(fig, y, [f"Calibration status: {cert['status']}"], fontsize=9)
+    for reason in cert["reasons"] or ["every figure within its marginal limit"]:
+        y = _text_block(fig, y, _wrap("- " + reason, PAGE_W * a4[0] - 0.3, 8.5), x=PAGE_X + 0.02)
+    if cert.get("notes"):
+        y = _heading(fig, y, "Notes")
+        for note in cert["notes"]:
+            lines = _wrap(note, PAGE_W * a4[0], 7.5)
+            if y - len(lines) * _line_h(fig, 7.5, 1.45) < 0.16:  # the rest of the page is the signature's
+                y = _text_block(fig, y, ["(more notes on the HTML certificate)"], fontsize=7.5, color="0.25")
+                break
+            y = _text_block(fig, y, lines, fontsize=7.5, color="0.25")
+    y -= 0.03
+    y = _text_block(fig, y, [f"Issued {cert['issued']} by compasscal {cert['software_version']}; "
+                             f"calibration {cert['id']}, run {cert['run_id']}."], fontsize=8)
+    fig.text(PAGE_X, y - 0.03, "Signature: ______________________________", fontsize=9, va="top")
+    _footer(fig, cert, 3)
+    pages.append(fig)
+    return pages
 
 
 def certificate_pdf(cert: Mapping[str, Any], cal: Calibration, rec: Recording | None, limits: Limits | None) -> bytes:
@@ -331,89 +503,12 @@ def certificate_pdf(cert: Mapping[str, Any], cal: Calibration, rec: Recording | 
     """
     from matplotlib.backends.backend_pdf import PdfPages
 
-    a4 = (8.27, 11.69)
     out = io.BytesIO()
     meta = {"Title": f"Calibration certificate {cert['number']}", "Author": "compasscal", "Subject": cert["serial"],
             "Creator": f"compasscal {cert['software_version']}"}
     with PdfPages(out, metadata=meta) as pdf:
-        # --- page 1: who, what, where, and the parameters
-        fig = Figure(figsize=a4)
-        fig.text(0.07, 0.955, "Calibration certificate", fontsize=18, fontweight="bold")
-        fig.text(0.07, 0.93, f"No. {cert['number']}  -  electronic compass, three-axis magnetometer", fontsize=10)
-        fig.text(0.93, 0.955, cert["verdict"], fontsize=18, fontweight="bold", ha="right",
-                 color={"PASS": "#1a7f37", "MARGINAL": "#b58100"}.get(cert["verdict"], "#c00000"))
-        y = 0.895
-        for label, value in cert["info"]:
-            fig.text(0.07, y, label, fontsize=8.5, color="0.3")
-            fig.text(0.32, y, str(value), fontsize=8.5)
-            y -= 0.019
-        ax1 = fig.add_axes((0.07, y - 0.16, 0.86, 0.13))
-        _table(ax1, "Table 1: angles between sensor axes and body axes (deg, +- 1 sigma)",
-               ["axis", "x_b", "y_b", "z_b"], cert["table1"], [0.16, 0.28, 0.28, 0.28])
-        y -= 0.2
-        ax2 = fig.add_axes((0.07, y - 0.16, 0.86, 0.13))
-        _table(ax2, "Table 2: sensitivities and biases (LSB, +- 1 sigma) and model residuals",
-               ["axis", "sensitivity k", "bias b", "residual rms"], cert["table2"], [0.16, 0.3, 0.3, 0.24])
-        y -= 0.2
-        fig.text(0.07, y, "Field and table", fontsize=10, fontweight="bold")
-        for line in cert["field"]:
-            y -= 0.02
-            fig.text(0.07, y, line, fontsize=8.5)
-        if cert.get("staged"):
-            y -= 0.035
-            fig.text(0.07, y, "Staged heading error on the recording (max |error|, deg)", fontsize=10, fontweight="bold")
-            for label, value in cert["staged"]:
-                y -= 0.018
-                fig.text(0.07, y, label, fontsize=8.5)
-                fig.text(0.45, y, value, fontsize=8.5)
-        if cert.get("notes"):
-            y -= 0.035
-            fig.text(0.07, y, "Notes", fontsize=10, fontweight="bold")
-            for note in cert["notes"][:8]:
-                if y < 0.07:  # the page is full; the HTML certificate lists them all
-                    break
-                y -= 0.018
-                fig.text(0.07, y, note[:130], fontsize=7.5, color="0.25")
-        fig.text(0.07, 0.03, f"compasscal {cert['software_version']} - page 1 of 3", fontsize=7, color="0.4")
-        pdf.savefig(fig)
-
-        # --- page 2: the curves
-        fig = Figure(figsize=a4)
-        fig.text(0.07, 0.955, f"Heading error - {cert['serial']}", fontsize=14, fontweight="bold")
-        fig.text(0.07, 0.935, "Lines: the calibration's model over a full level turn at each correction stage; "
-                 "markers: the recording's pose means.", fontsize=8, color="0.3")
-        ax_a = fig.add_axes((0.1, 0.67, 0.82, 0.23))
-        ax_b = fig.add_axes((0.1, 0.37, 0.82, 0.23))
-        draw_staged((ax_a, ax_b), cal, rec, limits)
-        ax_c = fig.add_axes((0.1, 0.07, 0.82, 0.23))
-        draw_tilted(ax_c, cal, rec, limits)
-        fig.text(0.07, 0.03, f"compasscal {cert['software_version']} - page 2 of 3", fontsize=7, color="0.4")
-        pdf.savefig(fig)
-
-        # --- page 3: limits and verdict
-        fig = Figure(figsize=a4)
-        fig.text(0.07, 0.955, "Acceptance", fontsize=14, fontweight="bold")
-        n = max(1, len(cert["limits"]))
-        h = min(0.5, 0.04 * (n + 1))
-        ax = fig.add_axes((0.07, 0.9 - h - 0.02, 0.86, h))
-        _table(ax, "Acceptance limits (above marginal: MARGINAL; above fail: FAIL)",
-               ["figure", "value", "marginal", "fail", "unit", "result"],
-               [[r["name"], r["value_text"], f"{r['marginal']:g}", f"{r['fail']:g}", r["unit"], r["result"]]
-                for r in cert["limits"]], [0.34, 0.14, 0.12, 0.12, 0.1, 0.18])
-        y = 0.9 - h - 0.08
-        fig.text(0.07, y, f"Verdict: {cert['verdict']}", fontsize=14, fontweight="bold",
-                 color={"PASS": "#1a7f37", "MARGINAL": "#b58100"}.get(cert["verdict"], "#c00000"))
-        y -= 0.025
-        fig.text(0.07, y, f"Calibration status: {cert['status']}", fontsize=9)
-        for reason in cert["reasons"] or ["every figure within its marginal limit"]:
-            y -= 0.02
-            fig.text(0.09, y, "- " + reason, fontsize=8.5)
-        y -= 0.08
-        fig.text(0.07, y, f"Issued {cert['issued']} by compasscal {cert['software_version']}; "
-                 f"calibration {cert['id']}, run {cert['run_id']}.", fontsize=8)
-        fig.text(0.07, y - 0.05, "Signature: ______________________________", fontsize=9)
-        fig.text(0.07, 0.03, f"compasscal {cert['software_version']} - page 3 of 3", fontsize=7, color="0.4")
-        pdf.savefig(fig)
+        for fig in certificate_pages(cert, cal, rec, limits):
+            pdf.savefig(fig)
         info = pdf.infodict()
         info["CreationDate"] = datetime.now()
     return out.getvalue()

@@ -2,7 +2,8 @@
 
 Server-rendered Jinja2 templates with a little vanilla JavaScript for the live parts (the run's
 server-sent events, station states, the live sample plot), all served from this machine: no CDN,
-no web font, plots as inline SVG drawn by matplotlib.
+no web font, plots as inline SVG drawn by matplotlib. The OpenAPI's ``/docs`` too: its Swagger UI
+is vendored in static/ (THIRD_PARTY.md), so every page works on a machine without internet.
 
 Authentication: a page accepts the ``X-API-Key`` header (scripts, tests) or the browser-session
 cookie :data:`service.auth.COOKIE` that ``POST /ui/login`` sets (HttpOnly, SameSite=Strict, no
@@ -21,6 +22,7 @@ from urllib.parse import parse_qs, quote, urlencode
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 from sqlalchemy import func, select
@@ -30,8 +32,8 @@ from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
 from procedures.states import ACTIVE
 from service import plots
-from service.auth import COOKIE, ROLES, Caller, lookup, require
-from service.db import Analysis, Batch, Calibration, Device, Limit, Run, Sample, Station
+from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_session, require, start_session
+from service.db import Analysis, Batch, Calibration, Device, Limit, Run, RunEvent, Sample, Station
 from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
@@ -39,7 +41,12 @@ templates = Jinja2Templates(directory=str(HERE / "templates"))
 STATIC = HERE / "static"
 #: What /ui/static serves (a fixed list: nothing else under the package is reachable).
 STATIC_TYPES = {".css": "text/css; charset=utf-8", ".js": "text/javascript; charset=utf-8",
-                ".svg": "image/svg+xml"}
+                ".svg": "image/svg+xml", ".ico": "image/x-icon"}
+#: Swagger UI for /docs, vendored from the npm package swagger-ui-dist (Apache-2.0; see
+#: static/THIRD_PARTY.md): FastAPI's default loads it from a CDN, a blank page offline.
+SWAGGER_UI_VERSION = "5.35.0"
+SWAGGER_JS = "swagger-ui-bundle.js"
+SWAGGER_CSS = "swagger-ui.css"
 #: Rows per poll of the live sample plot (a long run is fetched in pieces, never all at once).
 LIVE_ROWS = 5000
 
@@ -61,11 +68,7 @@ def _safe_next(target: str | None) -> str:
 
 
 def _caller(request: Request) -> Caller | None:
-    key = request.headers.get("x-api-key") or request.cookies.get(COOKIE)
-    if not key:
-        return None
-    with request.app.state.sessions() as session:
-        return lookup(session, key)
+    return caller_of(request)  # the X-API-Key header, else the web session of the cookie
 
 
 def _page_caller(request: Request, role: str = "viewer") -> Caller | Response:
@@ -119,9 +122,23 @@ def pm(value: Any, sigma: Any, digits: int) -> str:
     return f"{v:.{digits}f} ± {s:.{digits}f}" if math.isfinite(s) else f"{v:.{digits}f}"
 
 
-def _figure_text(v: Any) -> str:
+#: Decimals of an acceptance figure by its limit's unit. A figure's value and its two limits share
+#: them, and so does every row of a unit: the columns line up (never 0.016 next to 0.009694).
+UNIT_DECIMALS = {"deg": 4, "ratio": 4, "LSB": 1}
+
+
+def limit_decimals(unit: str, marginal: Any) -> int:
+    """The decimals of a figure with this unit (another unit: enough for 3 digits of its marginal limit)."""
+    if unit in UNIT_DECIMALS:
+        return UNIT_DECIMALS[unit]
+    m = abs(_num(marginal))
+    return 3 if not math.isfinite(m) or m == 0 else min(6, max(0, 2 - math.floor(math.log10(m))))
+
+
+def fixed(v: Any, decimals: int) -> str:
+    """A number in fixed point with ``decimals`` decimals; "-" when there is none."""
     f = _num(v)
-    return f"{f:.4g}" if math.isfinite(f) else "-"
+    return f"{f:.{decimals}f}" if math.isfinite(f) else "-"
 
 
 # ------------------------------------------------------------------------------ calibration views
@@ -202,8 +219,10 @@ def limit_rows(limits: list[Limit], figures: dict[str, Any] | None) -> list[dict
     for lim in limits:
         value = (figures or {}).get(lim.name)
         result = limit_result(value, lim) or "not judged"
-        out.append({"name": lim.name, "description": lim.description, "value": value, "value_text": _figure_text(value),
-                    "marginal": lim.marginal, "fail": lim.fail, "unit": lim.unit, "result": result})
+        d = limit_decimals(lim.unit, lim.marginal)
+        out.append({"name": lim.name, "description": lim.description or lim.name, "value": value,
+                    "value_text": fixed(value, d), "marginal": lim.marginal, "marginal_text": fixed(lim.marginal, d),
+                    "fail": lim.fail, "fail_text": fixed(lim.fail, d), "unit": lim.unit, "result": result})
     return out
 
 
@@ -241,6 +260,59 @@ def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, A
     return cert, cal, rec, limits
 
 
+# ------------------------------------------------------------------------------------- run views
+
+def describe_step(d: dict[str, Any]) -> str:
+    """A ``step`` event as the run page's status line says it (static/run.js describeStep, same words)."""
+    if d.get("warning"):
+        return f"warning: {d['warning']}"
+    if d.get("retry"):
+        return f"retry {d['retry']}: {d.get('reason') or ''}"
+    step = d.get("step")
+    if not isinstance(step, dict):
+        return ""
+
+    def deg(v: Any) -> str:
+        return f"{v:.1f}" if isinstance(v, (int, float)) else str(v)
+    kind = step.get("kind")
+    if kind == "move":
+        return f"move to ψ {deg(step.get('psi'))}°, θ {deg(step.get('theta'))}°, φ {deg(step.get('phi'))}°"
+    if kind == "acquire":
+        return f"acquire {step.get('step') or ''} ({step.get('samples')} samples)"
+    if kind == "settle":
+        return f"settle {step.get('seconds')} s"
+    return {"prompt": "waiting for the operator", "checkpoint": "checkpoint"}.get(str(kind), str(kind or ""))
+
+
+def step_view(session: Session, run_id: int) -> tuple[str, str | None]:
+    """The run's last step (checkpoints aside), described, and the label of its last acquisition
+    (the step whose samples the live plot shows), from the run's event log ("" and None before any step)."""
+    last, label = "", None
+    # newest first; a few hundred events reach back past any retry or warning to the last steps
+    rows = session.scalars(select(RunEvent.data).where(RunEvent.run_id == run_id, RunEvent.kind == "step")
+                           .order_by(RunEvent.id.desc()).limit(500))
+    for d in rows:
+        step = d.get("step") if isinstance(d, dict) else None
+        if not isinstance(step, dict):
+            continue
+        if not last and step.get("kind") != "checkpoint":  # a checkpoint only marks where a pause may hold
+            last = describe_step(d)
+        if step.get("kind") == "acquire" and step.get("step"):
+            label = str(step["step"])
+            break
+    return last, label
+
+
+def wall_seconds_left(progress: dict[str, Any], time_scale: float) -> float | None:
+    """The run's estimate of the time left in wall-clock seconds: the progress event's ``left_wall_s``,
+    or (an event from before that field) its table seconds ``left_s`` over the station's time scale."""
+    if isinstance(progress.get("left_wall_s"), (int, float)):
+        return float(progress["left_wall_s"])
+    if isinstance(progress.get("left_s"), (int, float)):
+        return float(progress["left_s"]) / (time_scale or 1.0)
+    return None
+
+
 # ------------------------------------------------------------------------------------ login/out
 
 @router.get("/ui", response_class=HTMLResponse)
@@ -264,22 +336,30 @@ async def login(request: Request) -> Response:
     key = (form.get("key") or [""])[0].strip()
     target = _safe_next((form.get("next") or [None])[0])
 
-    def check() -> Caller | None:
+    def check() -> tuple[str, Caller] | None:
         with request.app.state.sessions() as session:
-            return lookup(session, key)
-    caller = await asyncio.to_thread(check) if key else None
-    if caller is None:
+            return start_session(session, key)
+    started = await asyncio.to_thread(check) if key else None
+    if started is None:
         return _render(request, None, "login.html", status_code=401, title="Log in", next=target,
                        error="That key is not valid (unknown or revoked).")
     resp = RedirectResponse(target, status_code=303)
-    # no max_age/expires: a browser-session cookie; HttpOnly keeps it from page scripts
-    resp.set_cookie(COOKIE, key, httponly=True, samesite="strict", path="/")
+    # the cookie carries a session token (never the key), expiring with the session; HttpOnly keeps it
+    # from page scripts, Secure from plain HTTP when the service is reached over HTTPS
+    https = request.url.scheme == "https" or request.headers.get("x-forwarded-proto", "").lower() == "https"
+    resp.set_cookie(COOKIE, started[0], httponly=True, samesite="strict", path="/", secure=https,
+                    max_age=SESSION_HOURS * 3600)
     return resp
 
 
 @router.post("/ui/logout")
-def logout() -> Response:
-    """Forget the key in this browser."""
+def logout(request: Request) -> Response:
+    """End this browser's session (its token stops working at once) and forget the cookie."""
+    token = request.cookies.get(COOKIE)
+    if token:
+        with request.app.state.sessions() as session:
+            end_session(session, token)
+        getattr(request.app.state, "key_cache", {}).pop(token, None)
     resp = RedirectResponse("/ui/login", status_code=303)
     resp.delete_cookie(COOKIE, path="/", httponly=True, samesite="strict")
     return resp
@@ -293,6 +373,28 @@ def static(name: str) -> Response:
     if "/" in name or name.startswith(".") or kind is None or not path.is_file():
         raise HTTPException(404, f"no static file {name!r}")
     return FileResponse(path, media_type=kind, headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/favicon.ico")
+def favicon() -> Response:
+    """The site's icon where browsers look for it unasked (pages without an icon link, e.g. the
+    analysis report opened from the service): a 404 otherwise, in every log and console."""
+    return FileResponse(STATIC / "favicon.ico", media_type=STATIC_TYPES[".ico"],
+                        headers={"Cache-Control": "max-age=86400"})
+
+
+@router.get("/docs", response_class=HTMLResponse)
+def api_docs(request: Request) -> HTMLResponse:
+    """The OpenAPI as Swagger UI, with its script and style from this package (service/static,
+    swagger-ui-dist SWAGGER_UI_VERSION), never from a CDN: the page works without internet. Open,
+    like /openapi.json; the calls made from it need a key (the Authorize button, X-API-Key)."""
+    root = request.scope.get("root_path", "")
+    return get_swagger_ui_html(
+        openapi_url=root + (request.app.openapi_url or "/openapi.json"), title=f"{request.app.title} - API",
+        swagger_js_url=f"{root}/ui/static/{SWAGGER_JS}", swagger_css_url=f"{root}/ui/static/{SWAGGER_CSS}",
+        swagger_favicon_url=f"{root}/ui/static/favicon.svg",
+        # no spec validator badge: Swagger UI would fetch it from validator.swagger.io
+        swagger_ui_parameters={"validatorUrl": None})
 
 
 # ---------------------------------------------------------------------------------------- pages
@@ -369,11 +471,12 @@ def run_page(request: Request, run_id: int) -> Response:
             percent = float(progress.get("percent") or 0.0)
         snap = row.station_snapshot or {}
         time_scale = float(snap.get("time_scale") or 1.0)
+        last_step, live_step = step_view(s, run_id)
         from service.routes.analyses import analysis_summary
         analyses = [analysis_summary(a) for a in s.scalars(select(Analysis).where(Analysis.run_id == run_id).order_by(Analysis.id))]
     return _render(request, who, "run.html", title=f"Run {run_id}", run=run, active=active, units=units,
-                   errors=errors, percent=percent, time_scale=time_scale,
-                   left_s=(progress.get("left_s") if active else 0.0), analyses=analyses)
+                   errors=errors, percent=percent, time_scale=time_scale, last_step=last_step, live_step=live_step,
+                   left_wall_s=(wall_seconds_left(progress, time_scale) if active else 0.0), analyses=analyses)
 
 
 @router.get("/ui/runs/{run_id}/samples.json")
@@ -410,6 +513,10 @@ def device_page(request: Request, serial: str) -> Response:
                     "verdict": c.verdict, "reasons": list(c.reasons or []), "method": c.method,
                     "figures": c.figures or {}, "data": c.data} for c in rows]
         device = {"serial": dev.serial, "model": dev.model, "firmware": dev.firmware, "created_at": dev.created_at}
+        # each figure's column in one fixed-point format, the certificate's (never 0.016 above 0.009694)
+        decimals = {lim.name: limit_decimals(lim.unit, lim.marginal) for lim in limits_of(s)}
+    for h in history:
+        h["figure_texts"] = {k: fixed(v, decimals.get(k, 4)) for k, v in h["figures"].items()}
     trends: dict[str, str] = {}
     if history:
         labels = {"sensitivity": "Sensitivities over time", "bias": "Biases over time",
@@ -419,6 +526,39 @@ def device_page(request: Request, serial: str) -> Response:
     current = next((h for h in history if h["status"] == "current"), None)
     return _render(request, who, "device.html", title=f"Device {serial}", device=device, history=history,
                    trends=trends, current=current)
+
+
+#: Batches the batches page lists (newest first); older ones stay reachable by their own page.
+BATCHES_LISTED = 200
+
+
+def batch_rows(session: Session, limit: int = BATCHES_LISTED) -> list[dict[str, Any]]:
+    """The newest batches for the list: station, status, units done of all, verdict counts."""
+    rows = session.execute(select(Batch, Station.name).join(Station, Station.id == Batch.station_id, isouter=True)
+                           .order_by(Batch.created_at.desc(), Batch.id.desc()).limit(limit)).all()
+    out = []
+    for b, station in rows:
+        summary = {str(k): str(v) for k, v in (b.summary or {}).items()}
+        counts = {v: sum(1 for r in summary.values() if r == v) for v in ("PASS", "MARGINAL", "FAIL")}
+        out.append({"id": b.id, "station": station, "status": b.status, "operator": b.operator,
+                    "units": len(b.serials or []), "done": len(summary), "counts": counts,
+                    "other": len(summary) - sum(counts.values()), "created_at": b.created_at,
+                    "finished_at": b.finished_at})
+    return out
+
+
+@router.get("/ui/batches", response_class=HTMLResponse)
+def batches_page(request: Request) -> Response:
+    """Every batch, newest first, with its progress and verdicts; operators can start one."""
+    who = _page_caller(request)
+    if isinstance(who, Response):
+        return who
+    with request.app.state.sessions() as s:
+        batches = batch_rows(s)
+        stations = [{"name": r.name, "state": r.state, "busy": bool(r.run_id or r.batch_id) or r.state == "fault"}
+                    for r in s.scalars(select(Station).order_by(Station.name))]
+    return _render(request, who, "batches.html", title="Batches", batches=batches, stations=stations,
+                   listed=BATCHES_LISTED)
 
 
 @router.get("/ui/batches/{batch_id}", response_class=HTMLResponse)

@@ -224,6 +224,12 @@ def test_calibration_end_to_end(browser: Any, tmp_path: Path, request: pytest.Fi
         run = s.run(run_id)
         assert run["procedure"] == "calibrate" and run["parameters"]["samples"] == 20
         assert run["operator"] == "operator-user"
+        # started without a serial number: the live page shows the unit once the run has read it
+        # from the compass (before: "units -" until the run ended)
+        page.wait_for_function(
+            """serial => !!document.getElementById('live-plot')
+                        && document.getElementById('serials').textContent.includes(serial)""",
+            arg=SERIAL, timeout=RUN_TIMEOUT_MS, polling=100)
 
         # live: progress, time left, samples, the live plot
         page.locator("#live-plot").wait_for()
@@ -245,6 +251,7 @@ def test_calibration_end_to_end(browser: Any, tmp_path: Path, request: pytest.Fi
         progress = page.locator("#progress").inner_text().strip()
         assert progress.endswith("100.0 %"), progress
         assert page.locator("#state").inner_text().strip() == "completed"
+        assert re.match(r"(acquire|move|settle)", page.locator("#step").inner_text().strip()), "no last step shown"
         seen = json.loads(page.evaluate("sessionStorage.getItem('progress-seen') || '[]'"))
         values = [float(m.group(1)) for t in seen if (m := re.search(r"([\d.]+) %$", t))]
         assert len(set(values)) >= 3, f"#progress hardly moved while the run ran: {seen}"
@@ -461,3 +468,159 @@ def test_pages_without_a_key_redirect_to_the_login(browser: Any, tmp_path: Path,
         page.locator("table#stations").wait_for(state="attached")
         s.shots(page, "logged-in")
         guard.check()
+
+
+# ------------------------------------------------------------------ issue 15: pages and documents
+
+def test_api_docs_render_offline(browser: Any, tmp_path: Path, request: pytest.FixtureRequest):
+    """/docs in a browser that cannot reach the internet: Swagger UI (from the package) lists the
+    operations, and nothing is asked of another site (the guard blocks and reports it)."""
+    with site(tmp_path, request) as s, s.context(browser) as (ctx, guard):
+        page = ctx.new_page()
+        r = page.goto("/docs")
+        assert r is not None and r.status == 200
+        ops = page.locator(".opblock-summary")
+        ops.first.wait_for(timeout=STATE_TIMEOUT_MS)
+        spec = s.http.get("/openapi.json").json()
+        operations = sum(len(v) for v in spec["paths"].values())
+        assert ops.count() == operations, f"Swagger UI lists {ops.count()} operations, the OpenAPI has {operations}"
+        summary = page.locator(".opblock-summary-path", has_text="/runs/{run_id}/events")
+        assert summary.count() >= 1, "the run events operation is not listed"
+        assert page.locator(".info .title").inner_text().startswith("compasscal")
+        s.shots(page, "docs")
+        guard.check()
+
+
+def test_live_run_page_follows_the_step_the_units_and_the_time_left(browser: Any, tmp_path: Path,
+                                                                    request: pytest.FixtureRequest):
+    """A run in the database as its worker writes it (tests/test_web_pages.py live_run), followed
+    over the events: the live plot is the step the table is at (never the one before), the units
+    appear once the run knows them, time left is wall time, and a completed run keeps its last step."""
+    import numpy as np
+
+    from test_web_pages import live_run, recording
+
+    from service.db import Run
+    from service.runtime import publish
+    from service.store import insert_samples
+
+    with site(tmp_path, request) as s, s.context(browser) as (ctx, guard):
+        sessions = s.app.state.sessions
+        run_id = live_run(sessions)
+        page = ctx.new_page()
+        login(page, s.keys["viewer"])
+        page.goto(f"/ui/runs/{run_id}")
+        assert "calibrate version 2" in page.locator("h1").inner_text()
+        wait_text(page, "#live-caption", r"^\(slot 0, step sweep_y\)$")
+        wait_text(page, "section#live", r"waiting for the samples of step sweep_y")
+        assert page.locator("#live-plot polyline").count() == 0, "the plot shows rotate_z as the current step"
+        wait_text(page, "#time-left", r"^4 s$")  # 80 s of table time at time scale 20
+        assert page.locator("#serials").inner_text().strip() == "-"
+        s.shots(page, "live-waiting")
+
+        def publish_now(kind: str, data: dict[str, Any]) -> None:
+            with sessions() as session:
+                publish(session, run_id, kind, data)
+                session.commit()
+
+        # the units: the run learns them from the compasses as it starts (a state change)
+        with sessions() as session:
+            session.get(Run, run_id).serials = {"0": "SN-LIVE"}
+            session.commit()
+        publish_now("state", {"state": "running", "reason": None, "t": 56.0})
+        wait_text(page, "#serials", r"slot 0: SN-LIVE")
+        assert page.locator("#serials a").get_attribute("href") == "/ui/devices/SN-LIVE"
+
+        # sweep_y's samples arrive: now the plot is theirs
+        rec = recording("SN-LIVE")
+        with sessions() as session:
+            insert_samples(session, run_id, 0, rec.select(np.asarray(rec.step) == "sweep_y"))
+            session.commit()
+        publish_now("samples", {"step": "sweep_y", "count": 140})
+        publish_now("progress", {"percent": 70.0, "table_s": 93.0, "left_s": 30.0, "samples": 140, "left_wall_s": 1.5})
+        wait_text(page, "section#live", r"step sweep_y: \d+ poses")
+        assert page.locator("#live-plot polyline").count() == 3
+        wait_text(page, "#time-left", r"^2 s$")
+        s.shots(page, "live-sweep_y")
+        # the next step: the caption moves on at once, the plot waits again
+        publish_now("step", {"step": {"kind": "acquire", "samples": 10, "step": "sweep_x"}, "t": 95.0})
+        wait_text(page, "#live-caption", r"^\(slot 0, step sweep_x\)$")
+        wait_text(page, "#step", r"^acquire sweep_x \(10 samples\)$")
+        assert page.locator("#live-plot polyline").count() == 0
+
+        publish_now("state", {"state": "completed", "reason": None, "t": 120.0})
+        page.locator("section#results").wait_for(timeout=STATE_TIMEOUT_MS)  # the page reloads itself
+        page.wait_for_load_state("load")
+        assert page.locator("#state").inner_text().strip() == "completed"
+        assert page.locator("#step").inner_text().strip() == "acquire sweep_x (10 samples)"
+        assert page.locator("#serials").inner_text().strip() == "slot 0: SN-LIVE"
+        s.shots(page, "completed")
+        guard.check()
+
+
+def test_start_a_run_with_a_serial_and_a_batch_from_the_pages(browser: Any, tmp_path: Path,
+                                                             request: pytest.FixtureRequest):
+    """The stations page's start form sends the serial number typed for a slot; the batches page
+    starts a batch from a list of serial numbers and lists it."""
+    with site(tmp_path, request) as s, s.context(browser) as (ctx, guard):
+        for name in ("dead-1", "dead-2"):  # nothing answers: each run fails at once, which is all we need here
+            dead = {"modbus": f"tcp://127.0.0.1:{free_port()}", "compasses": [f"socket://127.0.0.1:{free_port()}"],
+                    "time_scale": 20}
+            assert s.api("PUT", f"/stations/{name}", json=dead).status_code in (200, 201)
+        page = ctx.new_page()
+        login(page, s.keys["operator"])
+        form = page.locator('form.start-run[data-station="dead-1"]')
+        form.locator('input.serial[data-slot="0"]').fill("  SN-FORM-1 ")
+        form.locator("input[name=samples]").fill("5")
+        s.shots(page, "start-with-serial")
+        form.locator("button.start").click()
+        page.wait_for_url(re.compile(r"/ui/runs/\d+$"))
+        run = s.run(int(urlsplit(page.url).path.rsplit("/", 1)[1]))
+        assert run["serials"] == {"0": "SN-FORM-1"} and run["parameters"]["samples"] == 5, run
+
+        page.goto("/ui/batches")
+        assert page.locator("#nav-batches").count() == 1
+        page.locator("#batch-station").select_option("dead-2")
+        page.fill("#batch-serials", "B-1\n\n  B-2  \n")
+        s.shots(page, "batch-form")
+        page.click("#start-batch-button")
+        page.wait_for_url(re.compile(r"/ui/batches/\d+$"))
+        batch_id = int(urlsplit(page.url).path.rsplit("/", 1)[1])
+        batch = s.api("GET", f"/batches/{batch_id}", "viewer").json()
+        assert batch["station"] == "dead-2" and batch["serials"] == ["B-1", "B-2"], batch
+        page.locator('#units tr[data-serial="B-2"]').wait_for()
+        page.goto("/ui/batches")
+        row = page.locator(f'table#batches tr[data-batch="{batch_id}"]')
+        row.wait_for()
+        assert "dead-2" in row.inner_text()
+        s.shots(page, "batches")
+        guard.check()
+
+
+def test_example_script_reports_wall_time_left(tmp_path: Path, request: pytest.FixtureRequest):
+    """examples/calibrate_unit.py says the time left as the run page does, in wall seconds (it said
+    "~103 s left" of table time for a 6 s run); the progress events carry it, rounded, and 0 at the end."""
+    import subprocess
+    import sys
+
+    from sqlalchemy import select
+
+    from service.db import RunEvent
+
+    with site(tmp_path, request, time_scale=40) as s:
+        env = {**os.environ, "COMPASSCAL_URL": s.base, "COMPASSCAL_KEY": s.keys["operator"]}
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, str(ROOT / "examples" / "calibrate_unit.py"), "sim", SERIAL], env=env,
+                           capture_output=True, text=True, timeout=120)
+        wall = time.monotonic() - t0
+        assert r.returncode == 0 and "completed" in r.stdout, r.stdout + r.stderr
+        left = [float(x) for x in re.findall(r"~(\d+) s left", r.stdout)]
+        assert len(left) >= 3 and left[-1] == 0, r.stdout
+        # (table seconds would be 40 times the wall time; the margin is for an estimate, not a measurement)
+        assert max(left) <= 1.5 * wall + 1, f"the script said {max(left):.0f} s left of a run that took {wall:.1f} s"
+        with s.app.state.sessions() as session:
+            progress = list(session.scalars(select(RunEvent.data).where(RunEvent.kind == "progress").order_by(RunEvent.id)))
+        assert progress and progress[-1]["left_s"] == 0 and progress[-1]["left_wall_s"] == 0, progress[-1]
+        for p in progress:
+            assert p["left_s"] == round(p["left_s"], 1) >= 0, p
+            assert abs(p["left_wall_s"] - p["left_s"] / 40) <= 0.051, p

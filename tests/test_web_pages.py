@@ -89,7 +89,9 @@ def test_login_sets_the_session_cookie_and_logout_clears_it(api):
     assert r.status_code == 303 and r.headers["location"] == "/ui/devices/X"
     cookie = r.headers["set-cookie"]
     assert cookie.startswith(f"{COOKIE}=") and "HttpOnly" in cookie and "samesite=strict" in cookie.lower()
-    assert "expires" not in cookie.lower() and "max-age" not in cookie.lower()  # ends with the browser session
+    assert api.keys["viewer"] not in cookie and f"{COOKIE}=cs_" in cookie  # a session token, never the key
+    assert f"max-age={12 * 3600}" in cookie.lower() and "secure" not in cookie.lower()  # plain HTTP here
+    token = client.cookies[COOKIE]
     page = client.get("/ui/stations")  # the cookie alone now
     assert page.status_code == 200 and "viewer-user" in page.text
     assert Elements(page.text).find("table", id="stations") and Elements(page.text).find("form", id="search")
@@ -99,10 +101,13 @@ def test_login_sets_the_session_cookie_and_logout_clears_it(api):
     r = client.post("/ui/login", data={"key": api.keys["viewer"], "next": "//evil.example/x"}, follow_redirects=False)
     assert r.headers["location"] == "/ui/stations"  # never off the site
 
+    token = client.cookies[COOKIE]  # this browser's session now (each login starts its own)
     r = client.post("/ui/logout", follow_redirects=False)
     assert r.status_code == 303 and f'{COOKIE}=""' in r.headers["set-cookie"]
     client.cookies.clear()
     assert client.get("/ui/stations", follow_redirects=False).status_code == 303
+    # the old token, replayed after the logout, opens nothing
+    assert client.get("/limits", headers={"Cookie": f"{COOKIE}={token}"}).status_code == 401
 
 
 def test_pages_without_a_valid_key_redirect_to_the_login(api):
@@ -188,6 +193,11 @@ def test_device_history_certificate_and_pdf(api):
     assert len(page.find("a", cls="certificate")) == 2
     assert page.find("a", href=f"/ui/runs/{runs[0][0]}")
     assert len(page.find("svg", cls="trend")) == 4
+    # one number format per column (it said 0.016 above 0.009694)
+    for column in range(5):
+        cells = [re.findall(r'<td class="figure num">([^<]*)</td>', row)[column]
+                 for row in re.findall(r"<tr data-calibration=.*?</tr>", r.text, re.S)]
+        assert len({len(c.split(".")[1]) if "." in c else 0 for c in cells}) == 1, cells
     assert api.get("/ui/devices/NO-SUCH-UNIT", role="viewer").status_code == 404
 
     r = api.get("/ui/search?serial=SN-DEV", role="viewer", follow_redirects=False)
@@ -230,3 +240,285 @@ def test_batch_page_lists_units(api):
     assert page.find("table", id="units") and page.find("tr", data_serial="U1") and page.find("tr", data_serial="U2")
     assert "PASS" in r.text and "failed: no unit" in r.text
     assert api.get("/ui/batches/99999", role="viewer").status_code == 404
+
+
+# ------------------------------------------------------------------ issue 15: pages and documents
+
+def test_api_docs_are_served_from_the_package(api):
+    """/docs works without internet: Swagger UI's script, style and icon come from this service."""
+    r = api.get("/docs", role=None)
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert not re.search(r"https?://|//cdn|jsdelivr|unpkg", r.text), "the docs page refers to another site"
+    refs = re.findall(r"""(?:src|href)=["']([^"']+)["']""", r.text)
+    assert len(refs) >= 3 and all(ref.startswith("/") and not ref.startswith("//") for ref in refs), refs
+    kinds = {}
+    for ref in refs:
+        asset = api.get(ref, role=None)
+        assert asset.status_code == 200, ref
+        kinds[ref.rsplit(".", 1)[-1]] = (asset.headers["content-type"], len(asset.content))
+    assert kinds["js"][0].startswith("text/javascript") and kinds["js"][1] > 500_000  # the whole bundle
+    assert kinds["css"][0].startswith("text/css") and kinds["css"][1] > 50_000
+    assert "url: '/openapi.json'" in r.text and api.get("/openapi.json", role=None).status_code == 200
+    assert '"validatorUrl": null' in r.text  # no badge fetched from validator.swagger.io
+    assert "/docs" not in api.get("/openapi.json", role=None).json()["paths"]
+
+
+def test_favicon_is_served_and_linked(api):
+    r = api.get("/favicon.ico", role=None)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/x-icon"
+    assert r.content[:4] == b"\x00\x00\x01\x00"  # an ICO file
+    svg = api.get("/ui/static/favicon.svg", role=None)
+    assert svg.status_code == 200 and svg.headers["content-type"].startswith("image/svg+xml")
+    icons = Elements(api.get("/ui/login", role=None).text).find("link", rel="icon")
+    assert icons and icons[0]["href"] == "/ui/static/favicon.svg"
+    # the analysis report stands alone (also a file): its icon is inline, nothing to ask the server for
+    from service.web import HERE
+    report = (HERE / "templates" / "analysis_report.html").read_text()
+    assert re.search(r'<link rel="icon" href="data:image/svg\+xml,', report)
+
+
+def live_run(sessions: Any, serials: dict[str, str] | None = None) -> int:
+    """A run in progress as its worker leaves it in the database (``sessions``: the app's): rotate_z's
+    samples stored, the table moved on to sweep_y (no samples of it yet), a progress event in table
+    and wall seconds. (Also the browser tests' live run, tests/test_web.py.)"""
+    from service.runtime import publish
+
+    with sessions() as session:
+        run = Run(procedure="calibrate", procedure_version="2", parameters={"samples": 10}, status="queued",
+                  operator="operator-user", serials=serials or {}, software_version="test",
+                  station_snapshot={"name": "bench-9", "modbus": "tcp://10.0.0.9:502", "compasses": ["/dev/ttyUSB0"],
+                                    "time_scale": 20.0})
+        session.add(run)
+        session.flush()
+        rec = recording("SN-LIVE")
+        insert_samples(session, run.id, 0, rec.select(np.asarray(rec.step) == "rotate_z"))
+        publish(session, run.id, "state", {"state": "running", "reason": None, "t": 0.0})
+        publish(session, run.id, "step", {"step": {"kind": "acquire", "samples": 10, "step": "rotate_z"}, "t": 1.0})
+        publish(session, run.id, "progress", {"percent": 40.0, "table_s": 53.3, "left_s": 80.0, "samples": 80,
+                                               "left_wall_s": 4.0})
+        publish(session, run.id, "step", {"step": {"kind": "move", "psi": 315.0, "theta": 15.0, "phi": 0.0}, "t": 54.0})
+        publish(session, run.id, "step", {"step": {"kind": "acquire", "samples": 10, "step": "sweep_y"}, "t": 55.0})
+        session.commit()
+        return run.id
+
+
+def test_run_page_names_the_live_step_the_version_and_the_last_step(api):
+    run_id = live_run(api.client.app.state.sessions)
+    r = api.get(f"/ui/runs/{run_id}", role="viewer")
+    page = Elements(r.text)
+    assert re.search(r"<small[^>]*>calibrate version 2</small>", r.text)  # not "calibrate 2"
+    # the live plot waits for the step the table is at, never shows the step before as "current"
+    assert page.find("section", id="run", data_live_step="sweep_y")
+    assert re.search(r'id="live-caption">\(slot 0, step sweep_y\)<', r.text)
+    assert re.search(r'id="step">acquire sweep_y \(10 samples\)<', r.text)
+    # time left in wall seconds (80 table seconds at time scale 20)
+    assert page.find("span", id="time-left", data_left_wall_s="4.0")
+    assert re.search(r'id="serials">\s*-\s*<', r.text)  # no units known yet: run.js asks at the next state
+
+    from service.runtime import publish
+    with api.client.app.state.sessions() as session:
+        publish(session, run_id, "state", {"state": "completed", "reason": None, "t": 90.0})
+        session.commit()
+    r = api.get(f"/ui/runs/{run_id}", role="viewer")
+    assert re.search(r'id="step">acquire sweep_y \(10 samples\)<', r.text), "the step field of a completed run is empty"
+    assert 'id="live-plot"' not in r.text
+
+
+def test_time_left_is_in_wall_seconds_for_old_and_new_progress_events():
+    from service.web import wall_seconds_left
+    assert wall_seconds_left({"left_s": 80.0, "left_wall_s": 4.0}, 20.0) == 4.0
+    assert wall_seconds_left({"left_s": 80.0}, 20.0) == 4.0  # stored before left_wall_s existed
+    assert wall_seconds_left({}, 20.0) is None
+
+
+def test_start_form_has_a_serial_field_per_slot(api):
+    r = api.put("/stations/bench-3", json={"modbus": "tcp://127.0.0.1:1", "compasses": ["tcp://127.0.0.1:2", "tcp://127.0.0.1:3"]})
+    assert r.status_code in (200, 201), r.text
+    page = Elements(api.get("/ui/stations", role="operator").text)
+    serials = page.find("input", cls="serial", name="serial")
+    assert [s["data-slot"] for s in serials] == ["0", "1"]
+    assert all("required" not in s for s in serials)  # optional: the compass's own serial otherwise
+
+
+def test_batches_page_lists_batches_and_offers_operators_a_form(api):
+    r = api.put("/stations/bench-4", json={"modbus": "tcp://127.0.0.1:1", "compasses": ["tcp://127.0.0.1:2"]})
+    assert r.status_code in (200, 201), r.text
+    with api.client.app.state.sessions() as session:
+        st = session.scalar(select(Station).where(Station.name == "bench-4"))
+        done = Batch(station_id=st.id, serials=["U1", "U2", "U3"], status="completed", operator="operator-user",
+                     summary={"U1": "PASS", "U2": "FAIL", "U3": "failed: no unit"})
+        running = Batch(station_id=st.id, serials=["V1", "V2"], status="running", operator="operator-user",
+                        summary={"V1": "MARGINAL"})
+        session.add_all([done, running])
+        session.commit()
+        ids = (done.id, running.id)
+    r = api.get("/ui/batches", role="viewer")
+    assert r.status_code == 200
+    page = Elements(r.text)
+    assert [int(t["data-batch"]) for t in page.find("tr") if "data-batch" in t] == [ids[1], ids[0]]  # newest first
+    for batch_id in ids:
+        assert page.find("a", href=f"/ui/batches/{batch_id}")
+    assert "3 of 3" in r.text and "1 of 2" in r.text
+    assert not page.find("form", id="start-batch")  # viewers only read
+    assert page.find("a", id="nav-batches", href="/ui/batches")
+    op = Elements(api.get("/ui/batches", role="operator").text)
+    assert op.find("form", id="start-batch") and op.find("option", value="bench-4")
+    assert op.find("textarea", name="serials") and op.find("button", id="start-batch-button")
+    assert api.get("/ui/static/batches.js", role=None).status_code == 200
+    r = api.get("/ui/batches", role=None, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"].startswith("/ui/login?next=")
+
+
+def cert_context(api: Any, serial: str) -> tuple[dict[str, Any], Any, Any, Any]:
+    """A stored calibration's certificate context (service/web.py), its calibration, recording and limits."""
+    from service.db import Calibration
+    from service.web import certificate_context, limit_pairs
+
+    (_, cal_id), = stored_run(api, serial)
+    with api.client.app.state.sessions() as session:
+        cert, cal, rec, limits = certificate_context(session, session.get(Calibration, cal_id))
+    return cert, cal, rec, limit_pairs(limits)
+
+
+def figure_texts(fig: Any) -> list[str]:
+    from matplotlib.text import Text
+    return [t.get_text() for t in fig.findobj(Text) if t.get_visible() and t.get_text()]
+
+
+def test_certificate_limits_by_description_in_one_number_format(api):
+    cert, cal, rec, limits = cert_context(api, "SN-LIM")
+    r = api.get(f"/ui/calibrations/{cert['id']}/certificate", role="viewer")
+    rows = re.findall(r'<tr data-limit="([^"]+)">.*?</tr>', r.text, re.S)
+    assert len(rows) == 6
+    for name, row in zip(rows, re.findall(r'<tr data-limit="[^"]+">(.*?)</tr>', r.text, re.S)):
+        numbers = re.findall(r'<td class="num">([^<]*)</td>', row)
+        assert len(numbers) == 3, (name, row)
+        decimals = {len(n.split(".")[1]) if "." in n else 0 for n in numbers if n != "-"}
+        assert len(decimals) == 1, f"{name}: value and limits in different formats: {numbers}"
+    # one format per unit down the column too: every "deg" figure with the same decimals
+    by_unit: dict[str, set[int]] = {}
+    for row in cert["limits"]:
+        by_unit.setdefault(row["unit"], set()).add(len(row["value_text"].split(".")[1]) if "." in row["value_text"] else 0)
+    assert all(len(d) == 1 for d in by_unit.values()), by_unit
+
+    from service import plots
+    page3 = plots.certificate_pages(cert, cal, rec, limits)[2]
+    text = " ".join(figure_texts(page3)).replace("\n", " ")
+    for row in cert["limits"]:
+        assert row["name"] not in text, f"the PDF names {row['name']} where the HTML certificate describes it"
+        assert row["description"].split()[0] in text
+    assert "magnitude of the magnetometer bias vector" in text
+    assert "0.05 " not in text + " " and "0.0500" in text  # the level limit as its row's value is written
+
+
+def blank_gap(fig: Any, footer: float = 0.06) -> float:
+    """The tallest blank band (figure fraction) between the first and the last ink on a page above
+    its footer."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    fig.set_dpi(40)
+    canvas.draw()
+    img = np.asarray(canvas.buffer_rgba())[:, :, :3]
+    h = img.shape[0]
+    ink = (img < 235).any(axis=(1, 2))[: int(h * (1 - footer))]
+    rows = np.flatnonzero(ink)
+    gaps = np.diff(rows) - 1
+    return float(gaps.max()) / h if len(gaps) else 0.0
+
+
+def test_certificate_pdf_pages_have_no_large_blank_gaps(api):
+    from service import plots
+    cert, cal, rec, limits = cert_context(api, "SN-GAP")
+    pages = plots.certificate_pages(cert, cal, rec, limits)
+    assert len(pages) == 3
+    for number in (1, 3):
+        gap = blank_gap(pages[number - 1])
+        assert gap < 0.06, f"page {number} has a blank band {gap:.0%} of the page high"
+
+
+def test_plot_labels_and_legends_stay_out_of_the_lines(api):
+    """The tilted plot's azimuth note and every legend sit outside the axes (the fail-limit line ran
+    through the note), on the page's figures and the PDF's curves page alike."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from service import plots
+    cert, cal, rec, limits = cert_context(api, "SN-NOTE")
+    figures = {"tilted": plots.tilted_figure(cal, rec, limits), "staged": plots.staged_figure(cal, rec, limits),
+               "pdf page 2": plots.certificate_pages(cert, cal, rec, limits)[1]}
+    for name, fig in figures.items():
+        renderer = FigureCanvasAgg(fig).get_renderer()
+        fig.canvas.draw()
+        notes = 0
+        for ax in fig.axes:
+            box = ax.get_window_extent(renderer)
+            for t in ax.texts:
+                assert "table azimuth" not in t.get_text(), f"{name}: the azimuth note is inside the axes"
+            legend = ax.get_legend()
+            if legend is not None:
+                assert not legend.get_window_extent(renderer).overlaps(box), f"{name}: a legend over the axes"
+            notes += "at table azimuth 315 deg" in ax.get_xlabel()
+        assert notes == (0 if name == "staged" else 1), (name, [ax.get_xlabel() for ax in fig.axes])
+
+
+def test_trend_axes_read_well_at_any_span():
+    """One calibration: a window of minutes around it (not 2025-2029); two 12 s apart: absolute
+    times with their date, no offset text; a long history: dates."""
+    from datetime import datetime, timedelta
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.dates import num2date
+
+    from physics.fit import fit as fit_recording
+    from service import plots
+    from service.store import figures as store_figures
+
+    data = fit_recording(recording("SN-TREND"), "joint").to_json()
+    t0 = datetime(2025, 6, 1, 10, 31, 28)
+
+    def axis(times: list[datetime]) -> tuple[list[str], str, float]:
+        hist = [{"created_at": t, "data": data, "status": "current", "figures": store_figures(data)} for t in times]
+        fig = plots.trend_figures(hist)["bias"]
+        FigureCanvasAgg(fig).draw()
+        ax = fig.axes[0]
+        lo, hi = (num2date(v) for v in ax.get_xlim())
+        return ([t.get_text() for t in ax.get_xticklabels() if t.get_text()], ax.xaxis.get_offset_text().get_text(),
+                (hi - lo).total_seconds())
+
+    labels, offset, span = axis([t0])
+    assert span < 3600 and offset == "" and len(labels) >= 3, (labels, span)
+    assert all("2025-06-01" in label for label in labels), labels
+    labels, offset, span = axis([t0, t0 + timedelta(seconds=12)])
+    assert offset == "" and len(set(labels)) == len(labels) >= 3, labels
+    assert all(re.match(r"\d\d:\d\d:\d\d\n2025-06-01$", label) for label in labels), labels
+    labels, offset, _ = axis([t0, t0 + timedelta(days=200), t0 + timedelta(days=400)])
+    assert offset == "" and all(re.match(r"20\d\d-\d\d-\d\d$", label) for label in labels), labels
+
+
+def test_web_sessions_expire_end_with_their_key_and_are_secure_over_https(api):
+    """A session ends at its expiry and when its key is revoked; behind an HTTPS proxy its cookie is Secure."""
+    from datetime import timedelta
+
+    from service.db import ApiKey, WebSession, utcnow
+
+    client = api.client
+    r = client.post("/ui/login", data={"key": api.keys["operator"]}, headers={"X-Forwarded-Proto": "https"},
+                    follow_redirects=False)
+    assert "secure" in r.headers["set-cookie"].lower()
+    token = r.headers["set-cookie"].split(";")[0].split("=", 1)[1]
+    client.cookies.clear()
+    assert client.get("/limits", headers={"Cookie": f"{COOKIE}={token}"}).status_code == 200
+    with client.app.state.sessions() as s:
+        for row in s.query(WebSession).all():
+            row.expires_at = utcnow() - timedelta(seconds=1)
+        s.commit()
+    client.app.state.key_cache = {}
+    assert client.get("/limits", headers={"Cookie": f"{COOKIE}={token}"}).status_code == 401  # expired
+    r = client.post("/ui/login", data={"key": api.keys["viewer"]}, follow_redirects=False)
+    token = r.headers["set-cookie"].split(";")[0].split("=", 1)[1]
+    client.cookies.clear()
+    with client.app.state.sessions() as s:
+        s.query(ApiKey).filter(ApiKey.owner == "viewer-user").one().revoked = True
+        s.commit()
+    client.app.state.key_cache = {}
+    assert client.get("/limits", headers={"Cookie": f"{COOKIE}={token}"}).status_code == 401  # its key revoked

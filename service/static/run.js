@@ -59,10 +59,14 @@
         bar.textContent = `${pct.toFixed(1)} %`;
       }
     }
-    if (typeof p.left_s === "number") {
-      // left_s is table time; a simulated station runs time_scale times faster than the wall clock
-      const el = cc.setText("time-left", cc.duration(p.left_s / timeScale));
-      if (el) el.title = `${cc.duration(p.left_s)} of table time`;
+    // one notion of time left: wall-clock seconds (left_wall_s); left_s is table time, which a
+    // simulated station runs time_scale times faster (an event from before left_wall_s: divide)
+    const wall = typeof p.left_wall_s === "number" ? p.left_wall_s
+      : typeof p.left_s === "number" ? p.left_s / timeScale : null;
+    if (wall !== null) {
+      const el = cc.setText("time-left", cc.duration(wall));
+      if (el) el.title = typeof p.left_s === "number" && timeScale !== 1
+        ? `wall-clock time (${cc.duration(p.left_s)} of table time at time scale ${timeScale})` : "wall-clock time";
     }
     if (typeof p.samples === "number") cc.setText("samples", String(p.samples));
   }
@@ -80,6 +84,34 @@
       case "prompt": return "waiting for the operator";
       case "checkpoint": return "checkpoint";
       default: return s.kind || "";
+    }
+  }
+
+  // --------------------------------------------------------------------------------- units
+  // A run started without serial numbers learns them from the compasses as it starts: the page,
+  // rendered before that, asks the run for them at its state changes until it knows them.
+  const serialsEl = document.getElementById("serials");
+  let askingUnits = false;
+
+  function showUnits(serials) {
+    const entries = Object.entries(serials || {}).filter(([, v]) => v);
+    if (!serialsEl || !entries.length) return;
+    serialsEl.replaceChildren();
+    for (const [slot, serial] of entries.sort((a, b) => Number(a[0]) - Number(b[0]))) {
+      serialsEl.append(`slot ${slot}: `, cc.el("a", { href: `/ui/devices/${encodeURIComponent(serial)}` }, serial), " ");
+    }
+  }
+
+  async function refreshUnits() {
+    if (!serialsEl || serialsEl.querySelector("a") || askingUnits) return;
+    askingUnits = true;
+    try {
+      const run = await cc.api("GET", `/runs/${runId}`);
+      showUnits(run.serials);
+    } catch (e) {
+      console.warn("units:", e && e.message ? e.message : e);
+    } finally {
+      askingUnits = false;
     }
   }
 
@@ -152,7 +184,7 @@
     if (stopFallback) stopFallback();
     if (stopSamples) stopSamples();
     setState(state);
-    if (state === "completed") setProgress({ percent: 100, left_s: 0 });
+    if (state === "completed") setProgress({ percent: 100, left_s: 0, left_wall_s: 0 });
     // the results (tables, curves, verdicts) are rendered by the server: show them
     setTimeout(() => window.location.reload(), 400);
   }
@@ -171,10 +203,19 @@
     source = new EventSource(`/runs/${runId}/events`, { withCredentials: true });
     onEvent("state", (d) => {
       if (!d.state) return;
-      if (FINAL.includes(d.state)) end(d.state); else setState(d.state);
+      if (FINAL.includes(d.state)) { end(d.state); return; }
+      setState(d.state);
+      refreshUnits();
     });
     onEvent("progress", setProgress);
-    onEvent("step", (d) => { const t = describeStep(d); if (t) cc.setText("step", t); });
+    onEvent("step", (d) => {
+      const s = d.step;
+      const t = describeStep(d);
+      // a checkpoint only marks where a pause may hold: the step field keeps the step done before it
+      // (as the server renders it: web.py step_view)
+      if (t && !(s && s.kind === "checkpoint")) cc.setText("step", t);
+      if (s && s.kind === "acquire" && s.step) setLiveStep(String(s.step));
+    });
     onEvent("samples", (d) => { if (typeof d.count === "number") cc.setText("samples", String(d.count)); });
     onEvent("prompt", (d) => { if (d.answered) dropPrompt(d.id); else showPrompt(d.id, d.text || ""); });
     source.onerror = () => {
@@ -192,6 +233,7 @@
       setState(run.status);
       setPauseRequested(Boolean(run.pause_requested));
       setProgress(run.progress);
+      showUnits(run.serials);
       syncPrompts(run.prompts);
       return true;
     }, 2000);
@@ -203,8 +245,18 @@
   const MOVING = { rotate_z: 0, level: 0, sweep_y: 1, sweep_x: 2 };
   const ANGLE_NAMES = ["ψ_t (table azimuth)", "θ_t (middle axis)", "φ_t (inner axis)"];
   const COLORS = ["#d62728", "#2ca02c", "#1f77b4"];
-  let rows = [];   // [step, psi, theta, phi, mx, my, mz] of the current step only
+  let rows = [];   // [step, psi, theta, phi, mx, my, mz] of the newest step fetched only
   let lastId = 0;
+  // the step the run acquires now (its step events); its samples arrive only after its first pose,
+  // so until then the plot waits for them rather than go on showing the step before
+  let liveStep = root.dataset.liveStep || null;
+
+  function setLiveStep(label) {
+    if (label === liveStep) return;
+    liveStep = label;
+    cc.setText("live-caption", `(slot 0, step ${label})`);
+    draw();
+  }
 
   function svg(tag, attrs, text) {
     const e = document.createElementNS(SVG, tag);
@@ -237,8 +289,9 @@
     if (!plot) return;
     plot.replaceChildren();
     const W = 720, H = 300, L = 70, R = 110, T = 28, B = 42;
-    if (!rows.length) {
-      plot.append(svg("text", { x: W / 2, y: H / 2, "text-anchor": "middle" }, "waiting for samples…"));
+    if (!rows.length || (liveStep && rows[rows.length - 1][0] !== liveStep)) {
+      const what = liveStep ? `waiting for the samples of step ${liveStep}…` : "waiting for samples…";
+      plot.append(svg("text", { x: W / 2, y: H / 2, "text-anchor": "middle" }, what));
       return;
     }
     const step = rows[rows.length - 1][0];
@@ -302,8 +355,8 @@
 
   setButtons();
   if (root.dataset.active === "true") {
-    const left = parseFloat((document.getElementById("time-left") || {}).dataset?.leftS);
-    if (isFinite(left)) setProgress({ left_s: left });
+    const left = parseFloat((document.getElementById("time-left") || {}).dataset?.leftWallS);
+    if (isFinite(left)) setProgress({ left_wall_s: left });
     startEvents();
     startSamples();
   }

@@ -20,10 +20,18 @@
       const parameters = {};
       const samples = form.elements.samples ? form.elements.samples.value.trim() : "";
       if (samples) parameters.samples = parseInt(samples, 10);
+      // per slot, optional: a slot left empty is named by its compass's own serial number
+      const serials = {};
+      for (const input of form.querySelectorAll("input.serial")) {
+        const v = input.value.trim();
+        if (v) serials[input.dataset.slot] = v;
+      }
+      const body = { station, procedure, parameters };
+      if (Object.keys(serials).length) body.serials = serials;
       if (error) error.textContent = "";
       if (button) button.disabled = true;
       try {
-        const run = await cc.api("POST", "/runs", { station, procedure, parameters });
+        const run = await cc.api("POST", "/runs", body);
         window.location.href = `/ui/runs/${run.id}`;
       } catch (e) {
         if (error) error.textContent = e.message;

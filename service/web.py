@@ -17,7 +17,7 @@ import asyncio
 import math
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 from urllib.parse import parse_qs, quote, urlencode
 
 import numpy as np
@@ -25,6 +25,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
+from pydantic import AfterValidator, Field
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
@@ -34,6 +35,7 @@ from procedures.states import ACTIVE
 from service import plots
 from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_session, require, start_session
 from service.db import Analysis, Batch, Calibration, Device, Limit, Run, RunEvent, Sample, Station
+from service.schemas import Id, Index, Serial, no_nul
 from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
@@ -51,6 +53,8 @@ SWAGGER_CSS = "swagger-ui.css"
 LIVE_ROWS = 5000
 
 router = APIRouter(include_in_schema=False)
+#: What the search box takes: a serial number or a part of one (no NUL, at most a serial's length).
+SerialPart = Annotated[str, AfterValidator(no_nul), Field(max_length=64)]
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -400,7 +404,7 @@ def api_docs(request: Request) -> HTMLResponse:
 # ---------------------------------------------------------------------------------------- pages
 
 @router.get("/ui/search", response_class=HTMLResponse)
-def search(request: Request, serial: str = "") -> Response:
+def search(request: Request, serial: SerialPart = "") -> Response:
     """A serial number: its device page; a part of one: the matches (straight there when one)."""
     who = _page_caller(request)
     if isinstance(who, Response):
@@ -439,7 +443,7 @@ def stations_page(request: Request) -> Response:
 
 
 @router.get("/ui/runs/{run_id}", response_class=HTMLResponse)
-def run_page(request: Request, run_id: int) -> Response:
+def run_page(request: Request, run_id: Id) -> Response:
     """A run: live progress while it runs, then each unit's tables, curves and verdict."""
     who = _page_caller(request)
     if isinstance(who, Response):
@@ -480,7 +484,7 @@ def run_page(request: Request, run_id: int) -> Response:
 
 
 @router.get("/ui/runs/{run_id}/samples.json")
-def live_samples(request: Request, run_id: int, slot: int = Query(0, ge=0), after: int = Query(0, ge=0),
+def live_samples(request: Request, run_id: Id, slot: Index = 0, after: int = Query(0, ge=0, le=2**63 - 1),
                  _: Caller = Depends(require("viewer"))) -> JSONResponse:
     """The samples of a run's slot stored after sample id ``after`` (at most LIVE_ROWS), for the
     live plot: ``{"last": id, "more": bool, "rows": [[step, psi_t, theta_t, phi_t, mx, my, mz], ...]}``.
@@ -497,7 +501,7 @@ def live_samples(request: Request, run_id: int, slot: int = Query(0, ge=0), afte
 
 
 @router.get("/ui/devices/{serial}", response_class=HTMLResponse)
-def device_page(request: Request, serial: str) -> Response:
+def device_page(request: Request, serial: Serial) -> Response:
     """A unit's calibration history (newest first) and its trends, each with its certificate."""
     who = _page_caller(request)
     if isinstance(who, Response):
@@ -562,7 +566,7 @@ def batches_page(request: Request) -> Response:
 
 
 @router.get("/ui/batches/{batch_id}", response_class=HTMLResponse)
-def batch_page(request: Request, batch_id: int) -> Response:
+def batch_page(request: Request, batch_id: Id) -> Response:
     """A batch: its progress and one row per unit with its verdict; prompts answerable."""
     who = _page_caller(request)
     if isinstance(who, Response):
@@ -580,7 +584,7 @@ def batch_page(request: Request, batch_id: int) -> Response:
 
 
 @router.get("/ui/calibrations/{cal_id}/certificate", response_class=HTMLResponse)
-def certificate_page(request: Request, cal_id: int) -> Response:
+def certificate_page(request: Request, cal_id: Id) -> Response:
     """The printable calibration certificate."""
     who = _page_caller(request)
     if isinstance(who, Response):

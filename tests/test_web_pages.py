@@ -9,6 +9,7 @@ from html.parser import HTMLParser
 from typing import Any
 
 import numpy as np
+import pytest
 from sqlalchemy import select
 
 from physics.fit import fit
@@ -522,3 +523,12 @@ def test_web_sessions_expire_end_with_their_key_and_are_secure_over_https(api):
         s.commit()
     client.app.state.key_cache = {}
     assert client.get("/limits", headers={"Cookie": f"{COOKIE}={token}"}).status_code == 401  # its key revoked
+
+
+@pytest.mark.parametrize("path", ["/ui/runs/2147483648", "/ui/runs/99999999999999999999", "/ui/devices/a%00b",
+                                  "/ui/search?serial=a%00b", "/ui/runs/1/samples.json?slot=-1", "/ui/batches/0",
+                                  "/ui/calibrations/3000000000/certificate"])
+def test_pages_refuse_out_of_range_ids_and_nul_bytes(api, path: str):
+    """The pages take ids, slots and serials with the API's own limits: a 422, never a 500 (an id
+    beyond PostgreSQL's integer, a NUL it cannot store)."""
+    assert api.get(path, role="viewer").status_code == 422

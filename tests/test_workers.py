@@ -301,11 +301,14 @@ def test_a_station_never_has_two_workers(tmp_path: Path):
             assert first.poll() is None and time.monotonic() < deadline, (tmp_path / "first.log").read_text()
             time.sleep(0.2)
         env = {**os.environ, "COMPASSCAL_DATABASE_URL": url}
-        for args in (["worker", "--station", "lab-w"], ["serve", "--port", str(_free_port())]):
-            r = subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=ROOT, env=env, capture_output=True,
-                               text=True, timeout=90)
-            said = " ".join((r.stdout + r.stderr).split())
-            assert r.returncode == 2 and "station lab-w by" in said and "stop it first" in said, (args, said)
+        # both at once: each first waits a few heartbeats in case the live worker is a dying one
+        tries = {tuple(args): subprocess.Popen([sys.executable, "-m", "service.cli", *args], cwd=ROOT, env=env,
+                                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                 for args in (["worker", "--station", "lab-w"], ["serve", "--port", str(_free_port())])}
+        for args, proc in tries.items():
+            out, _ = proc.communicate(timeout=90)
+            said = " ".join(out.split())
+            assert proc.returncode == 2 and "station lab-w by" in said and "stop it first" in said, (args, said)
         assert first.poll() is None
     finally:
         _kill(first)

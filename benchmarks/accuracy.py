@@ -6,7 +6,12 @@ against the true unit: max and RMS heading error over a level turn, max over pit
 +-60 deg, table positions and seconds (30 deg/s, 60 deg/s^2, 0.3 s settle, 20 Hz), fit time.
 Peak-picking is also given a fine 5-deg recording, since on coarse sweeps it cannot work at all.
 
-    python benchmarks/accuracy.py [--units 50] [--seed 1]
+``--robust`` runs only the bad-samples part (issue 14, part 2): the same units' recordings with 1 % and
+5 % of the magnetometer rows replaced by garbage (random int16 values, or zeros), fitted by the joint
+and error-separation methods, against the clean fit of the same units. Target: worst level heading
+error within 1.5x of the clean fit's at 1 %, within 3x at 5 %, and no refusal.
+
+    python benchmarks/accuracy.py [--units 50] [--seed 1] [--robust]
 """
 
 from __future__ import annotations
@@ -26,6 +31,10 @@ from physics.table import TableGeometry
 from procedures.calibrate import CalibrateParams, calibration_poses
 
 TARGET_LEVEL, TARGET_TILTED, TARGET_TABLE_S = 0.02, 0.05, 120.0
+#: Bad-samples part: (fraction of rows corrupted, allowed worst level error / clean worst level error).
+ROBUST_TARGETS = ((0.01, 1.5), (0.05, 3.0))
+ROBUST_KINDS = ("int16", "zeros")
+ROBUST_METHODS = ("joint", "error-separation")
 RECORDINGS = {"default": CalibrateParams(), "fine 5 deg": CalibrateParams(z_step_deg=5.0, tilt_step_deg=5.0, samples=10)}
 
 
@@ -80,16 +89,81 @@ def table(title: str, results: dict[tuple[str, str], dict[str, list[float]]], ma
     return "\n".join(lines)
 
 
+def corrupt(mag: np.ndarray, fraction: float, kind: str, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A copy of ``mag`` with ``fraction`` of its rows replaced by random int16 triples or zeros, and their indices."""
+    bad = rng.choice(len(mag), max(1, round(fraction * len(mag))), replace=False)
+    out = mag.copy()
+    out[bad] = rng.integers(-32768, 32768, (bad.size, 3)) if kind == "int16" else 0.0
+    return out, bad
+
+
+def robust_table(units: list[tuple[Unit, World]], seed: int) -> str:
+    """The bad-samples table: per method, kind and fraction, worst level error against the clean fit of the same units."""
+    clean: dict[str, list[float]] = {m: [] for m in ROBUST_METHODS}
+    rows: dict[tuple[str, str, float], dict[str, list]] = {}
+    for n, (unit, world) in enumerate(units):
+        rec = simulate_recording(unit, calibration_poses(RECORDINGS["default"]), world, rng=np.random.default_rng(seed + n))
+        for method in ROBUST_METHODS:
+            clean[method].append(truth_summary(fit(rec, method, bootstrap=0), unit, world)["level_max"])
+        for kind in ROBUST_KINDS:
+            for fraction, _ in ROBUST_TARGETS:
+                mag, bad = corrupt(rec.mag, fraction, kind, np.random.default_rng([seed, n, int(1e4 * fraction), ROBUST_KINDS.index(kind)]))
+                bad_rec = rec.select(np.arange(len(rec)))
+                bad_rec.mag = mag
+                for method in ROBUST_METHODS:
+                    r = rows.setdefault((method, kind, fraction), {"level": [], "refused": [], "exact": [], "extra": []})
+                    try:
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore")
+                            cal = fit(bad_rec, method, bootstrap=0)
+                    except (InsufficientData, ValueError) as e:
+                        r["level"].append(np.nan)
+                        r["refused"].append(str(e).split(":")[0])
+                        continue
+                    got = {row["index"] for row in cal.quality["rejected_rows"]}
+                    r["level"].append(truth_summary(cal, unit, world)["level_max"])
+                    r["exact"].append(got >= set(bad.tolist()))
+                    r["extra"].append(len(got - set(bad.tolist())))
+    head = (f"{'method':<18}{'garbage':<8}{'rows':>6}{'clean worst':>13}{'worst':>9}{'ratio':>7}{'target':>8}"
+            f"{'unit ratio max':>16}{'all bad found':>15}{'extra dropped':>15}{'refused':>9}")
+    lines = [f"Bad samples: {len(units)} units, default recording ({len(rec)} rows); level max heading error in deg",
+             head, "-" * len(head)]
+    verdicts = []
+    for (method, kind, fraction), r in rows.items():
+        target = dict(ROBUST_TARGETS)[fraction]
+        lev, ref = np.array(r["level"]), np.array(clean[method])
+        worst, clean_worst = float(np.nanmax(lev)) if np.isfinite(lev).any() else np.nan, float(np.max(ref))
+        ok = bool(np.isfinite(lev).all() and worst <= target * clean_worst)
+        verdicts.append(ok)
+        refused = f"{len(r['refused'])}" + (f" ({'; '.join(sorted(set(r['refused'])))})" if r["refused"] else "")
+        lines.append(f"{method:<18}{kind:<8}{100 * fraction:>5.0f}%{clean_worst:>13.4f}{worst:>9.4f}{worst / clean_worst:>7.2f}"
+                     f"{target:>7.1f}x{np.nanmax(lev / ref):>16.2f}{sum(r['exact']):>9}/{len(r['exact']):<5}"
+                     f"{max(r['extra'], default=0):>15}{refused:>9}  {'PASS' if ok else 'FAIL'}")
+    lines.append(f"target: worst level error within 1.5x (1 %) / 3x (5 %) of the clean fit's on the same units, no refusal: "
+                 f"{'met' if all(verdicts) else 'NOT met'}")
+    return "\n".join(lines)
+
+
+def make_units(n: int, seed: int) -> tuple[list[tuple[Unit, World]], list[tuple[Unit, World]]]:
+    """The reference unit in its world, and ``n`` random production units in random worlds."""
+    rng = np.random.default_rng(seed)
+    ref = [(reference_unit(3.0, 4.0), World(55.0, 23.0, TableGeometry(base_tilt_deg=(0.05, -0.03))))]
+    randoms = [(random_unit(rng, mag_noise_lsb=3.0),
+                World(rng.uniform(40, 70), rng.uniform(0, 360), TableGeometry(base_tilt_deg=tuple(rng.uniform(-0.1, 0.1, 2)))))
+               for _ in range(n)]
+    return ref, randoms
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--units", type=int, default=50)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--robust", action="store_true", help="run only the bad-samples table (reference unit + --units random units)")
     args = ap.parse_args()
-    rng = np.random.default_rng(args.seed)
-    ref = [(reference_unit(3.0, 4.0), World(55.0, 23.0, TableGeometry(base_tilt_deg=(0.05, -0.03))))]
-    randoms = [(random_unit(rng, mag_noise_lsb=3.0),
-                World(rng.uniform(40, 70), rng.uniform(0, 360), TableGeometry(base_tilt_deg=tuple(rng.uniform(-0.1, 0.1, 2)))))
-               for _ in range(args.units)]
+    ref, randoms = make_units(args.units, args.seed)
+    if args.robust:
+        print(robust_table(ref + randoms, args.seed + 2000))
+        return
     r_ref = score(ref, args.seed)
     print(table("Reference unit (Gao et al. 2017, Tables 1-2), 3 LSB noise; heading errors in deg", r_ref, many=False))
     print()

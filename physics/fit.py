@@ -3,11 +3,31 @@
 It runs the accelerometer step once, the chosen magnetometer method, and fills the uncertainties
 and the quality figures (model residuals, staged heading errors) in the same way for every method,
 so that methods can be compared on the same recording.
+
+Bad samples (a checksummed but wrong reading, a brown-out's zeros) are rejected before and during
+the fit, in two stages, and every dropped row is listed in ``quality["rejected_rows"]``:
+
+1. Model-free screen (every method): a row whose three axes read exactly 0, or whose reading is
+   more than :data:`REJECT_SIGMA` robust sigmas (and :data:`GROSS_FRACTION` of the field amplitude)
+   from the median of its pose (the consecutive samples at one set of encoder angles). Breakdown point: half the samples of each pose (the median and the
+   MAD break down at 50 %); sigma is pooled over the recording by the MAD.
+2. Model-based rejection (``joint`` and ``error-separation``): iteratively reweighted least squares
+   with 0/1 weights on the whitened residuals (a hard-redescending, "skipped" estimator): fit, drop
+   every row whose residual on any axis is more than :data:`REJECT_SIGMA` robust sigmas (MAD of the
+   kept rows' residuals) and GROSS_FRACTION of that axis's k, refit, until the kept set no longer
+   changes; dropped rows are re-tested each round, so a row wrongly dropped early comes back. When more than :data:`MODEL_BREAKDOWN` of
+   the rows look bad the fit is restarted once from its best (1 - MODEL_BREAKDOWN) of rows (a
+   least-trimmed-squares concentration step); if that still leaves more than MODEL_BREAKDOWN bad,
+   the data as a whole do not follow the model (not a few bad rows) and the usual checks decide.
+   Breakdown point: MODEL_BREAKDOWN (20 %) of the rows.
+
+Fewer than :data:`MIN_GOOD_FRACTION` good rows, or good rows that no longer hold the attitudes a
+method needs, are refused with that reason.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -26,6 +46,21 @@ METHODS = ("joint", "error-separation", "peak-picking", "ellipsoid", "deviation5
 #: A calibrated field whose magnitude varies more than this across a level turn means the data
 #: are not what the model says (mixed units, angles in radians, a magnet on the table...).
 MAX_FIELD_SPREAD = 0.03
+
+#: A row further than this many robust sigmas from its pose's median, or from the fitted model, is
+#: rejected, if it is also more than GROSS_FRACTION of the axis's field amplitude (k) off. Garbage is
+#: thousands of sigmas off; 8 sigma keeps Gaussian noise in, and the amplitude floor keeps the physics
+#: the discrepancy analysis looks for (a settling lag, mains pickup: tens of LSB) in the data.
+REJECT_SIGMA = 8.0
+GROSS_FRACTION = 0.05
+#: The model-based rejection may drop at most this fraction of the rows: its breakdown point.
+MODEL_BREAKDOWN = 0.2
+#: Refuse when fewer than this fraction of the rows remain good.
+MIN_GOOD_FRACTION = 0.5
+#: Rounds of the model-based rejection (fit, reject, refit); it usually settles in two.
+MAX_REJECT_ROUNDS = 6
+#: Methods that reject rows inconsistent with their own fitted model (stage 2 above).
+ROBUST_METHODS = ("joint", "error-separation")
 
 _COMPARISON: dict[str, Callable[[Recording, es.Accel], Calibration]] = {
     "ellipsoid": comparison.ellipsoid,
@@ -47,29 +82,201 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
         raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
     check_angles(rec)
     check_magnetometer(rec)
-    acc = es.accelerometer(rec)
-    if method in _COMPARISON:
-        cal = _COMPARISON[method](rec, acc)
-    elif method == "joint":
-        cal = _joint(rec, acc)
-    else:
-        cal = _stepwise(rec, acc, "sinusoid" if method == "error-separation" else "pick", bootstrap, rng)
+    rejected = screen_rows(rec)
+    _require_good(rec, rejected)
+    work = _kept(rec, rejected)
+    if rejected:
+        check_magnetometer(work)
+
+    def run(r: Recording) -> Calibration:
+        acc = es.accelerometer(r)
+        if method in _COMPARISON:
+            c = _COMPARISON[method](r, acc)
+        elif method == "joint":
+            c = _joint(r, acc)
+        else:
+            c = _stepwise(r, acc, "sinusoid" if method == "error-separation" else "pick", bootstrap, rng)
+        c.notes = list(acc.notes) + c.notes
+        if acc.sensor is not None and "acc" not in c.sigma and acc.fit is not None:
+            c.sigma["acc"] = acc.sigma()
+        return c
+
+    too_many: str | None = None
+    try:
+        if method in ROBUST_METHODS:
+            cal, rejected, too_many = _fit_rejecting(rec, rejected, run)
+            work = _kept(rec, rejected)
+        else:
+            cal = run(work)
+    except (es.InsufficientData, RecordingError) as e:
+        if not rejected or str(e).startswith("too few good samples"):
+            raise
+        raise _too_few(rec, rejected, e) from None
     cal.serial = rec.serial
     cal.method = method
-    cal.notes = list(acc.notes) + cal.notes
-    if acc.sensor is not None and "acc" not in cal.sigma and acc.fit is not None:
-        cal.sigma["acc"] = acc.sigma()
-    cal.quality = quality(rec, cal)
-    spread = field_spread(rec, cal)
+    cal.quality = quality(work, cal)
+    cal.quality.update(rejected_rows=rejected_rows(rec, rejected), rejected=len(rejected), samples_total=len(rec))
+    if rejected:
+        cal.notes.append(f"dropped {len(rejected)} of {len(rec)} rows as bad samples ({_reason_counts(rejected)}): "
+                         f"sample indices {_index_list(sorted(rejected))}")
+    spread = field_spread(work, cal)
     if spread > MAX_FIELD_SPREAD:
         message = (f"calibrated field magnitude varies by {100 * spread:.1f} % across the level turn (expected under "
                    f"{100 * MAX_FIELD_SPREAD:.0f} %)")
-        if method in ("joint", "error-separation"):
+        if method in ROBUST_METHODS:
             # the nominal model fits any linear sensor: a misfit this large is the data's fault
+            if too_many:
+                message += f"; {too_many}"
             raise RecordingError(message + ": check that mx, my, mz are raw readings in one unit and that the "
-                                 "table angles are degrees of the right axes")
+                                 "table angles are degrees of the right axes, or whether more samples are garbage than "
+                                 f"the fit can drop (up to half of each pose's samples, {100 * MODEL_BREAKDOWN:.0f} % of "
+                                 "the rows off the model)")
         cal.notes.append(message + f": a limitation of the {method} method on this recording")
     return cal
+
+
+# --------------------------------------------------------------------------------------------------
+# Bad samples
+# --------------------------------------------------------------------------------------------------
+
+def _robust_sigma(x: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """Per-column noise from the median absolute deviation (50 % breakdown), never below ``floor``."""
+    return np.maximum(1.4826 * np.median(np.abs(x), axis=0), floor)
+
+
+def screen_rows(rec: Recording) -> dict[int, str]:
+    """Model-free screen of the magnetometer rows: {sample index: reason} of the ones to drop.
+
+    A row is dropped when all three axes read exactly 0 (no field-sensing magnetometer does; a
+    brown-out or a dropped frame does), or when one axis is more than REJECT_SIGMA robust sigmas and
+    GROSS_FRACTION of its amplitude (half the span of the pose medians, about k) from the median of
+    its pose (poses of at least 3 samples; sigma is the recording's MAD about the pose medians).
+    """
+    out: dict[int, str] = {}
+    mag = rec.mag
+    for i in np.flatnonzero(np.all(mag == 0.0, axis=1)):
+        out[int(i)] = "all three axes read exactly 0 (a brown-out or a dropped reading)"
+    if len(rec) == 0:
+        return out
+    group = _pose_groups(rec)
+    usable = np.ones(len(rec), bool)
+    usable[list(out)] = False
+    n = np.bincount(group[usable], minlength=group.max() + 1)
+    multi = usable & (n[group] >= 3)
+    if not multi.any():
+        return out
+    med = np.full((group.max() + 1, 3), np.nan)
+    for g in np.unique(group[multi]):
+        med[g] = np.median(mag[multi & (group == g)], axis=0)
+    dev = mag - med[group]
+    amplitude = 0.5 * (np.nanmax(med, axis=0) - np.nanmin(med, axis=0))
+    sigma = _robust_sigma(dev[multi], np.maximum(2e-4 * amplitude, 1e-12))
+    z = np.abs(dev) / sigma
+    gross = (z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude)
+    for i in np.flatnonzero(multi & np.any(gross, axis=1)):
+        a = int(np.argmax(z[i]))
+        out[int(i)] = (f"{'m' + 'xyz'[a]} = {mag[i, a]:g} is {abs(dev[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) from the "
+                       f"median of its pose's samples ({med[group[i], a]:g})")
+    return out
+
+
+def model_residuals(rec: Recording, cal: Calibration) -> np.ndarray:
+    """Raw readings minus what the nominal model with ``cal``'s M, b, I, D and base tilt predicts (N, 3), LSB."""
+    v_base = base_rotation(cal.base_tilt_deg).T @ field_direction(cal.inclination_deg, cal.declination_deg)
+    return rec.mag - cal.mag.measure(np.einsum("nji,j->ni", es.rotations(rec), v_base))
+
+
+def _fit_rejecting(rec: Recording, screened: dict[int, str], run: Callable[[Recording], Calibration]
+                   ) -> tuple[Calibration, dict[int, str], str | None]:
+    """Stage 2 of the module docstring: fit, drop rows off the model, refit until the kept set settles.
+
+    Returns the calibration, every rejected row with its reason, and (when the model-based rejection
+    was abandoned because too many rows disagree) a sentence saying so for the refusal that follows.
+    """
+    candidates = np.ones(len(rec), bool)
+    candidates[list(screened)] = False
+    keep = candidates.copy()
+    trimmed = False
+    cal = run(rec.select(keep))
+    for _ in range(MAX_REJECT_ROUNDS):
+        r = model_residuals(rec, cal)
+        sigma = _robust_sigma(r[keep], 1e-4 * np.abs(cal.mag.k))
+        z = np.abs(r) / sigma
+        # whitened distance, counted only where the error is also gross (module docstring)
+        d = np.where(np.abs(r) > GROSS_FRACTION * np.abs(cal.mag.k), z, np.minimum(z, REJECT_SIGMA)).max(axis=1)
+        bad = candidates & (d > REJECT_SIGMA)
+        if bad.sum() > MODEL_BREAKDOWN * candidates.sum():
+            if trimmed:
+                cal = run(rec.select(candidates))
+                return cal, screened, (f"{int(bad.sum())} of {len(rec)} rows disagree with the fitted model by more than "
+                                       f"{REJECT_SIGMA:g} sigma, more than the {100 * MODEL_BREAKDOWN:.0f} % of bad rows "
+                                       "the robust fit can drop")
+            # a fit pulled by many bad rows: restart from its best rows (a least-trimmed-squares step)
+            trimmed = True
+            new_keep = candidates & (d <= np.quantile(d[candidates], 1.0 - MODEL_BREAKDOWN))
+        else:
+            new_keep = candidates & ~bad
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+        try:
+            cal = run(rec.select(keep))
+        except (es.InsufficientData, RecordingError) as e:  # the dropped rows took attitudes the fit needs
+            raise _too_few(rec, {**screened, **{int(i): "off the fitted model" for i in np.flatnonzero(candidates & ~keep)}},
+                           e) from None
+    out = dict(screened)
+    for i in np.flatnonzero(candidates & ~keep):
+        a = int(np.argmax(z[i]))
+        out[int(i)] = (f"{'m' + 'xyz'[a]} = {rec.mag[i, a]:g} is {abs(r[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) off the "
+                       "fitted model")
+    _require_good(rec, out)
+    return cal, out, None
+
+
+def _kept(rec: Recording, rejected: dict[int, str]) -> Recording:
+    if not rejected:
+        return rec
+    keep = np.ones(len(rec), bool)
+    keep[list(rejected)] = False
+    return rec.select(keep)
+
+
+def _require_good(rec: Recording, rejected: dict[int, str]) -> None:
+    """Refuse when fewer than MIN_GOOD_FRACTION of the rows are good, naming that as the reason."""
+    good = len(rec) - len(rejected)
+    if rejected and good < MIN_GOOD_FRACTION * len(rec):
+        raise RecordingError(f"too few good samples remain: {len(rejected)} of {len(rec)} rows are bad "
+                             f"({_reason_counts(rejected)}; first at sample indices {_index_list(sorted(rejected))}), "
+                             f"leaving {good}; the fit needs at least {100 * MIN_GOOD_FRACTION:.0f} % good rows. "
+                             "Check the magnetometer's connection and supply, then record again")
+
+
+def _too_few(rec: Recording, rejected: dict[int, str], e: Exception) -> Exception:
+    """The refusal of a fit that the remaining good rows no longer support, naming the bad rows as the reason."""
+    return type(e)(f"too few good samples remain: after dropping {len(rejected)} bad row(s) of {len(rec)} "
+                   f"({_reason_counts(rejected)}): {e}")
+
+
+def _reason_kind(reason: str) -> str:
+    if reason.startswith("all three"):
+        return "all zeros"
+    return "off their pose's median" if "median of its pose" in reason else "off the fitted model"
+
+
+def _reason_counts(rejected: dict[int, str]) -> str:
+    kinds: dict[str, int] = {}
+    for reason in rejected.values():
+        kinds[_reason_kind(reason)] = kinds.get(_reason_kind(reason), 0) + 1
+    return ", ".join(f"{n} {k}" for k, n in kinds.items())
+
+
+def _index_list(idx: list[int], limit: int = 20) -> str:
+    return ", ".join(map(str, idx[:limit])) + (f" and {len(idx) - limit} more" if len(idx) > limit else "")
+
+
+def rejected_rows(rec: Recording, rejected: dict[int, str]) -> list[dict[str, Any]]:
+    """The calibration JSON's list of dropped rows: sample index (0-based data row), t, step label, reason."""
+    return [{"index": i, "t": float(rec.t[i]), "step": str(rec.step[i]), "reason": rejected[i]} for i in sorted(rejected)]
 
 
 def _stepwise(rec: Recording, acc: es.Accel, peak: str, bootstrap: int, rng: np.random.Generator | None) -> Calibration:

@@ -244,6 +244,14 @@ def fit(
     except (RecordingError, InsufficientData, ValueError) as e:
         _fail(f"{recording}: {e}")
     print_calibration(cal)
+    dropped = cal.quality.get("rejected_rows") or []
+    if dropped:  # bad samples the fit rejected on its own (physics.fit): which, and why
+        console.print(f"[yellow]{len(dropped)} of {cal.quality.get('samples_total')} rows dropped as bad samples "
+                      "(sample index = 0-based data row):[/]")
+        for row in dropped[:20]:
+            console.print(f"  sample {row['index']} (t {row['t']:g} s, step {escape(row['step'])}): {escape(row['reason'])}")
+        if len(dropped) > 20:
+            console.print(f"  ... and {len(dropped) - 20} more (all listed in the calibration JSON, quality.rejected_rows)")
     if truth_data is not None:
         print_truth(cal, truth_data)
     if output is not None:

@@ -129,7 +129,7 @@ class NakReply(NamedTuple):
 
 
 class IdReply(NamedTuple):
-    """``$PXDC,ID,<model>,<serial>,<fw>``."""
+    """``$PXDC,ID,<model>,<serial>,<fw>``; ``serial`` is empty for a unit whose serial was never set."""
 
     model: str
     serial: str
@@ -432,7 +432,7 @@ class SentenceParser:
         elif kind == b"NAK" and len(f) == 4 and f[2] and f[3].isdigit():
             ev = NakReply(_text(f[2]), int(f[3]))
             self.stats.naks += 1
-        elif kind == b"ID" and len(f) == 5 and all(f[2:]):
+        elif kind == b"ID" and len(f) == 5 and f[2] and f[4]:  # an empty serial: never programmed (not identified)
             ev = IdReply(_text(f[2]), _text(f[3]), _text(f[4]))
         elif kind == b"CFG" and len(f) >= 3:
             values: dict[str, int] = {}

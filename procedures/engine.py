@@ -30,7 +30,7 @@ import numpy as np
 from pydantic import BaseModel
 
 from drivers import DriverError, Sample, SampleStream, Station
-from drivers.compass import CompassError, CompassTimeout, FixtureError
+from drivers.compass import CompassError, CompassNak, CompassTimeout, FixtureError
 from drivers.protocol import fault_name
 from drivers.turntable import MoveTimeout
 from physics.recording import Recording, concat, format_recording
@@ -39,7 +39,8 @@ from procedures.calibrate import PROCEDURES
 from procedures.events import (Event, Progress, PromptAsked, Result, Resumed, SamplesStored, StateChanged, StepRetried,
                                StepStarted, StepWarning)
 from procedures.states import RunState
-from procedures.steps import TIMED_STEPS, Acquire, Checkpoint, Move, Outcome, Procedure, Prompt, Scan, Settle, Step, step_seconds
+from procedures.steps import (TIMED_STEPS, Acquire, Checkpoint, Identify, Move, Outcome, Procedure, Prompt, Scan, Settle, Step,
+                              step_seconds)
 
 #: Table axis turned by each Scan axis.
 SCAN_AXIS = {"psi": "z", "theta": "y", "phi": "x"}
@@ -47,6 +48,23 @@ SCAN_AXIS = {"psi": "z", "theta": "y", "phi": "x"}
 SCAN_GAP_S = 0.5
 #: The other axes must hold within this (deg) during an acquisition or a scan.
 HOLD_TOLERANCE_DEG = 0.01
+
+
+#: Wall seconds an identification of the fixture's compasses may take.
+IDENTIFY_TIMEOUT_S = 10.0
+
+
+async def identify_units(fixture: Any) -> dict[int, tuple[str, str, str]]:
+    """``{slot: (model, serial, firmware)}`` of the fixture's compasses. A compass that refuses the
+    ID command (NAK: it cannot identify itself) is left out, so its unit counts as not identified;
+    any other failure (a compass that does not answer) raises."""
+    try:
+        ids = await fixture.identify_all()
+    except FixtureError as e:
+        if not all(isinstance(x, CompassNak) for x in e.errors.values()):
+            raise
+        ids = e.results
+    return {int(slot): (str(m), str(sn), str(fw)) for slot, (m, sn, fw) in ids.items()}
 
 
 class Sink(Protocol):
@@ -199,7 +217,7 @@ class Engine:
                 except StopIteration as stop:
                     outcome = stop.value
                     break
-                if replaying:
+                if replaying and not self._live_in_replay(step):
                     reply = self._replayed(step)
                     if isinstance(step, Checkpoint):
                         passed += 1
@@ -284,6 +302,8 @@ class Engine:
                 self._check_abort()
                 self._set_state(RunState.running)
             return None
+        if isinstance(step, Identify):
+            return await asyncio.wait_for(identify_units(self.station.fixture), IDENTIFY_TIMEOUT_S)
         if isinstance(step, Prompt):
             fut: asyncio.Future[str] = asyncio.get_running_loop().create_future()
             self._answers[step.id] = fut
@@ -301,6 +321,12 @@ class Engine:
                 self._check_abort()
                 raise
         raise TypeError(f"unknown step {step!r}")
+
+    def _live_in_replay(self, step: Step) -> bool:
+        """Whether a step is done live even while replaying: an identification (the units mounted now
+        are the ones to name) and a prompt the interrupted run has no answer to (never asked there)."""
+        assert self.replay is not None
+        return isinstance(step, Identify) or (isinstance(step, Prompt) and step.id not in self.replay.answers)
 
     def _replayed(self, step: Step) -> Any:
         """A step answered from the interrupted run (see :class:`Replay`), not the table."""

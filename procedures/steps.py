@@ -58,16 +58,24 @@ class Prompt:
 
 
 @dataclass(frozen=True)
+class Identify:
+    """Ask every compass of the fixture who it is (once the units are mounted).
+
+    Reply: ``dict[slot, (model, serial, firmware)]`` of the compasses that answered; a compass that
+    refuses the command (it cannot identify itself) is left out."""
+
+
+@dataclass(frozen=True)
 class Checkpoint:
     """A safe place to pause or abort (the table holds still here)."""
 
     label: str
 
 
-Step = Union[Move, Settle, Acquire, Scan, Prompt, Checkpoint]
+Step = Union[Move, Settle, Acquire, Scan, Prompt, Identify, Checkpoint]
 #: Steps that take table time (progress counts them).
 TIMED_STEPS = (Move, Settle, Acquire, Scan)
-Reply = Union[dict[int, Recording], str, None]
+Reply = Union[dict[int, Recording], dict[int, tuple[str, str, str]], str, None]
 
 
 @dataclass
@@ -107,14 +115,14 @@ class Procedure:
 
 
 def _empty_reply(step: Step) -> Reply:
-    return {} if isinstance(step, (Acquire, Scan)) else ("" if isinstance(step, Prompt) else None)
+    return {} if isinstance(step, (Acquire, Scan, Identify)) else ("" if isinstance(step, Prompt) else None)
 
 
 def step_seconds(steps: list[Step], motion: Motion = Motion(),
                  start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> list[float]:
     """Nominal table seconds of each step under ``motion`` (speed, acceleration, sample rate), from
     ``start``: moves as trapezoids, settles as given, acquisitions at the sample rate, scans as the
-    move to their start plus the turn at their own speed. Prompts and checkpoints take none."""
+    move to their start plus the turn at their own speed. Prompts, identifications and checkpoints take none."""
     here = list(start)
     out: list[float] = []
     for s in steps:

@@ -81,6 +81,8 @@ class Station(Base):
     worker: Mapped[str | None] = mapped_column(String(128))  # host:pid of the worker serving it
     heartbeat_at: Mapped[datetime | None]  # that worker's last sign of life
     reset: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # the last reset's outcome
+    # what a run does when a unit reports another serial than the one typed (service/identity.py)
+    serial_policy: Mapped[str] = mapped_column(String(16), default="prompt", server_default="prompt")
 
 
 class Batch(Base):
@@ -198,6 +200,8 @@ class Calibration(Base):
     method: Mapped[str] = mapped_column(String(32))
     data: Mapped[dict[str, Any]] = mapped_column(JSON)  # the physics calibration JSON
     figures: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # what the limits judge (store.figures)
+    # typed and identified serial numbers and how they were settled (service.identity.Identity.to_json)
+    identity: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     run: Mapped[Run] = relationship(back_populates="calibrations")
     device: Mapped[Device] = relationship()

@@ -35,6 +35,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from physics.calibration import json_safe
 from procedures.states import ACTIVE, FINAL, RunState, check_transition
 from service.db import Batch, Calibration, Run, RunCommand, RunEvent, Station, utcnow
+from service.identity import CHOICES, DEFAULT_POLICY, POLICIES, is_serial_prompt, normalise
 
 try:
     SOFTWARE_VERSION = version("compasscal")
@@ -216,7 +217,7 @@ def station_json(row: Station) -> dict[str, Any]:
     return {"name": row.name, "modbus": row.modbus, "compasses": row.compasses, "time_scale": row.time_scale,
             "created_at": row.created_at, "state": row.state, "run_id": row.run_id, "fault": row.reason,
             "batch_id": row.batch_id, "worker": row.worker, "worker_alive": worker_alive(row),
-            "heartbeat_at": row.heartbeat_at}
+            "heartbeat_at": row.heartbeat_at, "serial_policy": row.serial_policy or DEFAULT_POLICY}
 
 
 def run_json(row: Run) -> dict[str, Any]:
@@ -229,7 +230,7 @@ def run_json(row: Run) -> dict[str, Any]:
             "software_version": row.software_version, "station_snapshot": row.station_snapshot,
             "created_at": row.created_at, "started_at": row.started_at, "finished_at": row.finished_at,
             "table_seconds": row.table_seconds, "samples_count": row.samples_count or 0,
-            "result": (row.meta or {}).get("result"),
+            "result": (row.meta or {}).get("result"), "serial_policy": (row.meta or {}).get("serial_policy"),
             "pause_requested": bool(live and row.pause_requested),
             "prompts": [{"id": k, "text": v} for k, v in (row.prompts or {}).items()] if live else [],
             "progress": row.progress}
@@ -306,9 +307,12 @@ def _resumable(s: Session, resume: int, station_name: str, procedure: str | None
 
 def create_run(s: Session, station_name: str, procedure: str | None, parameters: dict[str, Any] | None,
                serials: dict[str, str] | None, operator: str, software_version: str,
-               batch_id: int | None = None, resume: int | None = None) -> Run:
+               batch_id: int | None = None, resume: int | None = None, serial_policy: str | None = None) -> Run:
     """Validate a run, write its row (``queued``, with its provenance) and claim the station for it,
     in one transaction (committed). NotFound, Invalid (naming the field) or Conflict (busy, fault).
+
+    ``serial_policy``: what the run does when a unit reports another serial number than the one
+    typed (service/identity.py); None: the station's. Kept in the run's ``meta``.
 
     ``resume``: a failed or aborted run of this station to continue from the last checkpoint it
     passed: its procedure, parameters and units are taken over, and its worker replays its samples
@@ -341,6 +345,9 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
             given[str(int(key))] = check_serial(str(serial))
         except ValueError as e:
             raise invalid(f"body.serials.{key}", str(e)) from None
+    policy = serial_policy or row.serial_policy or DEFAULT_POLICY
+    if policy not in POLICIES:
+        raise invalid("body.serial_policy", f"expected one of {', '.join(POLICIES)}")
     why = _busy(row, batch_id)
     if why:
         raise Conflict(why)
@@ -349,7 +356,7 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
               parameters=json_safe(params.model_dump()), status=RunState.queued.value, operator=operator,
               station_snapshot=snapshot, serials=given, software_version=software_version, prompts={},
               meta={"station": row.name, "sample_rate_hz": str(SAMPLE_RATE_HZ), "time_scale": f"{row.time_scale:g}",
-                    "parameters": params.model_dump_json(),
+                    "parameters": params.model_dump_json(), "serial_policy": policy,
                     **({"resume": resumed, "resumed_from": str(resumed["run_id"])} if resumed else {})})
     s.add(run)
     s.flush()
@@ -405,7 +412,8 @@ def finish_unstarted(s: Session, run_id: int, status: str, reason: str) -> bool:
 
 
 def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> None:
-    """Queue the operator's answer to a waiting prompt (committed); NotFound when none is waiting."""
+    """Queue the operator's answer to a waiting prompt (committed); NotFound when none is waiting,
+    Invalid when a serial prompt's answer is not one of :data:`~service.identity.CHOICES`."""
     row = s.get(Run, run_id)
     if row is None:
         raise NotFound(f"no run {run_id}")
@@ -413,6 +421,9 @@ def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> None:
     if prompt_id not in waiting:
         raise NotFound(f"run {run_id} has no prompt {prompt_id!r} waiting"
                        + (f" (waiting: {', '.join(waiting)})" if waiting else ""))
+    if is_serial_prompt(prompt_id) and normalise(answer) not in CHOICES:
+        # which serial a unit is certified under is not left to a guess at a stray answer
+        raise invalid("body.answer", f"answer {', '.join(repr(c) for c in CHOICES)} to a serial prompt")
     s.add(RunCommand(run_id=run_id, kind="answer", data={"id": prompt_id, "answer": answer}, created_at=utcnow()))
     s.commit()
 

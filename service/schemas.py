@@ -16,6 +16,7 @@ from typing import Annotated, Any
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from drivers.modbus import BusURL
+from service.identity import CHOICES, SerialPolicy
 
 # ------------------------------------------------------------------------------------------ errors
 
@@ -247,6 +248,10 @@ class StationConfigIn(In):
     compasses: list[Annotated[str, AfterValidator(no_nul), Field(max_length=256)]] = Field(
         min_length=1, max_length=64, description="the serial URL of slot 0, slot 1, ...")
     time_scale: Finite = Field(1.0, gt=0, le=1000, description="> 1 only for a simulated station running faster")
+    serial_policy: SerialPolicy | None = Field(
+        None, description="when a unit reports another serial number than the one typed: prompt (ask the operator), "
+        "refuse (the unit is not calibrated) or trust-typed (certified as typed, recorded); omitted: unchanged "
+        "(prompt for a new station). A run or batch may override it")
 
     @field_validator("modbus")
     @classmethod
@@ -283,6 +288,8 @@ class StationOut(BaseModel):
     worker: str | None = Field(description="host:pid of the worker that last served it")
     worker_alive: bool = Field(description="its worker beat within the last few heartbeats")
     heartbeat_at: datetime | None
+    serial_policy: str = Field(description="prompt, refuse or trust-typed: what a run does when a unit reports "
+                               "another serial number than the one typed")
 
 # ------------------------------------------------------------------------------------------ runs
 
@@ -299,6 +306,8 @@ class RunIn(In):
     resume: Id | None = Field(None, description="a failed or aborted run of this station to continue from the "
                               "last checkpoint it passed (its procedure, parameters and units; its samples up to "
                               "there are taken over, the same units must be mounted)")
+    serial_policy: SerialPolicy | None = Field(None, description="when a unit reports another serial number than "
+                                               "the one typed: prompt, refuse or trust-typed; default the station's")
 
 
 class StateIn(In):
@@ -311,7 +320,8 @@ class StateIn(In):
 class AnswerIn(In):
     """The operator's answer to a prompt."""
 
-    answer: str = Field("", max_length=1000)
+    answer: str = Field("", max_length=1000, description="a serial prompt (serial-SLOT) takes "
+                        + ", ".join(CHOICES))
 
 
 class PromptOut(BaseModel):
@@ -341,7 +351,11 @@ class RunOut(BaseModel):
     finished_at: datetime | None
     table_seconds: float | None
     samples_count: int
-    result: dict[str, Any] | None
+    result: dict[str, Any] | None = Field(description="per unit (units.SLOT): serial, calibration_id, verdict or "
+                                          "error, typed_serial, identified_serial (null: not identified), "
+                                          "identification, serial_decision, serial_note")
+    serial_policy: str | None = Field(description="what the run does when a unit reports another serial number "
+                                      "than the one typed")
     pause_requested: bool
     prompts: list[PromptOut]
     progress: dict[str, Any] | None
@@ -369,6 +383,8 @@ class RunCalibration(BaseModel):
     status: str
     verdict: str | None
     reasons: list[Any] | None
+    identity: dict[str, Any] | None = Field(None, description="typed_serial, identified_serial (null: not "
+                                            "identified), identification, serial_decision, serial_note")
 
 
 class RunDetail(RunOut):
@@ -401,6 +417,10 @@ class BatchIn(In):
     serials: list[Serial] = Field(min_length=1, max_length=1000, description="the units' serial numbers, each "
                                   + SERIAL_RULE)
     parameters: dict[str, Any] = Field(default_factory=dict, description="calibrate parameters for every unit")
+    serial_policy: SerialPolicy | None = Field(None, description="when a unit reports another serial number than "
+                                               "the one typed: prompt, refuse or trust-typed; default the station's. "
+                                               "A unit that reports a serial already certified in the batch is never "
+                                               "certified again")
 
     @field_validator("serials")
     @classmethod

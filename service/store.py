@@ -133,9 +133,11 @@ def judge(fig: dict[str, float | None], limits: list[Limit]) -> tuple[str, list[
 
 
 def store_calibration(session: Session, run: Run, slot: int, serial: str, cal: dict[str, Any],
-                      model: str | None = None, firmware: str | None = None) -> Calibration:
+                      model: str | None = None, firmware: str | None = None,
+                      identity: dict[str, Any] | None = None) -> Calibration:
     """Judge a calibration against the limits and keep it: PASS or MARGINAL becomes current and the
-    previous current one is superseded; FAIL is kept as rejected. Nothing is ever overwritten."""
+    previous current one is superseded; FAIL is kept as rejected. Nothing is ever overwritten.
+    ``identity``: the typed and identified serial numbers (service.identity.Identity.to_json)."""
     dev = device(session, serial, model, firmware)
     fig = figures(cal)
     verdict, reasons = judge(fig, list(session.scalars(select(Limit))))
@@ -144,7 +146,7 @@ def store_calibration(session: Session, run: Run, slot: int, serial: str, cal: d
         session.execute(update(Calibration).where(Calibration.device_id == dev.id, Calibration.status == "current")
                         .values(status="superseded"))
     row = Calibration(device_id=dev.id, run_id=run.id, slot=slot, status=status, verdict=verdict, reasons=reasons,
-                      method=str(cal.get("method", "")), data=cal, figures=fig)
+                      method=str(cal.get("method", "")), data=cal, figures=fig, identity=identity)
     session.add(row)
     session.flush()
     return row

@@ -206,7 +206,7 @@ def unit_view(row: Calibration, rec: Recording | None, limits: list[Limit], curv
         "firmware": row.device.firmware, "verdict": row.verdict, "status": row.status,
         "reasons": list(row.reasons or []), "method": row.method, "created_at": row.created_at,
         **calibration_tables(cal), "field": field_lines(cal, row.data), "staged": staged_rows(cal),
-        "notes": list(cal.notes), "has_recording": rec is not None,
+        "notes": list(cal.notes), "has_recording": rec is not None, "identity": row.identity,
     }
     if curves:
         pairs = limit_pairs(limits)
@@ -230,6 +230,27 @@ def limit_rows(limits: list[Limit], figures: dict[str, Any] | None) -> list[dict
     return out
 
 
+#: How a differing serial was settled, in a few words (the certificate's line is short).
+SERIAL_DECISIONS = {"trust-typed": "certified as typed (serial policy trust-typed)",
+                    "typed": "certified as typed, on the operator's answer",
+                    "identified": "certified as identified, on the operator's answer"}
+
+
+def identity_rows(identity: dict[str, Any] | None) -> list[tuple[str, str]]:
+    """The certificate's lines on which unit it is: the serial the unit reported (or that it reported
+    none) and, when it differs from the one typed, the typed one and how that was settled. None for a
+    calibration stored before units were identified."""
+    if not identity:
+        return []
+    typed, identified = identity.get("typed_serial"), identity.get("identified_serial")
+    rows = [("Identified serial", identified or "not identified (the unit reported no serial number)")]
+    if identified and typed and typed != identified:
+        decision = identity.get("serial_decision")
+        rows = [("Serial typed", typed), rows[0],
+                ("Serial decision", SERIAL_DECISIONS.get(str(decision), str(decision or "-")))]
+    return rows
+
+
 def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, Any], PhysCalibration, Recording | None, list[Limit]]:
     """The certificate's content (shared by the HTML page and the PDF), the calibration, its
     recording (None when the samples are gone) and the limits."""
@@ -242,7 +263,8 @@ def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, A
     slot_url = compasses[row.slot] if row.slot < len(compasses) else None
     dev = row.device
     info = [
-        ("Unit serial number", dev.serial), ("Model", dev.model or "-"), ("Firmware", dev.firmware or "-"),
+        ("Unit serial number", dev.serial), *identity_rows(row.identity),
+        ("Model", dev.model or "-"), ("Firmware", dev.firmware or "-"),
         ("Calibration date", _when(row.created_at)), ("Operator", run.operator if run else "-"),
         ("Station", snap.get("name") or ((run.meta or {}).get("station") if run else None) or "-"),
         ("Turntable (Modbus)", snap.get("modbus") or "-"),
@@ -259,7 +281,7 @@ def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, A
         "info": info, **calibration_tables(cal), "field": field_lines(cal, row.data), "staged": staged_rows(cal),
         "notes": list(cal.notes), "limits": limit_rows(limits, row.figures), "software_version": _software_version(),
         "issued": _when(datetime.now(timezone.utc)), "parameters": (run.parameters if run else {}) or {},
-        "snapshot": snap,
+        "snapshot": snap, "identity": row.identity,
     }
     return cert, cal, rec, limits
 
@@ -285,7 +307,8 @@ def describe_step(d: dict[str, Any]) -> str:
         return f"acquire {step.get('step') or ''} ({step.get('samples')} samples)"
     if kind == "settle":
         return f"settle {step.get('seconds')} s"
-    return {"prompt": "waiting for the operator", "checkpoint": "checkpoint"}.get(str(kind), str(kind or ""))
+    return {"prompt": "waiting for the operator", "checkpoint": "checkpoint",
+            "identify": "identifying the units"}.get(str(kind), str(kind or ""))
 
 
 def step_view(session: Session, run_id: int) -> tuple[str, str | None]:
@@ -468,6 +491,9 @@ def run_page(request: Request, run_id: Id) -> Response:
                 if slot not in stored and isinstance(entry, dict) and "calibration_id" not in entry:
                     errors.append({"slot": slot, "serial": entry.get("serial", ""),
                                    "error": entry.get("error") or "no calibration from this slot"})
+        # what each unit reported, by slot, shown next to the serial typed
+        identities = {str(k): e for k, e in ((run["result"] or {}).get("units") or {}).items()
+                      if isinstance(e, dict) and "identification" in e}
         progress = run["progress"] or {}
         if run["status"] == "completed":
             percent = 100.0
@@ -479,7 +505,7 @@ def run_page(request: Request, run_id: Id) -> Response:
         from service.routes.analyses import analysis_summary
         analyses = [analysis_summary(a) for a in s.scalars(select(Analysis).where(Analysis.run_id == run_id).order_by(Analysis.id))]
     return _render(request, who, "run.html", title=f"Run {run_id}", run=run, active=active, units=units,
-                   errors=errors, percent=percent, time_scale=time_scale, last_step=last_step, live_step=live_step,
+                   errors=errors, identities=identities, percent=percent, time_scale=time_scale, last_step=last_step, live_step=live_step,
                    left_wall_s=(wall_seconds_left(progress, time_scale) if active else 0.0), analyses=analyses)
 
 

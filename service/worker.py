@@ -44,10 +44,11 @@ from drivers.turntable import AxisError, Turntable
 from physics.calibration import Calibration as PhysCalibration, json_safe
 from physics.recording import Recording
 from procedures.calibrate import BATCH, PROCEDURES
-from procedures.engine import Engine, Replay
+from procedures.engine import IDENTIFY_TIMEOUT_S, Engine, Replay, identify_units
 from procedures.events import Event, PromptAnswered, Result, StateChanged
 from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, RunEvent, Sample, Station, utcnow
+from service.identity import DEFAULT_POLICY, Identity, UnitCheck
 from service.runtime import (ANALYSIS_FINAL, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError,
                              analysis_topic, create_run, notify, other_workers, publish)
 from service.store import insert_samples, load_recording, store_calibration
@@ -55,9 +56,8 @@ from service.store import insert_samples, load_recording, store_calibration
 log = logging.getLogger("compasscal.worker")
 T = TypeVar("T")
 
-#: Wall seconds allowed to connect a station's table and fixture, and to identify the compasses.
+#: Wall seconds allowed to connect a station's table and fixture (identifying the compasses: the engine's).
 OPEN_TIMEOUT_S = 15.0
-IDENTIFY_TIMEOUT_S = 10.0
 #: Seconds between two looks at a run's commands.
 COMMAND_POLL_S = 0.1
 #: Wall seconds a run waits for an operator prompt's answer (COMPASSCAL_PROMPT_TIMEOUT_S overrides).
@@ -274,7 +274,7 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     """Run one queued run to its end: open the station, identify the units, drive the procedure's
     engine with the samples going to the database, store each unit's calibration, free the station.
     A run that is no longer ``queued`` (aborted before a worker took it) is left as it is."""
-    def take() -> tuple[dict[str, Any], dict[str, str], str, dict[str, Any], dict[str, Any] | None] | None:
+    def take() -> tuple[dict[str, Any], dict[str, str], str, dict[str, Any], dict[str, Any], dict[str, str]] | None:
         with ctx.sessions() as s:
             run = s.get(Run, run_id)
             if run is None or run.status != RunState.queued.value:
@@ -283,20 +283,22 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
             s.execute(update(Station).where(Station.run_id == run_id).values(heartbeat_at=utcnow(), worker=ctx.name))
             s.commit()
             return (dict(run.station_snapshot or {}), dict(run.serials or {}), run.procedure, dict(run.parameters or {}),
-                    (run.meta or {}).get("resume"))
+                    dict(run.meta or {}), batch_certified(s, run))
     taken = ctx.retry(take, f"run {run_id}")
     if taken is None:
         return
-    snapshot, given, name, parameters, resume = taken
+    snapshot, given, name, parameters, meta, seen = taken
     proc = PROCEDURES[name]
     params = proc.validate(parameters)
+    check = UnitCheck(typed={int(k): str(v) for k, v in given.items()}, slots=list(range(len(snapshot["compasses"]))),
+                      policy=str(meta.get("serial_policy") or DEFAULT_POLICY), seen=seen)
     control = RunControl(ctx, run_id)
     ctx.executing[run_id] = control
     follower = asyncio.create_task(control.follow())
     table_seconds: float | None = None
     fin = _Finish(RunState.failed.value)
     try:
-        fin, table_seconds = await _drive(ctx, run_id, control, snapshot, proc, params, given, resume)
+        fin, table_seconds = await _drive(ctx, run_id, control, snapshot, proc, params, given, meta.get("resume"), check)
     except asyncio.CancelledError:  # the worker is going down: the engine has stopped the axes
         fin = _Finish(RunState.aborted.value, "worker shutting down")
     except Exception as e:  # noqa: BLE001 - a bug or closing the hardware failed: end the run, not the worker
@@ -310,8 +312,24 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
         ctx.retry(lambda: _finish(ctx, run_id, fin, table_seconds), f"run {run_id}", timeout=None)
 
 
+def batch_certified(s: Session, run: Run) -> dict[str, str]:
+    """The serials the units before this run in its batch identified as and were certified under:
+    identified serial -> which unit (a unit that reports one of them again is the same unit mounted again)."""
+    seen: dict[str, str] = {}
+    if run.batch_id is None:
+        return seen
+    for r in s.scalars(select(Run).where(Run.batch_id == run.batch_id, Run.id < run.id).order_by(Run.id)):
+        for entry in (((r.meta or {}).get("result") or {}).get("units") or {}).values():
+            if isinstance(entry, dict) and entry.get("calibration_id") and entry.get("identified_serial"):
+                seen.setdefault(str(entry["identified_serial"]), f"{entry.get('serial')} earlier in this batch (run {r.id})")
+    return seen
+
+
 async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot: dict[str, Any], proc: Any,
-                 params: Any, given: dict[str, str], resume: dict[str, Any] | None = None) -> tuple[_Finish, float | None]:
+                 params: Any, given: dict[str, str], resume: dict[str, Any] | None = None,
+                 check: UnitCheck | None = None) -> tuple[_Finish, float | None]:
+    check = check or UnitCheck(typed={int(k): str(v) for k, v in given.items()},
+                               slots=list(range(len(snapshot["compasses"]))))
     identify_first = proc.name != BATCH  # a batch's unit is mounted only after its prompt
     async with AsyncExitStack() as stack:
         try:
@@ -323,12 +341,12 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
             return _Finish(RunState.failed.value, why, fault=why), None
         idents: dict[int, tuple[str, str, str]] = {}
         if identify_first and control.abort_reason is None:
-            try:
-                ids = await asyncio.wait_for(station.fixture.identify_all(), IDENTIFY_TIMEOUT_S)
-                idents = {int(k): v for k, v in ids.items()}  # type: ignore[call-overload]
+            try:  # (a compass that cannot identify itself is left out: its unit is "not identified")
+                idents = await asyncio.wait_for(identify_units(station.fixture), IDENTIFY_TIMEOUT_S)
             except Exception as e:  # noqa: BLE001 - a compass that does not answer
                 why = f"could not identify the compasses: {_reason(e)}"
                 return _Finish(RunState.failed.value, why, fault=why), None
+            check.idents = idents  # else the engine identifies the units once they are mounted
         serials = {slot: ident[1] for slot, ident in idents.items()}
         serials.update({int(k): v for k, v in given.items()})
         if idents:
@@ -352,8 +370,9 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                     f"slot {k} holds {new}, not {old}" for k, (old, new) in sorted(moved.items()))
                     + "; mount the same units or start a new run"), None
             replay = ctx.retry(lambda: load_replay(ctx, int(resume["run_id"]), int(resume["checkpoints"])), f"run {run_id}")
-        engine = Engine(station, proc, params, control.outbox, on_event=on_event, serials=serials, replay=replay,
-                        prompt_timeout_s=ctx.prompt_timeout_s)
+        # the units' identity is checked before the table moves (a mismatch may prompt or refuse)
+        engine = Engine(station, check.procedure(proc), params, control.outbox, on_event=on_event, serials=serials,
+                        replay=replay, prompt_timeout_s=ctx.prompt_timeout_s)
         await asyncio.to_thread(control.take)
         if control.abort_reason is not None:
             return _Finish(RunState.aborted.value, control.abort_reason), None
@@ -367,15 +386,16 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
             result.outcome = None
         elif result.state is RunState.failed:
             fin.fault = await _probe(station, result.reason)
+        elif result.state is RunState.completed and check.nothing_left:
+            # every unit refused, skipped or mounted again: the run calibrated nothing
+            fin = _Finish(RunState.failed.value, "; ".join(check.reasons()),
+                          summary={"units": {str(k): {"serial": i.serial, **i.to_json(), "error": i.note}
+                                             for k, i in sorted(check.identities.items())}})
         elif result.state is RunState.completed and result.outcome is not None:
-            if not idents:  # learn model and firmware now the unit is mounted (best effort)
-                try:
-                    ids = await asyncio.wait_for(station.fixture.identify_all(), 3.0)
-                    idents = {int(k): v for k, v in ids.items()}  # type: ignore[call-overload]
-                except Exception:  # noqa: BLE001 - only the device row's model is missing then
-                    pass
+            idents = check.idents or idents  # a batch's unit was identified in the run, once mounted
             try:
-                fin.summary = ctx.retry(lambda: _store(ctx, run_id, result.outcome, serials, idents), f"run {run_id}")
+                fin.summary = ctx.retry(lambda: _store(ctx, run_id, result.outcome, serials, idents, check.identities),
+                                        f"run {run_id}")
             except Exception as e:  # noqa: BLE001 - the data is kept; the run says what went wrong
                 fin = _Finish(RunState.failed.value, f"storing the calibrations failed: {_reason(e)}")
         fin.summary = {**fin.summary, "samples": result.samples}
@@ -413,28 +433,31 @@ async def _probe(station: Any, reason: str | None) -> str | None:
 
 
 def _store(ctx: WorkerContext, run_id: int, outcome: Any, serials: dict[int, str],
-           idents: dict[int, tuple[str, str, str]]) -> dict[str, Any]:
-    """Judge and keep each unit's calibration; the summary of the run's result by slot."""
+           idents: dict[int, tuple[str, str, str]], identities: dict[int, Identity] | None = None) -> dict[str, Any]:
+    """Judge and keep each unit's calibration under the serial its identity check settled on (none
+    for a unit refused, skipped or mounted again); the summary of the run's result by slot."""
     units: dict[str, Any] = {}
     with ctx.sessions() as s:
         run = s.get(Run, run_id)
         for slot, res in sorted(outcome.results.items()):
-            serial = serials.get(slot) or ""
-            entry: dict[str, Any] = {"serial": serial}
+            identity = (identities or {}).get(slot)
+            serial = identity.serial if identity is not None else (serials.get(slot) or "")
+            entry: dict[str, Any] = {"serial": serial, **(identity.to_json() if identity is not None else {})}
             ident = idents.get(slot)
-            if ident and serial and ident[1] and ident[1] != serial:
-                entry["identified_serial"] = ident[1]  # the request's serial wins; say so
             cal = res.get("calibration")
             bad_serial = _bad_serial(serial) if serial else None
             if isinstance(cal, PhysCalibration):
-                if not serial:
+                if identity is not None and not identity.certify:
+                    entry["error"] = identity.note  # measured, but not certified: say why
+                elif not serial:
                     entry["error"] = "the compass reported no serial number; give serials in the request"
                 elif bad_serial:  # a compass's own answer, never checked at the edge: checked here
                     entry["error"] = f"the compass reported the serial {serial!r}: {bad_serial}; give serials in the request"
                 else:
                     cal.serial = serial
                     row = store_calibration(s, run, slot, serial, json_safe(cal.to_json()),
-                                            ident[0] if ident else None, ident[2] if ident else None)
+                                            ident[0] if ident else None, ident[2] if ident else None,
+                                            identity.to_json() if identity is not None else None)
                     entry.update(calibration_id=row.id, verdict=row.verdict, status=row.status, reasons=row.reasons,
                                  heading_error_deg=json_safe((cal.quality or {}).get("heading_error_deg")))
             elif "error" in res:
@@ -487,9 +510,12 @@ def run_task(job: JobContext, run_id: int) -> None:
 
 # ---------------------------------------------------------------------------------- batches
 
-async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str, Any], operator: str) -> None:
+async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str, Any], operator: str,
+                        serial_policy: str | None = None) -> None:
     """Each unit in turn on slot 0: a mount prompt, the calibration, its verdict in the summary. A
-    unit that fails does not stop the batch; a station in fault does (nothing can run on it)."""
+    unit that fails does not stop the batch; a station in fault does (nothing can run on it).
+    ``serial_policy`` (None: the station's) settles a unit reporting another serial than its own;
+    a unit reporting a serial already certified in the batch is not certified again."""
     with ctx.sessions() as s:
         batch = s.get(Batch, batch_id)
         station = s.get(Station, batch.station_id)
@@ -503,7 +529,8 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
                 fault = row.reason if row.state == "fault" else None
                 try:
                     run = None if fault else create_run(s, name, BATCH, {**parameters, "serial": serial, "unmount": previous},
-                                                        {"0": serial}, operator, ctx.software_version, batch_id=batch_id)
+                                                        {"0": serial}, operator, ctx.software_version, batch_id=batch_id,
+                                                        serial_policy=serial_policy)
                 except DomainError as e:
                     summary[serial] = f"not run: {e.detail}"
                     continue
@@ -544,9 +571,10 @@ def _save_batch(ctx: WorkerContext, batch_id: int, status: str, summary: dict[st
         s.commit()
 
 
-def batch_task(job: JobContext, batch_id: int, parameters: dict[str, Any], operator: str) -> None:
+def batch_task(job: JobContext, batch_id: int, parameters: dict[str, Any], operator: str,
+               serial_policy: str | None = None) -> None:
     """The job of one batch (on its station's queue: the station's lock is held for the whole batch)."""
-    asyncio.run(execute_batch(_context(job), batch_id, parameters, operator))
+    asyncio.run(execute_batch(_context(job), batch_id, parameters, operator, serial_policy))
 
 
 # --------------------------------------------------------------------------------- analyses

@@ -27,6 +27,11 @@ def make_station(api: Api, info: dict[str, Any], name: str = "lab-1") -> dict[st
     return r.json()
 
 
+def mount(info: dict[str, Any], serial: str, slot: int = 0) -> None:
+    """Put another unit in a simulated station's slot: its compass reports ``serial`` from now on."""
+    info["station"].compasses[slot].device.serial = serial
+
+
 def wait_run(api: Api, run_id: int, until: tuple[str, ...] = FINAL, timeout: float = 40.0) -> dict[str, Any]:
     """Poll the run until its status is one of ``until``."""
     deadline = time.monotonic() + timeout
@@ -253,6 +258,7 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
                 run_id, text = b["prompt"]["run_id"], b["prompt"]["text"]
                 assert b["prompt"]["id"] == "mount"
                 assert api.post(f"/runs/{run_id}/prompts/unmount", role="operator", json={"answer": "x"}).status_code == 404
+                mount(info, ["SN-A", "SN-B"][len(answered)])  # the unit it names, which reports its own serial
                 r = api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": "mounted"})
                 assert r.status_code == 200, r.text
                 answered.append(text)
@@ -265,6 +271,7 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
         for u in b["units"]:
             run = api.get(f"/runs/{u['run_id']}", role="viewer").json()
             assert run["batch_id"] == bid and run["procedure"] == "batch_calibrate" and run["serials"] == {"0": u["serial"]}
+            assert run["result"]["units"]["0"]["identified_serial"] == u["serial"]  # identified once mounted
             assert u["verdict"] == b["summary"][u["serial"]] and u["calibration_status"] == "current"
             cur = api.get(f"/devices/{u['serial']}/calibrations/current", role="viewer").json()
             assert cur["run_id"] == u["run_id"]

@@ -51,7 +51,8 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
         s.commit()
         batch_id = batch.id
     await request.app.state.jobs.defer("batch", queue=station_queue(body.station), lock=station_queue(body.station),
-                                       batch_id=batch_id, parameters=dict(body.parameters), operator=caller.owner)
+                                       batch_id=batch_id, parameters=dict(body.parameters), operator=caller.owner,
+                                       serial_policy=body.serial_policy)
     with sessions(request)() as s:
         return batch_json(s, s.get(Batch, batch_id))
 

@@ -54,7 +54,7 @@ async def create_run_route(body: RunIn, request: Request, caller: Caller = Depen
     def create() -> Run:
         with sessions(request)() as s:
             return create_run(s, body.station, body.procedure, body.parameters, body.serials, caller.owner,
-                              SOFTWARE_VERSION, resume=body.resume)
+                              SOFTWARE_VERSION, resume=body.resume, serial_policy=body.serial_policy)
     run = await asyncio.to_thread(create)
     job = await request.app.state.jobs.defer("run", queue=station_queue(body.station), lock=station_queue(body.station),
                                              run_id=run.id)
@@ -63,6 +63,7 @@ async def create_run_route(body: RunIn, request: Request, caller: Caller = Depen
         row.meta = {**(row.meta or {}), "job_id": job}
         audit(s, caller, "run.start", f"run {run.id}", {"station": body.station, "procedure": run.procedure,
                                                          "parameters": run.parameters, "serials": run.serials,
+                                                         "serial_policy": (run.meta or {}).get("serial_policy"),
                                                          **({"resume": body.resume} if body.resume else {})})
         s.commit()
         return run_json(row)
@@ -99,7 +100,7 @@ async def get_run(run_id: Id, request: Request, _: Caller = Depends(require("vie
         cals = s.execute(select(Calibration, Device.serial).join(Device, Device.id == Calibration.device_id)
                          .where(Calibration.run_id == run_id).order_by(Calibration.slot)).all()
     out["calibrations"] = [{"id": c.id, "slot": c.slot, "serial": serial, "status": c.status, "verdict": c.verdict,
-                            "reasons": c.reasons} for c, serial in cals]
+                            "reasons": c.reasons, "identity": c.identity} for c, serial in cals]
     return out
 
 
@@ -164,7 +165,8 @@ async def run_samples(run_id: Id, request: Request, slot: Index = 0,
 @router.post("/runs/{run_id}/prompts/{prompt_id}", response_model=AnswerOut, responses={**ERRORS, 503: {"model": ErrorOut, "description": "the run's worker did not take the answer"}})
 async def answer_prompt(run_id: Id, prompt_id: Name, body: AnswerIn, request: Request,
                         caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
-    """Answer a waiting operator prompt (operator); 404 when the run has no such prompt waiting.
+    """Answer a waiting operator prompt (operator); 404 when the run has no such prompt waiting, 422
+    when a serial prompt (``serial-SLOT``) gets another answer than typed, identified or skip.
     Answers once the run's worker has taken the answer (503 if it does not within a few seconds)."""
     with sessions(request)() as s:
         queue_answer(s, run_id, prompt_id, body.answer)

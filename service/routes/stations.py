@@ -16,6 +16,7 @@ from sqlalchemy import select
 from service.auth import Caller, audit, require
 from service.db import Run, Station
 from service.deps import sessions
+from service.identity import DEFAULT_POLICY
 from service.runtime import CONFIRM_S, Conflict, NotFound, Unavailable, run_json, station_json, wait_for
 from service.schemas import (ERRORS, ErrorOut, StationConfigIn, StationDetail, StationIn, StationName, StationOut,
                              StationResetOut)
@@ -39,7 +40,7 @@ async def create_station(body: StationIn, request: Request, caller: Caller = Dep
         if s.scalar(select(Station.id).where(Station.name == body.name)) is not None:
             raise HTTPException(409, f"station {body.name!r} exists")
         row = Station(name=body.name, modbus=body.modbus, compasses=list(body.compasses), time_scale=body.time_scale,
-                      state="idle")
+                      state="idle", serial_policy=body.serial_policy or DEFAULT_POLICY)
         s.add(row)
         audit(s, caller, "station.create", body.name, body.model_dump())
         s.commit()
@@ -49,20 +50,22 @@ async def create_station(body: StationIn, request: Request, caller: Caller = Dep
 @router.put("/stations/{name}", response_model=StationOut, responses=ERRORS)
 async def put_station(name: StationName, body: StationConfigIn, request: Request,
                       caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
-    """Create a station or change its URLs (admin), e.g. after moving a table to another gateway.
-    409 while a run uses it; runs already made keep the configuration they ran with."""
+    """Create a station or change its URLs or serial policy (admin), e.g. after moving a table to another
+    gateway. 409 while a run uses it; runs already made keep the configuration they ran with."""
     # the same checks as POST: the name in the path has StationIn.name's type (a bad one: 422 path.name)
     full = StationIn.model_construct(name=name, **body.model_dump())
     with sessions(request)() as s:
         row = s.scalar(select(Station).where(Station.name == name))
         if row is None:
             row = Station(name=name, modbus=full.modbus, compasses=list(full.compasses), time_scale=full.time_scale,
-                          state="idle")
+                          state="idle", serial_policy=full.serial_policy or DEFAULT_POLICY)
             s.add(row)
         else:
             if row.run_id is not None:
                 raise HTTPException(409, f"station {name!r} is {row.state} (run {row.run_id}); change it when idle")
             row.modbus, row.compasses, row.time_scale = full.modbus, list(full.compasses), full.time_scale
+            if full.serial_policy is not None:  # omitted: kept (a URL change must not reset the policy)
+                row.serial_policy = full.serial_policy
         audit(s, caller, "station.put", name, full.model_dump())
         s.commit()
         return station_json(row)

@@ -58,7 +58,14 @@
         if (exists) continue;
         const div = cc.el("div", { className: "prompt", "data-run": p.run, "data-prompt": p.id });
         div.append(cc.el("span", { className: "prompt-text" }, p.text));
-        if (isOperator) div.append(" ", cc.el("button", { type: "button", className: "answer", "data-run": p.run, "data-prompt": p.id }, "Done"));
+        // a serial prompt (the unit reports another serial than the one typed) takes one of three answers
+        const answers = p.id.startsWith("serial-") ? ["typed", "identified", "skip"] : [null];
+        if (isOperator) {
+          for (const a of answers) {
+            div.append(" ", cc.el("button", { type: "button", className: "answer", "data-run": p.run, "data-prompt": p.id,
+                                              "data-answer": a }, a || "Done"));
+          }
+        }
         div.append(" ", cc.el("a", { href: `/ui/runs/${p.run}` }, `run ${p.run}`));
         prompts.append(div);
       }
@@ -71,7 +78,7 @@
       if (!button) return;
       button.disabled = true;
       try {
-        await cc.api("POST", `/runs/${button.dataset.run}/prompts/${encodeURIComponent(button.dataset.prompt)}`, { answer: "done" });
+        await cc.api("POST", `/runs/${button.dataset.run}/prompts/${encodeURIComponent(button.dataset.prompt)}`, { answer: button.dataset.answer || "done" });
         const div = button.closest(".prompt");
         if (div) div.remove();
       } catch (e) {

@@ -83,6 +83,7 @@
       case "settle": return `settle ${s.seconds} s`;
       case "prompt": return "waiting for the operator";
       case "checkpoint": return "checkpoint";
+      case "identify": return "identifying the units";
       default: return s.kind || "";
     }
   }
@@ -128,7 +129,13 @@
     if (!prompts || findPrompt(id)) return;
     const div = cc.el("div", { className: "prompt", "data-prompt": id });
     div.append(cc.el("span", { className: "prompt-text" }, text));
-    if (isOperator) div.append(cc.el("button", { type: "button", className: "answer", "data-prompt": id }, "Done"));
+    // a serial prompt (a unit reporting another serial than the one typed) takes one of three answers
+    const answers = id.startsWith("serial-") ? ["typed", "identified", "skip"] : [null];
+    if (isOperator) {
+      for (const a of answers) {
+        div.append(cc.el("button", { type: "button", className: "answer", "data-prompt": id, "data-answer": a }, a || "Done"), " ");
+      }
+    }
     prompts.append(div);
   }
 
@@ -151,7 +158,7 @@
       const id = button.dataset.prompt;
       button.disabled = true;
       try {
-        await cc.api("POST", `/runs/${runId}/prompts/${encodeURIComponent(id)}`, { answer: "done" });
+        await cc.api("POST", `/runs/${runId}/prompts/${encodeURIComponent(id)}`, { answer: button.dataset.answer || "done" });
         dropPrompt(id);
       } catch (e) {
         cc.setText("control-error", e.message);

@@ -1,0 +1,183 @@
+"""Which unit is on the fixture: the serial number a unit reports against the one typed.
+
+A run names its units once they are mounted, before the table's first step (a calibration right
+away, a batch's unit after its mount prompt). For each slot:
+
+- the unit reports no serial number (an empty one, or it refuses the ID command): ``not identified``;
+  the typed serial is used as before, and the result and the certificate say so;
+- it reports the typed one, or none was typed: ``identified``;
+- it reports another one: ``differs``, settled by the serial policy (the request's, else the
+  station's): ``prompt`` asks the operator (answers ``typed``, ``identified`` or ``skip``), ``refuse``
+  leaves the slot uncalibrated with the reason, ``trust-typed`` certifies the typed serial and records
+  what the unit reported;
+- it reports a serial already certified earlier in the same batch (or in another slot of the run):
+  ``duplicate``, the same physical unit mounted again; not certified, whatever the policy.
+
+No I/O here: :class:`UnitCheck` wraps a procedure's generator with the steps that do it (an
+:class:`~procedures.steps.Identify` and the operator prompts), which the engine runs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from dataclasses import dataclass, field
+from typing import Any, Literal, get_args
+
+from procedures.steps import TIMED_STEPS, Identify, Outcome, Procedure, ProcedureGen, Prompt, Reply
+
+#: What a run does when a unit reports another serial number than the one typed.
+SerialPolicy = Literal["prompt", "refuse", "trust-typed"]
+POLICIES: tuple[str, ...] = get_args(SerialPolicy)
+DEFAULT_POLICY = "prompt"
+#: The answers to a serial prompt.
+CHOICES = ("typed", "identified", "skip")
+#: Serial prompts are named ``serial-SLOT``.
+PROMPT_PREFIX = "serial-"
+
+
+def is_serial_prompt(prompt_id: str) -> bool:
+    """Whether a prompt asks the operator which serial number a unit is certified under."""
+    return prompt_id.startswith(PROMPT_PREFIX)
+
+
+def normalise(answer: str) -> str:
+    """An operator's answer as compared with :data:`CHOICES` (case and spaces ignored)."""
+    return answer.strip().lower()
+
+
+@dataclass
+class Identity:
+    """What a slot's unit reported and what was decided about its serial number."""
+
+    slot: int
+    typed: str | None  # the request's serial number (None: none typed)
+    identified: str | None  # what the unit reported (None: not identified)
+    status: str  # not identified | identified | differs | duplicate
+    serial: str  # what its calibration is stored under ("" when no serial is known)
+    note: str  # one sentence for the result, the run page and the certificate
+    decision: str | None = None  # of a differing serial: trust-typed, refused, or the operator's typed/identified/skip
+    policy: str | None = None
+    certify: bool = True  # False: refused, skipped or a duplicate (the reason is the note)
+
+    def to_json(self) -> dict[str, Any]:
+        """The identity as the run's result and the calibration's row keep it."""
+        return {"typed_serial": self.typed, "identified_serial": self.identified, "identification": self.status,
+                "serial_decision": self.decision, "serial_policy": self.policy, "serial_note": self.note}
+
+
+def serial_prompt_text(slot: int, typed: str, identified: str) -> str:
+    """The operator prompt of a differing serial: both serial numbers and the three answers."""
+    return (f"slot {slot}: the serial number typed is {typed} but the unit reports {identified}. "
+            f"Answer 'typed' to certify it as {typed}, 'identified' to certify it as {identified}, "
+            "or 'skip' to leave it uncalibrated")
+
+
+@dataclass(frozen=True)
+class _Checked(Procedure):
+    """A procedure run with its units' identity check; its plan (for progress) is the procedure's
+    own, since the check takes no table time and its prompts depend on the units mounted."""
+
+    inner: Procedure | None = None
+
+    def plan(self, params: Any) -> list[Any]:
+        assert self.inner is not None
+        return self.inner.plan(params)
+
+
+@dataclass
+class UnitCheck:
+    """The identity check of one run's units, decided slot by slot before the table's first step.
+
+    ``idents`` None: the units are identified in the run (a batch's unit is mounted only after its
+    prompt). ``seen``: serials already certified in the run's batch (identified serial -> which unit,
+    e.g. "SN-A earlier in this batch (run 12)"). After the run, ``identities`` holds each slot's :class:`Identity`."""
+
+    typed: dict[int, str]
+    slots: list[int]
+    policy: str = DEFAULT_POLICY
+    idents: dict[int, tuple[str, str, str]] | None = None
+    seen: dict[str, str] = field(default_factory=dict)
+    identities: dict[int, Identity] = field(default_factory=dict)
+    done: bool = False
+
+    def procedure(self, proc: Procedure) -> Procedure:
+        """``proc`` with the check in front of its first table step."""
+        return _Checked(proc.name, proc.version, proc.params, lambda params: self._run(proc.run(params)), proc.doc,
+                        inner=proc)
+
+    @property
+    def nothing_left(self) -> bool:
+        """Whether the check ended the run: no unit of the fixture may be certified."""
+        return self.done and not any(i.certify for i in self.identities.values())
+
+    def reasons(self) -> list[str]:
+        """Why the units that will not be certified are not."""
+        return [f"slot {i.slot}: {i.note}" for _, i in sorted(self.identities.items()) if not i.certify]
+
+    def _run(self, gen: ProcedureGen) -> ProcedureGen:
+        self.identities, self.done = {}, False
+        reply: Reply = None
+        while True:
+            try:
+                step = gen.send(reply)
+            except StopIteration as stop:
+                return stop.value
+            if not self.done and isinstance(step, TIMED_STEPS):
+                # the units are mounted now (any mount prompt is behind): name them before the table moves
+                if self.idents is None:
+                    got = yield Identify()
+                    self.idents = dict(got) if isinstance(got, dict) else {}
+                for slot in self.slots:
+                    self.identities[slot] = yield from self._decide(slot)
+                self.done = True
+                if self.nothing_left:  # nothing to calibrate: the table does not move for it
+                    gen.close()
+                    return Outcome(notes=self.reasons())
+            reply = yield step
+
+    def _decide(self, slot: int) -> Generator[Prompt, Reply, Identity]:
+        typed = self.typed.get(slot)
+        ident = (self.idents or {}).get(slot)
+        identified = ident[1].strip() if ident and ident[1] and ident[1].strip() else None
+        if identified is None:
+            note = "the unit did not report a serial number (not identified)"
+            return Identity(slot, typed, None, "not identified", typed or "",
+                            note + (f"; certified as the typed {typed}" if typed else ""))
+        if identified in self.seen:
+            return Identity(slot, typed, identified, "duplicate", typed or identified,
+                            f"the unit reports {identified}, already certified as {self.seen[identified]}: "
+                            "the same physical unit mounted again; not certified", certify=False)
+        if typed is None or typed == identified:
+            out = Identity(slot, typed, identified, "identified", identified,
+                           f"the unit reports {identified}" + (", as typed" if typed else ""))
+        else:
+            out = yield from self._differs(slot, typed, identified)
+        if out.certify:
+            self.seen[identified] = f"{out.serial} in slot {slot} of this run"  # two slots reporting one serial
+        return out
+
+    def _differs(self, slot: int, typed: str, identified: str) -> Generator[Prompt, Reply, Identity]:
+        both = f"the serial number typed is {typed} but the unit reports {identified}"
+        policy = self.policy
+        if policy == "trust-typed":
+            return Identity(slot, typed, identified, "differs", typed,
+                            f"{both}; certified as {typed} (serial policy trust-typed)", "trust-typed", policy)
+        if policy == "refuse":
+            return Identity(slot, typed, identified, "differs", typed,
+                            f"{both}; refused (serial policy refuse): mount unit {typed}, or start the run with "
+                            f"serial {identified}", "refused", policy, certify=False)
+        answer = normalise(str((yield Prompt(serial_prompt_text(slot, typed, identified), id=f"{PROMPT_PREFIX}{slot}"))
+                               or ""))
+        if answer == "typed":
+            return Identity(slot, typed, identified, "differs", typed,
+                            f"{both}; certified as {typed} on the operator's answer", "typed", policy)
+        if answer == "identified":
+            return Identity(slot, typed, identified, "differs", identified,
+                            f"{both}; certified as {identified} on the operator's answer", "identified", policy)
+        why = "skipped by the operator" if answer == "skip" else f"answer {answer!r} not understood"
+        return Identity(slot, typed, identified, "differs", typed, f"{both}; {why}: not certified", "skip", policy,
+                        certify=False)
+
+
+__all__ = ["SerialPolicy", "POLICIES", "DEFAULT_POLICY", "CHOICES", "Identity", "UnitCheck", "is_serial_prompt",
+           "normalise", "serial_prompt_text"]

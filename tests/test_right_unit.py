@@ -1,0 +1,196 @@
+"""The right unit (issue 14, part 1): a unit that reports another serial number than the one typed
+is never certified silently. The station's serial policy, or the request's, settles it: ``prompt``
+(the default) asks the operator, ``refuse`` leaves the unit uncalibrated, ``trust-typed`` certifies
+the typed serial and says so on the run page and the certificate (HTML and PDF). A batch that meets
+one unit twice certifies it once; a unit that cannot identify itself is calibrated as before, marked
+"not identified". Through the REST API against a simulated station (its compass reports the unit's
+serial, "GAO2017-REF" unless the test mounts another)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import pytest
+
+from conftest import Api, sim_station
+from drivers.protocol import Nak, sentence
+from drivers.sim.config import reference_config
+from service import plots
+from service.db import Calibration
+from service.web import certificate_context
+from test_service_runs import make_station, mount, wait_run
+
+UNIT = "GAO2017-REF"  # what the simulated compass reports
+PARAMS = {"samples": 20}
+
+
+def wait_prompt(api: Api, run_id: int, timeout: float = 30.0) -> dict[str, Any]:
+    """The run's first waiting prompt."""
+    deadline = time.monotonic() + timeout
+    while True:
+        j = api.get(f"/runs/{run_id}", role="viewer").json()
+        if j["prompts"]:
+            return j["prompts"][0]
+        assert j["status"] in ("queued", "running"), j
+        assert time.monotonic() < deadline, f"run {run_id} asked nothing in {timeout} s"
+        time.sleep(0.05)
+
+
+def start(api: Api, **body: Any) -> int:
+    r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": PARAMS, **body})
+    assert r.status_code == 202, r.text
+    return r.json()["id"]
+
+
+def certificate_texts(api: Api, cal_id: int) -> tuple[str, str]:
+    """The HTML certificate, and the text of the PDF certificate's first page (the PDF is served too)."""
+    html = api.get(f"/ui/calibrations/{cal_id}/certificate", role="viewer")
+    assert html.status_code == 200
+    pdf = api.get(f"/calibrations/{cal_id}/certificate.pdf", role="viewer")
+    assert pdf.status_code == 200 and pdf.content.startswith(b"%PDF")
+    with api.client.app.state.sessions() as s:
+        cert, cal, rec, limits = certificate_context(s, s.get(Calibration, cal_id))
+    page1 = plots.certificate_pages(cert, cal, rec, plots_limits(limits))[0]
+    return html.text, "\n".join(t.get_text() for t in page1.texts)
+
+
+def plots_limits(limits: list[Any]) -> dict[str, tuple[float, float]]:
+    return {lim.name: (lim.marginal, lim.fail) for lim in limits}
+
+
+def cannot_identify(info: dict[str, Any], slot: int = 0) -> None:
+    """The slot's compass refuses the ID command, as a compass without it does (NAK unknown command)."""
+    dev = info["station"].compasses[slot].device
+    dev._id = lambda args, t: dev.emit(sentence("NAK", "ID", int(Nak.UNKNOWN_COMMAND))) or True
+
+
+def test_prompt_policy_asks_the_operator_before_the_table_moves(api: Api):
+    """The default policy: the run waits on a prompt showing both serials, with nothing measured; a
+    stray answer is refused; "skip" ends the run uncalibrated, "identified" certifies the unit under
+    the serial it reports."""
+    with sim_station(reference_config(seed=21, time_scale=20)) as info:
+        assert make_station(api, info)["serial_policy"] == "prompt"
+        rid = start(api, serials={"0": "SN-TYPED"})
+        prompt = wait_prompt(api, rid)
+        assert prompt["id"] == "serial-0" and "SN-TYPED" in prompt["text"] and UNIT in prompt["text"], prompt
+        run = api.get(f"/runs/{rid}", role="viewer").json()
+        assert run["samples_count"] == 0 and run["serial_policy"] == "prompt"
+        page = api.get(f"/ui/runs/{rid}", role="operator").text
+        assert all(f'data-answer="{a}"' in page for a in ("typed", "identified", "skip"))
+        r = api.post(f"/runs/{rid}/prompts/serial-0", role="operator", json={"answer": "done"})
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.answer", r.text
+        r = api.post(f"/runs/{rid}/prompts/serial-0", role="operator", json={"answer": "skip"})
+        assert r.status_code == 200, r.text
+        skipped = wait_run(api, rid)
+        assert skipped["status"] == "failed" and "skipped by the operator" in skipped["reason"], skipped
+        assert skipped["samples_count"] == 0 and skipped["calibrations"] == []
+        assert skipped["result"]["units"]["0"]["identified_serial"] == UNIT
+        assert api.get("/devices/SN-TYPED", role="viewer").status_code == 404
+
+        rid = start(api, serials={"0": "SN-TYPED"})
+        assert wait_prompt(api, rid)["id"] == "serial-0"
+        assert api.post(f"/runs/{rid}/prompts/serial-0", role="operator", json={"answer": "Identified"}).status_code == 200
+        done = wait_run(api, rid, timeout=90)
+        assert done["status"] == "completed", done
+        unit = done["result"]["units"]["0"]
+        assert unit["serial"] == UNIT and unit["typed_serial"] == "SN-TYPED" and unit["identified_serial"] == UNIT
+        assert unit["identification"] == "differs" and unit["serial_decision"] == "identified" and "calibration_id" in unit
+        assert [c["serial"] for c in done["calibrations"]] == [UNIT]
+        assert api.get(f"/devices/{UNIT}/calibrations/current", role="viewer").json()["run_id"] == rid
+        assert api.get("/devices/SN-TYPED", role="viewer").status_code == 404
+        page = api.get(f"/ui/runs/{rid}", role="viewer").text
+        assert "the unit reports <strong>GAO2017-REF</strong>" in page and "SN-TYPED" in page
+
+
+def test_refuse_policy_fails_the_slot_with_the_reason(api: Api):
+    """A station set to refuse: the unit is not calibrated, the run says why; a change of the
+    station's URLs keeps its policy."""
+    with sim_station(reference_config(seed=22, time_scale=20)) as info:
+        station = make_station(api, info)
+        body = {"modbus": station["modbus"], "compasses": station["compasses"], "time_scale": 20}
+        r = api.put("/stations/lab-1", json={**body, "serial_policy": "refuse"})
+        assert r.status_code == 200 and r.json()["serial_policy"] == "refuse"
+        assert api.put("/stations/lab-1", json=body).json()["serial_policy"] == "refuse"
+        assert api.put("/stations/lab-1", json={**body, "serial_policy": "maybe"}).status_code == 422
+        rid = start(api, serials={"0": "SN-WRONG"})
+        j = wait_run(api, rid)
+        assert j["status"] == "failed" and j["serial_policy"] == "refuse", j
+        assert "refused" in j["reason"] and "SN-WRONG" in j["reason"] and UNIT in j["reason"], j["reason"]
+        assert j["samples_count"] == 0 and j["calibrations"] == []
+        unit = j["result"]["units"]["0"]
+        assert unit["serial_decision"] == "refused" and "calibration_id" not in unit and "refused" in unit["error"]
+        for serial in ("SN-WRONG", UNIT):
+            assert api.get(f"/devices/{serial}", role="viewer").status_code == 404
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
+        page = api.get(f"/ui/runs/{rid}", role="viewer").text
+        assert "refused" in page and UNIT in page
+
+
+def test_trust_typed_is_recorded_on_the_page_and_the_certificate(api: Api):
+    """The request overrides the station's policy: the typed serial is certified, and the run's
+    result, its page and the certificate (HTML and PDF) show the serial the unit reported."""
+    with sim_station(reference_config(seed=23, time_scale=20)) as info:
+        make_station(api, info)
+        done = wait_run(api, start(api, serials={"0": "SN-TRUST"}, serial_policy="trust-typed"), timeout=90)
+        assert done["status"] == "completed" and done["serial_policy"] == "trust-typed", done
+        unit = done["result"]["units"]["0"]
+        assert unit["serial"] == "SN-TRUST" and unit["identified_serial"] == UNIT and unit["serial_decision"] == "trust-typed"
+        [cal] = done["calibrations"]
+        assert cal["serial"] == "SN-TRUST" and cal["identity"]["identified_serial"] == UNIT
+        page = api.get(f"/ui/runs/{done['id']}", role="viewer").text
+        assert "the unit reports <strong>GAO2017-REF</strong>" in page and "serial policy trust-typed" in page
+        html, pdf = certificate_texts(api, cal["id"])
+        for text in (html, pdf):
+            assert "Serial typed" in text and "SN-TRUST" in text and "Identified serial" in text and UNIT in text
+            assert "certified as typed (serial policy trust-typed)" in text
+
+
+def test_a_batch_certifies_one_unit_once(api: Api):
+    """Three serials typed, one unit mounted three times (the issue's batch): the first is certified
+    (trusted, as asked), the other two are the same unit again: said so, not certified."""
+    with sim_station(reference_config(seed=24, time_scale=20)) as info:
+        make_station(api, info)
+        r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SN-1", "SN-2", "SN-3"],
+                                                         "parameters": PARAMS, "serial_policy": "trust-typed"})
+        assert r.status_code == 202, r.text
+        bid, deadline = r.json()["id"], time.monotonic() + 120
+        while (b := api.get(f"/batches/{bid}", role="viewer").json())["status"] == "running":
+            assert time.monotonic() < deadline, b
+            if b["prompt"]:
+                assert b["prompt"]["id"] == "mount", b["prompt"]
+                api.post(f"/runs/{b['prompt']['run_id']}/prompts/mount", role="operator", json={"answer": "mounted"})
+            time.sleep(0.05)
+        assert b["summary"]["SN-1"] in ("PASS", "MARGINAL"), b["summary"]
+        for serial in ("SN-2", "SN-3"):
+            said = b["summary"][serial]
+            assert said.startswith("failed") and "same physical unit mounted again" in said and "SN-1" in said, said
+            assert api.get(f"/devices/{serial}", role="viewer").status_code == 404
+        units = {u["serial"]: u for u in b["units"]}
+        assert units["SN-1"]["calibration_id"] and units["SN-2"]["calibration_id"] is None
+        dup = api.get(f"/runs/{units['SN-2']['run_id']}", role="viewer").json()
+        assert dup["samples_count"] == 0 and dup["result"]["units"]["0"]["identification"] == "duplicate"
+
+
+@pytest.mark.parametrize("how", ["empty serial", "no ID command"])
+def test_a_unit_that_cannot_identify_itself_is_calibrated_as_typed(api: Api, how: str):
+    """A compass that reports an empty serial, or refuses the ID command: the run goes on as before
+    with the typed serial (no prompt, no fault), and the result and the certificate say "not identified"."""
+    with sim_station(reference_config(seed=25, time_scale=20)) as info:
+        make_station(api, info)
+        if how == "empty serial":
+            mount(info, "")
+        else:
+            cannot_identify(info)
+        done = wait_run(api, start(api, serials={"0": "SN-ANON"}), timeout=90)
+        assert done["status"] == "completed", done
+        unit = done["result"]["units"]["0"]
+        assert unit["serial"] == "SN-ANON" and unit["identified_serial"] is None and unit["identification"] == "not identified"
+        assert unit["verdict"] in ("PASS", "MARGINAL")
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
+        [cal] = done["calibrations"]
+        assert cal["serial"] == "SN-ANON"
+        html, pdf = certificate_texts(api, cal["id"])
+        for text in (html, pdf):
+            assert "Identified serial" in text and "not identified" in text
+        assert "(not identified)" in api.get(f"/ui/runs/{done['id']}", role="viewer").text

@@ -18,7 +18,7 @@ from typing import Any
 import httpx
 
 from conftest import fresh_database, parse_sse, sim_station
-from drivers.sim.config import reference_config
+from drivers.sim.config import parse_config, reference_config
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -206,7 +206,11 @@ def test_the_production_line_topology_two_api_processes_two_stations_two_workers
             keys = {role: create_key(s, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
         engine.dispose()
         c = Client(port, keys)
-        with sim_station(reference_config(seed=5, time_scale=20)) as a, sim_station(reference_config(seed=6, time_scale=20)) as b:
+        def unit(seed: int, serial: str) -> Any:  # the serial the simulated compass reports is the one typed
+            d = reference_config(seed=seed, time_scale=20).model_dump()
+            d["unit"][0]["serial"] = serial
+            return parse_config(d)
+        with sim_station(unit(5, "LINE1-UNIT")) as a, sim_station(unit(6, "LINE2-UNIT")) as b:
             runs = []
             for name, info in (("line-1", a), ("line-2", b)):
                 r = c.call("PUT", f"/stations/{name}", json={"modbus": info["modbus"], "time_scale": 20,

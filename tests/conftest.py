@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import asyncio
 import shutil
+import socket
 import subprocess
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -188,3 +190,27 @@ def parse_sse(lines: Any) -> list[tuple[int, str, dict[str, Any]]]:
         elif line.startswith("data: "):
             events.append((ident, kind, json.loads(line[6:])))
     return events
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_healthy(port: int, proc: subprocess.Popen, log: Path, timeout: float = 60.0) -> None:
+    """Until the service ``proc`` started answers ``GET /health`` on ``port``; fails with its log if
+    it exits or does not answer within ``timeout`` s."""
+    import httpx
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        assert proc.poll() is None, log.read_text()
+        assert time.monotonic() < deadline, f"the service did not answer in {timeout:g} s: {log.read_text()[-2000:]}"
+        time.sleep(0.2)

@@ -15,6 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 import service.cli as cli
+from conftest import free_port
 from service.cli import app
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -63,12 +64,6 @@ def nothing_starts(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(uvicorn, "run", started)
     monkeypatch.setattr(uvicorn.Server, "run", started)
     monkeypatch.setattr(drivers.sim.station, "SimStation", started)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # -- calibrate --------------------------------------------------------------------------------------

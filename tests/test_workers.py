@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,16 +16,10 @@ from typing import Any
 
 import httpx
 
-from conftest import fresh_database, parse_sse, sim_station
+from conftest import free_port, fresh_database, parse_sse, sim_station, wait_healthy
 from drivers.sim.config import parse_config, reference_config
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _start(args: list[str], url: str, log: Path) -> subprocess.Popen[bytes]:
@@ -68,19 +61,12 @@ class Client:
             return parse_sse(r.iter_lines())
 
 
-def _api(url: str, tmp: Path, name: str) -> tuple[subprocess.Popen[bytes], int]:
-    port = _free_port()
-    proc = _start(["serve", "--port", str(port), "--no-station-worker"], url, tmp / f"{name}.log")
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
-                return proc, port
-        except httpx.HTTPError:
-            pass
-        assert proc.poll() is None, (tmp / f"{name}.log").read_text()
-        assert time.monotonic() < deadline, "the API did not start in 60 s"
-        time.sleep(0.2)
+def _api(url: str, tmp: Path, name: str, *options: str) -> tuple[subprocess.Popen[bytes], int]:
+    """`compasscal serve` (default: one process, no station worker) once it answers; it and its port."""
+    port = free_port()
+    proc = _start(["serve", "--port", str(port), *(options or ("--no-station-worker",))], url, tmp / f"{name}.log")
+    wait_healthy(port, proc, tmp / f"{name}.log")
+    return proc, port
 
 
 def _keys(url: str) -> dict[str, str]:
@@ -118,12 +104,7 @@ def test_runs_survive_an_api_kill_and_a_lost_worker_is_reported(tmp_path: Path):
     try:
         api1, port1 = _api(url, tmp_path, "api1")
         procs.append(api1)
-        from service.auth import create_key
-        from service.db import make_engine, sessions
-        engine = make_engine(url)
-        with sessions(engine)() as s:
-            keys = {role: create_key(s, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
-        engine.dispose()
+        keys = _keys(url)
         c1 = Client(port1, keys)
         with sim_station(reference_config(seed=4, time_scale=20)) as info:
             r = c1.call("POST", "/stations", json={"name": "lab-1", "modbus": info["modbus"], "time_scale": 20,
@@ -188,23 +169,9 @@ def test_the_production_line_topology_two_api_processes_two_stations_two_workers
     url = fresh_database("postgresql", tmp_path)
     procs: list[subprocess.Popen[bytes]] = []
     try:
-        port = _free_port()
-        procs.append(_start(["serve", "--port", str(port), "--workers", "2"], url, tmp_path / "api.log"))
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert procs[0].poll() is None and time.monotonic() < deadline, (tmp_path / "api.log").read_text()
-            time.sleep(0.2)
-        from service.auth import create_key
-        from service.db import make_engine, sessions
-        engine = make_engine(url)
-        with sessions(engine)() as s:
-            keys = {role: create_key(s, f"{role}-user", role) for role in ("viewer", "operator", "admin")}
-        engine.dispose()
+        api, port = _api(url, tmp_path, "api", "--workers", "2")
+        procs.append(api)
+        keys = _keys(url)
         c = Client(port, keys)
         def unit(seed: int, serial: str) -> Any:  # the serial the simulated compass reports is the one typed
             d = reference_config(seed=seed, time_scale=20).model_dump()
@@ -308,7 +275,7 @@ def test_a_station_never_has_two_workers(tmp_path: Path):
         # both at once: each first waits a few heartbeats in case the live worker is a dying one
         tries = {tuple(args): subprocess.Popen([sys.executable, "-m", "service.cli", *args], cwd=ROOT, env=env,
                                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-                 for args in (["worker", "--station", "lab-w"], ["serve", "--port", str(_free_port())])}
+                 for args in (["worker", "--station", "lab-w"], ["serve", "--port", str(free_port())])}
         for args, proc in tries.items():
             out, _ = proc.communicate(timeout=90)
             said = " ".join(out.split())

@@ -7,14 +7,11 @@ ends."""
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
-import httpx
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
@@ -22,17 +19,11 @@ from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (content_type_conformance, response_schema_conformance,
                                                status_code_conformance)
 
-from conftest import fresh_database
+from conftest import free_port, fresh_database, wait_healthy
 
 ROOT = Path(__file__).resolve().parent.parent
 #: Examples per operation and database (the whole module takes about a minute).
 EXAMPLES = 12
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module", params=["sqlite", "postgresql"])
@@ -48,27 +39,28 @@ def served(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
     with sessions(engine)() as s:
         key = create_key(s, "fuzzer", "admin")
     engine.dispose()
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "COMPASSCAL_DATABASE_URL": url, "COMPASSCAL_PROMPT_TIMEOUT_S": "2"}
     log = (tmp / "serve.log").open("wb")
     proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)], cwd=ROOT, env=env,
                             stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{base}/health", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert proc.poll() is None and time.monotonic() < deadline, (tmp / "serve.log").read_text()
-            time.sleep(0.2)
-        yield base, key
+        wait_healthy(port, proc, tmp / "serve.log")
+        yield f"http://127.0.0.1:{port}", key
     finally:
         os.killpg(proc.pid, 9)
         proc.wait(10)
         log.close()
+
+
+@schemathesis.check
+def no_server_error_but_a_declared_503(ctx: Any, response: Any, case: schemathesis.Case) -> None:
+    """Every 5xx is a server error, except a 503 the operation declares: a station reset or a prompt
+    answer whose table or worker does not answer (the fuzzer makes stations with made-up addresses)
+    is that documented answer, not a bug; whether it comes up depends on timing."""
+    if response.status_code == 503 and "503" in case.operation.definition.raw.get("responses", {}):
+        return None
+    return not_a_server_error(ctx, response, case)
 
 
 def test_no_server_error_and_every_answer_as_declared(served: tuple[str, str]) -> None:
@@ -86,7 +78,7 @@ def test_no_server_error_and_every_answer_as_declared(served: tuple[str, str]) -
                   suppress_health_check=list(HealthCheck))
         def check(case: schemathesis.Case) -> None:
             case.call_and_validate(base_url=base, headers={"X-API-Key": key}, timeout=30,
-                                   checks=[not_a_server_error, status_code_conformance, content_type_conformance,
+                                   checks=[no_server_error_but_a_declared_503, status_code_conformance, content_type_conformance,
                                            response_schema_conformance])
         try:
             check()

@@ -27,8 +27,11 @@ run: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(VENV)/bin/compasscal demo -o $(OUT)/demo
 
+# Two processes (pytest-xdist; each has its own PostgreSQL database), then the tests marked serial
+# (they stop PostgreSQL) on their own.
 test: $(VENV)/.installed
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 -m "not serial"
+	$(PY) -m pytest -q -m serial
 
 bench: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py

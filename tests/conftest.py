@@ -5,6 +5,7 @@ own thread (as a separate station would)."""
 from __future__ import annotations
 
 import asyncio
+import os
 import shutil
 import socket
 import subprocess
@@ -23,7 +24,10 @@ from physics.simulate import World
 from procedures.calibrate import PROCEDURES
 from procedures.steps import Acquire, Move, Outcome, Scan, Step, drive
 
-PG_URL = "postgresql://postgres@127.0.0.1:5432/test"
+#: The machine's test database. Under pytest-xdist each worker gets a database of its own
+#: (test_gw0, test_gw1, ...: created on first use), because a test empties the one it uses.
+PG_DB = "test" if not os.environ.get("PYTEST_XDIST_WORKER") else f"test_{os.environ['PYTEST_XDIST_WORKER']}"
+PG_URL = f"postgresql://postgres@127.0.0.1:5432/{PG_DB}"
 
 
 def _pg_up() -> bool:
@@ -35,8 +39,18 @@ def _pg_up() -> bool:
         return False
 
 
+def _ensure_worker_database() -> None:
+    import psycopg
+    if PG_DB == "test":
+        return
+    with psycopg.connect("host=127.0.0.1 port=5432 user=postgres dbname=test", autocommit=True) as conn:
+        if conn.execute("SELECT 1 FROM pg_database WHERE datname = %s", (PG_DB,)).fetchone() is None:
+            conn.execute(f'CREATE DATABASE "{PG_DB}"')
+
+
 def ensure_postgres() -> str:
-    """The test database's URL, starting the machine's PostgreSQL when it is not running."""
+    """The test database's URL (this xdist worker's own), starting the machine's PostgreSQL when it is
+    not running."""
     if not _pg_up():
         clusters = sorted(p.name for p in Path("/etc/postgresql").iterdir()) if Path("/etc/postgresql").exists() else []
         if clusters and shutil.which("pg_ctlcluster"):
@@ -44,11 +58,12 @@ def ensure_postgres() -> str:
                            capture_output=True, timeout=60)
     if not _pg_up():
         raise RuntimeError("PostgreSQL at 127.0.0.1:5432 (database test) is not running and could not be started")
+    _ensure_worker_database()
     return PG_URL
 
 
 def fresh_database(kind: str, tmp_path: Path) -> str:
-    """An empty database of ``kind`` (sqlite: a new file; postgresql: the test database emptied)."""
+    """An empty database of ``kind`` (sqlite: a new file; postgresql: this worker's test database emptied)."""
     if kind == "sqlite":
         return f"sqlite:///{tmp_path / 'compasscal.db'}"
     url = ensure_postgres()

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 
 from conftest import free_port, fresh_database, parse_sse, sim_station, wait_healthy
 from drivers.sim.config import parse_config, reference_config
@@ -211,6 +212,7 @@ def test_the_production_line_topology_two_api_processes_two_stations_two_workers
             _kill(p)
 
 
+@pytest.mark.serial  # it stops the machine's PostgreSQL: nothing else may run meanwhile
 def test_a_postgresql_restart_mid_run_loses_nothing(tmp_path: Path):
     """PostgreSQL stopped for a few seconds mid-calibration: the worker keeps the samples and events
     it could not write and writes them once the database is back, the API reconnects, the run

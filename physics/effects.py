@@ -8,7 +8,10 @@ parameters and meaning:
 - :class:`Effect` subclasses here *conceal* an effect in a simulation, sample by sample in time
   (stages ``geometry``, ``sample_time``, ``body_field``, ``mag_raw``); the simulated station
   (drivers/sim/world.py) and the offline timeline simulator (physics/simulate.py) apply them.
-- physics/discrepancy/ *fits* each effect as a parametric term of the twin, vectorised.
+- physics/discrepancy/ *fits* each effect as a parametric term of the twin, vectorised: its entry in
+  physics/discrepancy/registry.py (keyed by the same id) builds its regressors and reads the rest
+  (frame, plausible ranges, needs) from :data:`CATALOGUE`. A new effect is an :class:`Entry` here, its
+  concealment class here, and one registry entry.
 
 They are written separately on purpose: the blind proof (``compasscal prove``) would not catch a
 mistake that both sides shared.

@@ -176,3 +176,40 @@ def test_too_short_a_recording_is_refused_with_the_reason() -> None:
                              World(), rng=rng)
     with pytest.raises(ValueError, match="at least 200 samples"):
         analyze(rec)
+
+
+def test_the_registry_has_one_entry_per_catalogue_effect_and_builds_its_columns() -> None:
+    """physics/discrepancy/registry.py: every catalogue id has an entry and every entry a catalogue id; on a
+    recording, each effect (and each stage variant) gets columns (N, 3, len(labels)), or an empty block
+    with the reason it cannot be tested; the line effect its columns at a frequency; and each entry says
+    how the attitude-free model sees it, or why it needs table angles."""
+    from physics.discrepancy import registry, twin
+
+    assert set(registry.REGISTRY) == set(fx.CATALOGUE)
+    assert all(fit.id == effect for effect, fit in registry.REGISTRY.items())
+    rng = np.random.default_rng(3)  # static holds only: the motion and temperature effects say why not
+    rec = simulate_recording(random_unit(rng), calibration_poses(CalibrateParams()), World(), rng=rng)
+    ctx = twin.context(rec)
+    nom = twin.fit_nominal(ctx, rec.mag)
+    cols = registry.effect_columns(ctx, nom, rec.temp_c)
+    n = len(rec)
+    expected = set()
+    for effect, fit in registry.REGISTRY.items():
+        if fit.table is None:  # found by the line search: columns at the frequency found
+            assert effect == registry.LINE and fit.line(ctx, 1.3).shape[:2] == (n, 3)
+            continue
+        stages = fx.STAGES if fx.CATALOGUE[effect].model[0] == "stage" else (None,)
+        expected |= {effect if s is None else f"{effect}:{s}" for s in stages}
+    assert set(cols) == expected
+    for name, (X, labels, why) in cols.items():
+        assert X.shape == (n, 3, len(labels)), name
+        assert np.all(np.isfinite(X)), name
+        assert why is None or (isinstance(why, str) and why), name
+        assert X.shape[2] > 0 or why, f"{name}: an empty block must say why"
+    assert cols["time_lag"][0].shape[2] == 0 and "turns" in cols["time_lag"][2]
+    for effect, fit in registry.REGISTRY.items():
+        if isinstance(fit.free, str):
+            assert "needs table angles" in fit.free, effect
+        else:
+            assert fit.free.variants and all(b.split("/")[0] == effect for b in fit.free.variants), effect
+            assert fit.free.raw or fit.free.magnitude or fit.free.dip, effect

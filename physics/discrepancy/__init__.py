@@ -2,10 +2,12 @@
 (a catalogued effect, or a generic block found by the discovery search), the fit with it, and what is
 left unexplained (issues 6 and 12).
 
-The package: ``twin`` (the recording's structure and the linear twin), ``noise`` (AR(1)+white noise,
-whitening, nulls), ``lrt`` (the nested tests and the line search), ``discovery`` (the dictionary of
-generic blocks and its change-point search), ``analysis`` (this pipeline for recordings with table
-angles), ``attitude_free`` (recordings without), ``schema`` (the result and the one finding schema).
+The package: ``twin`` (the recording's structure and the linear twin), ``registry`` (how each catalogue
+effect is fitted, keyed by effect id: its regressors in both models, its parameters by name),
+``noise`` (AR(1)+white noise, whitening, nulls), ``lrt`` (the nested tests and the line search),
+``discovery`` (the dictionary of generic blocks and its change-point search), ``analysis`` (this
+pipeline for recordings with table angles), ``attitude_free`` (recordings without), ``schema`` (the
+result and the one finding schema).
 
 The method, in the order :func:`analyze` runs it:
 

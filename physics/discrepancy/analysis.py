@@ -11,12 +11,11 @@ from threadpoolctl import threadpool_limits
 from physics import effects as fx
 from physics.calibration import Calibration, json_safe
 from physics.discrepancy.discovery import MAX_BLOCKS, Dictionary, Found, discovered_finding, merge_windows, rebuild, rows_of
-from physics.discrepancy.lrt import (Test, _complement, _null_residuals, _orth, _score, line_search,
-                                     mains_columns)
+from physics.discrepancy.lrt import Test, _complement, _null_residuals, _orth, _score, line_search
 from physics.discrepancy.noise import NoiseModel, estimate_noise, whiten_all
+from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_of, parameters, where_extra
 from physics.discrepancy.schema import Analysis, summary, with_schema
-from physics.discrepancy.twin import (_SYM, Context, Nominal, context, decimate, effect_columns, fit_nominal,
-                                      generic_columns, nominal_columns)
+from physics.discrepancy.twin import Context, Nominal, context, decimate, fit_nominal, generic_columns, nominal_columns
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording, RecordingError
@@ -102,15 +101,15 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     mains_hz: float | None = None
     line = line_search(r0, ctx, noise)
     chosen = line["log_p"] + np.log(n_round1) < np.log(alpha * CATALOGUE_SHARE)  # the catalogue's share
-    all_tests.append({"effect": "mains_interference", "variant": f"line at {line['alias_hz']:.4f} Hz", "round": 1,
+    all_tests.append({"effect": LINE, "variant": f"line at {line['alias_hz']:.4f} Hz", "round": 1,
                       "statistic": line["statistic"], "df": 6, "bartlett": 1.0, "p_value": line["p_value"],
                       "p_adjusted": min(1.0, line["p_value"] * n_round1), "selected": bool(chosen), "generic": False})
     if chosen:
         mains_hz = line["alias_hz"]
-        Xm = mains_columns(ctx, mains_hz)
+        Xm = REGISTRY[LINE].line(ctx, mains_hz)
         coef_m, *_ = np.linalg.lstsq(Xm.transpose(1, 0, 2).reshape(-1, 6), r0.T.ravel(), rcond=None)
         noise = estimate_noise(r0 - np.einsum("nip,p->ni", Xm, coef_m), ctx)
-        selected.append("mains_interference")
+        selected.append(LINE)
 
     r0, J0, A0, Q0, zr, z, raw_of, candidates = _linearise(ctx, y_raw, nom, eff, noise, mains_hz)
     generic_w = {name: whiten_all(X, noise, ctx.segment) for name, X in gen.items()}
@@ -138,7 +137,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         selected = [s for s in selected if s in terms]
         found = [f for f in found if f.name in terms]
         coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
-        refused = [s for i, s in enumerate(terms) if s in selected and s != "mains_interference"
+        refused = [s for i, s in enumerate(terms) if s in selected and s != LINE
                    and _implausible(s, coef[offsets[i + 1]:offsets[i + 2]], eff)]
         if not refused:
             break
@@ -210,7 +209,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
             findings.append(discovered_finding(by_name[name], c, cv, contrib, row, nom, ctx,
                                                _heading_impact(ctx, y_raw, nom, contrib)))
             continue
-        confusable = _confusable(name, selected, candidates, A0, z, alpha) if name != "mains_interference" else []
+        confusable = _confusable(name, selected, candidates, A0, z, alpha) if name != LINE else []
         findings.append(_finding(name, c, cv, eff, row, contrib, nom, ctx, y_raw, confusable, mains_hz))
     findings = merge_windows(findings)
     for row in unexplained:
@@ -291,7 +290,7 @@ def _linearise(ctx: Context, y: np.ndarray, nom: Nominal, eff: dict, noise: Nois
     zr = whiten_all(r0, noise, ctx.segment)
     raw_of = {name: X for name, (X, _, why) in eff.items() if not why}
     if mains_hz is not None:
-        raw_of["mains_interference"] = mains_columns(ctx, mains_hz)
+        raw_of[LINE] = REGISTRY[LINE].line(ctx, mains_hz)
     candidates = {name: whiten_all(X, noise, ctx.segment) for name, X in raw_of.items()}
     return _Twin(r0, J0, A0, Q0, zr, zr - Q0 @ (Q0.T @ zr), raw_of, candidates)
 
@@ -320,7 +319,7 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
         tests: dict[str, Test] = {}
         gtests: dict[str, Test] = {}
         best_name = None
-        if sum(1 for s in selected if s != "mains_interference") < MAX_EFFECTS:
+        if sum(1 for s in selected if s != LINE) < MAX_EFFECTS:
             tests = {name: Test(name, _complement(Xw, Q)) for name, Xw in candidates.items()
                      if name not in selected and name not in gated}
             gtests = {name: Test(name, _complement(Xw, Q)) for name, Xw in generic_w.items()} if round_no == 0 else {}
@@ -328,7 +327,7 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
             _score(list(tests.values()) + list(gtests.values()), resid, null, extra=1 if round_no == 0 else 0)
             for name in sorted((n for n, t in tests.items() if t.df > 0 and t.log_p < np.log(a_cat)),
                                key=lambda n: -tests[n].evidence):
-                if name != "mains_interference":
+                if name != LINE:
                     coef, _, off = _fit_terms(A0, [candidates[s] for s in selected] + [f.Xw for f in found]
                                               + [candidates[name]], zr)
                     if _implausible(name, coef[off[-2]:off[-1]], eff):
@@ -391,24 +390,10 @@ def _fit_terms(A0: np.ndarray, parts: list[np.ndarray], zr: np.ndarray) -> tuple
     return coef, cov, np.cumsum([0, A0.shape[1]] + [p.shape[1] for p in parts])
 
 
-def _catalogue_params(name: str, c: np.ndarray, labels: list[str]) -> dict[str, Any]:
-    """A catalogue effect's parameters by name, from its coefficients and their labels."""
-    effect = name.split(":")[0]
-    if effect == "stage_soft_iron":
-        return {"A": _sym(c).tolist()}
-    if effect == "field_gradient":
-        return {"gradient_times_offset": c.tolist(), "labels": labels}
-    groups: dict[str, list[int]] = {}
-    for i, lab in enumerate(labels):
-        groups.setdefault(lab.split("[")[0], []).append(i)
-    return {key: (c[idx].tolist() if len(idx) > 1 or "[" in labels[idx[0]] else float(c[idx[0]]))
-            for key, idx in groups.items()}
-
-
 def _implausible(name: str, c: np.ndarray, eff: dict) -> list[str]:
     """The parameters of catalogue effect ``name`` (coefficients ``c``) beyond its plausible range."""
     entry = fx.CATALOGUE[name.split(":")[0]]
-    params = _catalogue_params(name, c, eff[name][1])
+    params, _ = parameters(name, c, np.zeros_like(c), eff[name][1])  # sizes only: the sigma is not needed
     return [k for k, lim in entry.plausible.items()
             if k in params and np.max(np.abs(np.asarray(params[k], float))) > lim]
 
@@ -462,7 +447,7 @@ def _confusable(name: str, selected: list[str], candidates: dict[str, np.ndarray
     own = Test(name, _complement(candidates[name], Qb))
     _score([own], zb, None)
     for other, Xw in candidates.items():
-        if other in selected or other.split(":")[0] == name.split(":")[0] or other == "mains_interference":
+        if other in selected or other.split(":")[0] == name.split(":")[0] or other == LINE:
             continue
         alone = Test(other, _complement(Xw, Qb))
         if alone.df == 0:
@@ -480,30 +465,15 @@ def _confusable(name: str, selected: list[str], candidates: dict[str, np.ndarray
 
 def _finding(name: str, c: np.ndarray, cv: np.ndarray, eff: dict, row: dict, contrib: np.ndarray, nom: Nominal,
              ctx: Context, y: np.ndarray, confusable: list[str], mains_hz: float | None) -> dict[str, Any]:
-    effect, _, stage = name.partition(":")
+    effect = name.partition(":")[0]
     entry = fx.CATALOGUE[effect]
     sd = np.sqrt(np.maximum(np.diag(cv), 0.0))  # inf: not determined by this recording (absorbed)
-    params: dict[str, Any] = {}
-    sigma: dict[str, Any] = {}
-    if effect == "mains_interference":
-        # a cos(w t + phase) = a cos(phase) cos(w t) - a sin(phase) sin(w t); one phase for the pickup
-        # direction, signed amplitudes per axis
-        a = np.hypot(c[0::2], c[1::2])
-        ph = np.arctan2(-c[1::2], c[0::2])
-        ref = float(ph[np.argmax(a)])
-        signed = a * np.sign(np.cos(ph - ref))
-        params = {"amplitude_lsb": signed.tolist(), "alias_hz": mains_hz, "phase_rad": ref}
-        sigma = {"amplitude_lsb": np.sqrt((sd[0::2] ** 2 + sd[1::2] ** 2) / 2).tolist()}
-    else:
-        params = _catalogue_params(name, c, eff[name][1])
-        sd_params = _catalogue_params(name, sd, eff[name][1])
-        sigma = {k: v for k, v in sd_params.items() if k != "labels"}
-        if stage:
-            params["stage"] = stage
+    # the line effect has no columns in eff (a search found its frequency): no labels
+    params, sigma = parameters(name, c, sd, eff[name][1] if name in eff else [], mains_hz)
     impact = _heading_impact(ctx, y, nom, contrib)
     plausible = {k: v for k, v in entry.plausible.items() if k in params}
     implausible = [k for k, lim in plausible.items() if np.max(np.abs(np.asarray(params[k], float))) > lim]
-    where = _where(effect, stage, ctx, contrib)
+    where = _where(name, ctx, contrib)
     explanation = f"{entry.title}: {entry.description} Signature: {entry.signature}."
     if np.isinf(sd).any():
         labels = eff[name][1] if name in eff else []
@@ -518,28 +488,17 @@ def _finding(name: str, c: np.ndarray, cv: np.ndarray, eff: dict, row: dict, con
             "separating_experiment": "; ".join(fx.separating_experiment(effect, o) for o in confusable)}
 
 
-def _sym(a6: np.ndarray) -> np.ndarray:
-    """3x3 symmetric from (xx, yy, zz, xy, xz, yz), infinities allowed (undetermined sigmas)."""
-    return sum(x * E for x, E in zip(a6, _SYM)) if np.all(np.isfinite(a6)) else np.array(
-        [[a6[0], a6[3], a6[4]], [a6[3], a6[1], a6[5]], [a6[4], a6[5], a6[2]]])
-
-
-def _where(effect: str, stage: str, ctx: Context, contrib: np.ndarray) -> dict[str, Any]:
-    """Where the fitted effect acts: axis, steps, frame, and for motion effects the direction of travel."""
+def _where(name: str, ctx: Context, contrib: np.ndarray) -> dict[str, Any]:
+    """Where the fitted effect (variant ``name``) acts: axis, steps, frame, and what its registry entry adds
+    (a lag's direction of travel)."""
     rms_axis = np.sqrt(np.mean(contrib ** 2, axis=0))
     steps = {}
     for s in np.unique(ctx.rec.step):
         m = ctx.rec.step == s
         steps[str(s)] = float(np.sqrt(np.mean(contrib[m] ** 2)))
-    frame = fx.CATALOGUE[effect].model[0]
-    frame = f"{stage} stage" if frame == "stage" else frame
     out: dict[str, Any] = {"axis": "xyz"[int(np.argmax(rms_axis))], "rms_lsb": rms_axis.tolist(),
-                           "steps": dict(sorted(steps.items(), key=lambda kv: -kv[1])[:5]), "frame": frame}
-    if effect == "time_lag" and ctx.moving.any():
-        w = ctx.rate[:, 0] if np.ptp(ctx.rate[:, 0]) > 0 else ctx.rate.sum(axis=1)
-        out["direction"] = {"positive_rate_rms_lsb": float(np.sqrt(np.mean(contrib[w > 1] ** 2))) if np.any(w > 1) else None,
-                            "negative_rate_rms_lsb": float(np.sqrt(np.mean(contrib[w < -1] ** 2))) if np.any(w < -1) else None}
-    return out
+                           "steps": dict(sorted(steps.items(), key=lambda kv: -kv[1])[:5]), "frame": frame_of(name)}
+    return {**out, **where_extra(name, ctx, contrib)}
 
 
 def _level(ctx: Context) -> np.ndarray:

@@ -22,8 +22,8 @@ schema, model ``"attitude_free"``). The steps:
    MAX_SAMPLES samples (said in the notes). Noise floor per axis from static segments (steps named
    rest_*/warmup/static/hold, or 1 s windows whose spread is at the noise level), else from the high-pass
    (first differences / sqrt 2) of the magnitude residual.
-2. **Name**: each catalogue effect the data can show becomes regressors of the residual, linearised
-   about the nominal fit (the nominal parameters' Jacobian J stays in every model, so whatever the
+2. **Name**: each catalogue effect the data can show becomes regressors of the residual (its blocks come
+   from its entry in physics/discrepancy/registry.py), linearised about the nominal fit (the nominal parameters' Jacobian J stays in every model, so whatever the
    ellipsoid can absorb of an effect is absorbed and not counted as evidence). Each test is a nested
    likelihood-ratio test on AR(1)-prewhitened residuals (feasible GLS, AR(1) coefficient estimated from
    the null model's residual at the recording's own time stamps). Its p-value comes from chi-square(df)
@@ -65,6 +65,8 @@ from scipy import stats
 from scipy.special import eval_legendre
 
 from physics.calibration import json_safe
+from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
+                                          needs_table_angles, raw_distortions)
 from physics.discrepancy.schema import Analysis
 from physics.discrepancy.twin import blocks, runs
 from physics.effects import CATALOGUE, PARAMETER_SHIFT, UNEXPLAINED, separating_experiment
@@ -119,20 +121,13 @@ ACC_RADIUS_SPREAD = 0.3
 #: (the catalogue's 100 LSB at 5000 LSB per field), a bias drift over the run above 5 % of full scale.
 NONLINEAR_LIMIT = 0.02
 WARMUP_LIMIT = 0.05
-#: A named effect inside a generic block (GENERIC_OF) must carry this share of the block's evidence.
-GENERIC_OF = {"nonlinearity": "unexplained/direction", "field_drift": "unexplained/time"}
+#: A named effect's block inside a generic block (its registry entry says which) must carry this share of
+#: the generic block's evidence.
+GENERIC_OF = free_generic()
 GENERIC_SHARE = 0.5
 
-#: Catalogue effects the attitude-free model cannot test, and why.
-NEEDS_ANGLES = {
-    "stage_hard_iron": "needs table angles: a magnet on a table stage is told apart from the unit's own bias "
-                       "only by how it turns with the stage",
-    "stage_soft_iron": "needs table angles: soft iron on a stage is told apart from the unit's matrix only "
-                       "through the stage attitudes",
-    "table_axis_error": "needs table angles: there is no table",
-    "hysteresis": "needs table angles: holds at the same attitude approached from both sides",
-    "field_gradient": "needs table angles: the sensor's path through the gradient follows the table rotations",
-}
+#: Catalogue effects the attitude-free model cannot test, and why (physics/discrepancy/registry.py).
+NEEDS_ANGLES = needs_table_angles()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -492,17 +487,12 @@ class _Nominal:
 # Regressors of each effect (linearised about the nominal fit), for any set of rows
 # --------------------------------------------------------------------------------------------------
 
-#: Block name -> (effect id, variant) of the test it serves.
+#: Block name -> (effect id, variant) of the test it serves: each catalogue effect's blocks (its registry
+#: entry), and the generic blocks of structure no entry names.
 BLOCKS = {
-    "nonlinearity": ("nonlinearity", "cubic per axis"),
-    "temperature_drift": ("temperature_drift", "bias per deg C"),
-    "temperature_drift/time": ("temperature_drift", "bias drifting with time (no temperature logged)"),
-    "field_drift": ("field_drift", "magnitude: linear + quadratic in time"),
-    "mains_interference": ("mains_interference", "line in the spectrum"),
+    **free_blocks(),
     "unexplained/direction": (UNEXPLAINED, "field direction in the sensor frame (degree 3-4 harmonics)"),
     "unexplained/time": (UNEXPLAINED, f"time (Legendre polynomials to degree {TIME_DEGREE})"),
-    "time_lag": ("time_lag", "dip against rate of turn"),
-    "field_drift/dip": ("field_drift", "dip: linear + quadratic in time"),
 }
 
 
@@ -524,45 +514,37 @@ def _monomials(h: np.ndarray, degrees: tuple[int, ...]) -> np.ndarray:
     return np.column_stack(cols)
 
 
-def _raw_distortions(nom: _Nominal, d: _Data, temp_varies: bool) -> dict[str, np.ndarray]:
-    """Bases (n, 3, q) of the effects that add to the raw output: delta_m = basis @ params."""
+def _rows(nom: _Nominal, d: _Data, temp_varies: bool) -> FreeRows:
+    """What the registry's builders read for the rows ``d`` (the dip's part when there is a dip)."""
     sh = nom.shape
-    n = len(d)
-    eye = np.broadcast_to(np.eye(3), (n, 3, 3))
-    tau = d.t - nom.t_mid
-    out: dict[str, np.ndarray] = {}
-    res = sh.resolved  # (an axis across the plane of a planar recording carries no parameters)
-    u = sh.axis_outputs(d.mag)
-    # physics.effects.Nonlinearity: raw_j += c3_j u_j^3 (u the axis' linear output in field units)
-    out["nonlinearity"] = (eye * np.nan_to_num(u ** 3)[:, None, :])[:, :, res]
-    if temp_varies:  # TemperatureDrift: raw += bias_per_c (T - T_ref)
-        out["temperature_drift"] = (eye * (d.temp - nom.temp_ref)[:, None, None])[:, :, res]
-    else:  # a bias that follows the warm-up: linear in time, fixed in the sensor frame
-        out["temperature_drift/time"] = (eye * tau[:, None, None])[:, :, res]
-    if nom.mains_hz is not None:  # MainsInterference: raw += a cos(2 pi f t) + b sin(2 pi f t), per axis
-        w = 2 * np.pi * nom.mains_hz * d.t
-        out["mains_interference"] = np.concatenate([(eye * np.cos(w)[:, None, None])[:, :, res],
-                                                    (eye * np.sin(w)[:, None, None])[:, :, res]], axis=2)
-    return out
+    h = sh.direction(d.mag)
+    dip: dict[str, Any] = {}
+    if nom.dip is not None and d.acc is not None:
+        f = nom.acc.directions(d.acc)
+        dip = {"f": f, "h_acc": h @ nom.dip.R.T, "cos_dip": np.maximum(np.cos(nom.dip.angle(h, f)), 1e-6),
+               "gyro": d.gyro}
+    return FreeRows(t=d.t, tau=d.t - nom.t_mid, kbar=nom.kbar, u=sh.axis_outputs(d.mag), resolved=sh.resolved,
+                    dtemp=d.temp - nom.temp_ref if temp_varies else None, line_hz=nom.mains_hz, h=h, **dip)
 
 
-def _features(nom: _Nominal, d: _Data, temp_varies: bool, lag_ok: bool) -> dict[str, _Design]:
+def _features(nom: _Nominal, d: _Data, temp_varies: bool) -> dict[str, _Design]:
+    """The magnitude's (and the dip's) response, nuisance columns and blocks: every catalogue effect's
+    (physics/discrepancy/registry.py) and the generic ones."""
     sh, kb = nom.shape, nom.kbar
     m = d.mag
+    rows = _rows(nom, d, temp_varies)
     y = kb * sh.residual(m)
     J = kb * sh.jac(m)
     v = sh.grad(m)  # d|h| per raw count along each sensor axis
-    tau = (d.t - nom.t_mid)  # seconds from mid-run
+    tau = rows.tau  # seconds from mid-run
     blocks: dict[str, np.ndarray] = {}
     # Effects that distort the raw output, delta_m = basis (n, 3, q) . params: the magnitude sees
     # kbar grad . delta_m (so the coefficients are the effect's own parameters, in LSB)
-    raw = _raw_distortions(nom, d, temp_varies)
+    raw = raw_distortions(rows)
     for name, basis in raw.items():
         blocks[name] = kb * np.einsum("nj,njq->nq", v, basis)
-    # the lab field drifting by rate (field units / s) changes |H| by its component along the field:
-    # attitude-free, so only a magnitude trend (the part across the field is invisible here)
-    blocks["field_drift"] = kb * np.column_stack([tau, tau ** 2])
-    h = sh.direction(m)
+    blocks.update(magnitude_columns(rows))  # effects the magnitude sees directly (a field drift's trend)
+    h = rows.h
     if sh.planar:
         phi = np.arctan2(h[:, 1], h[:, 0])
         blocks["unexplained/direction"] = kb * np.column_stack(
@@ -573,28 +555,21 @@ def _features(nom: _Nominal, d: _Data, temp_varies: bool, lag_ok: bool) -> dict[
     blocks["unexplained/time"] = kb * np.column_stack([eval_legendre(k, x) for k in range(1, TIME_DEGREE + 1)])
     out = {"magnitude": _Design(y, J, blocks)}
 
-    if nom.dip is not None and d.acc is not None:
-        f = nom.acc.directions(d.acc)
+    if rows.f is not None:
+        f = rows.f
         dip = nom.dip
         yd = kb * (dip.angle(h, f) - dip.I)
         # nuisance of the dip: the triad rotation and I, and also the field ellipsoid's parameters (their
         # estimation errors turn the calibrated field slightly, which moves the dip with the attitude)
         Jd = kb * np.hstack([dip.jac(h, f), _dip_shape_jac(sh, dip, m, h, f)])
-        bd: dict[str, np.ndarray] = {"field_drift/dip": kb * np.column_stack([tau, tau ** 2])}
+        bd = dip_columns(rows)  # effects the dip tests (a field drift's turn, a lag against the gyro's rates)
         # the raw distortions move the dip too (by d(dip)/dm . delta_m): nuisance columns for the dip tests
         # once the magnitude has named the effect ("<block>@dip", never tested on their own)
         g = f @ dip.R
         wv = g - np.sum(g * h, axis=1, keepdims=True) * h
-        cos = np.maximum(np.cos(dip.angle(h, f)), 1e-6)[:, None]
-        ddip = -((wv @ sh.E) @ sh.P.T) / cos  # d(dip)/d(raw counts), (n, 3)
+        ddip = -((wv @ sh.E) @ sh.P.T) / rows.cos_dip[:, None]  # d(dip)/d(raw counts), (n, 3)
         for name, basis in raw.items():
             bd[name + "@dip"] = kb * np.einsum("nj,njq->nq", ddip, basis)
-        if lag_ok:
-            # magnetometer lagging by lag_s: h_meas = h(t - lag) = h + lag (w x h) (body frame), so the dip
-            # changes by -lag f.(w x R h) / cos(dip)
-            Rh = h @ dip.R.T
-            cos = np.maximum(np.cos(dip.angle(h, f)), 1e-6)
-            bd["time_lag"] = kb * (-np.sum(f * np.cross(d.gyro, Rh), axis=1) / cos)[:, None]
         out["dip"] = _Design(yd, Jd, bd)
     return out
 
@@ -950,7 +925,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         untestable.append({"effect": "time_lag", "reason": f"attitude-free: the lag is seen as a dip change "
                                                            f"proportional to the rate of turn; {why}"})
 
-    feats = _features(nom, dec, temp_varies, lag_ok)
+    feats = _features(nom, dec, temp_varies)
     if lag_ok:  # a rotation about the vertical does not change the dip, so the lag may still be invisible
         x = feats["dip"].blocks["time_lag"][:, 0]
         sig = float(np.std(feats["dip"].y))
@@ -993,7 +968,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         mains_scale = level_global / float(local[k])
         scan_info.update(peak_hz=nom.mains_hz, band_hz=[float(f_grid[0]), float(f_grid[-1])],
                          local_over_white_level=1.0 / mains_scale)
-        feats = _features(nom, dec, temp_varies, lag_ok)
+        feats = _features(nom, dec, temp_varies)
         if not lag_ok and "dip" in feats:
             feats["dip"].blocks.pop("time_lag", None)
         reg = {name: _Regression(name, des, dec.t) for name, des in feats.items()}
@@ -1195,7 +1170,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
 
     # ---- final joint fits ------------------------------------------------------------------------------
     finals = {name: r.gls(list(fixed[name]) + selected[name]) for name, r in reg.items()}
-    full_feats = _features(nom, full, temp_varies, lag_ok)
+    full_feats = _features(nom, full, temp_varies)
     for name in list(full_feats):
         if name not in reg:
             del full_feats[name]

@@ -1,6 +1,6 @@
 """The recording's structure (runs, holds, rates) and the linear twin around the nominal fit: the nominal
-Jacobian, every catalogue effect's regressors and the generic "unexplained structure" regressors.
-Pure numpy."""
+Jacobian and the generic "unexplained structure" regressors (each catalogue effect's regressors are in
+registry.py, which builds on this module). Pure numpy."""
 
 from __future__ import annotations
 
@@ -8,12 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from physics import effects as fx
 from physics import errorsep as es
 from physics.frames import SPECIFIC_FORCE_L
-from physics.heading import wrap180
 from physics.recording import Recording
-from physics.table import TableGeometry, platform_attitude
 
 #: Harmonic orders searched against each table angle in the "unexplained" tests.
 HARMONICS = (2, 3, 4)
@@ -122,7 +119,7 @@ def context(rec: Recording) -> Context:
 
 
 # --------------------------------------------------------------------------------------------------
-# The linear twin: nominal Jacobian and effect regressors (N, 3, p)
+# The linear twin: nominal Jacobian and generic regressors (N, 3, p)
 # --------------------------------------------------------------------------------------------------
 
 @dataclass
@@ -164,106 +161,13 @@ def nominal_columns(ctx: Context, nom: Nominal) -> np.ndarray:
     return J
 
 
-def _through_M(nom: Nominal, dh: np.ndarray) -> np.ndarray:
-    """Raw-count columns from body-field columns (N, 3, p): M dh."""
-    return np.einsum("ij,njp->nip", nom.M, dh)
-
-
 def _stage_Q(ctx: Context, stage: str) -> np.ndarray:
+    """Rotations (N, 3, 3) turning ``stage``'s frame into body axes (physics.effects.stage_to_body, per sample)."""
     theta, phi = ctx.ang[:, 1], ctx.ang[:, 2]
     from physics.frames import rot_x, rot_y
     if stage == "outer":
         return np.transpose(rot_y(theta) @ rot_x(phi), (0, 2, 1))
     return np.transpose(rot_x(phi), (0, 2, 1))
-
-
-_SYM = [np.array(m, float) for m in (
-    [[1, 0, 0], [0, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, 1, 0], [0, 0, 0]], [[0, 0, 0], [0, 0, 0], [0, 0, 1]],
-    [[0, 1, 0], [1, 0, 0], [0, 0, 0]], [[0, 0, 1], [0, 0, 0], [1, 0, 0]], [[0, 0, 0], [0, 0, 1], [0, 1, 0]])]
-_GRAD = [fx.gradient_matrix(np.eye(5)[i]) for i in range(5)]
-
-
-def hysteresis_signs(ang: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Sign of the last change larger than HYSTERESIS_STEP of each body-field component (N, 3), as the
-    concealed effect defines it. Between consecutive samples the table is followed along a straight
-    line in encoder angles (that is how it moves), so a reversal during an unsampled move counts."""
-    signs = np.zeros((len(ang), 3))
-    h = np.einsum("nji,j->ni", platform_attitude(ang[:, 0], ang[:, 1], ang[:, 2]), v)
-    anchor, sign = h[0].copy(), np.zeros(3)
-    for i in range(len(h)):
-        path = h[i:i + 1]
-        step = ang[i] - ang[i - 1] if i > 0 else np.zeros(3)
-        if np.max(np.abs(step)) > 1.0:
-            steps = int(min(90, np.ceil(np.max(np.abs(step)))))
-            a = ang[i - 1] + np.linspace(0, 1, steps + 1)[1:, None] * step
-            path = np.einsum("nji,j->ni", platform_attitude(a[:, 0], a[:, 1], a[:, 2]), v)
-        for p in path:
-            d = p - anchor
-            moved = np.abs(d) > fx.HYSTERESIS_STEP
-            sign = np.where(moved, np.sign(d), sign)
-            anchor = np.where(moved, p, anchor)
-        signs[i] = sign
-    return signs
-
-
-def effect_columns(ctx: Context, nom: Nominal, temp: np.ndarray | None) -> dict[str, tuple[np.ndarray, list[str], str | None]]:
-    """Regressors (N, 3, p) of every catalogue effect (and stage variants), with parameter labels, or the
-    reason the effect cannot be tested on this recording."""
-    h = nom.body_field(ctx)
-    pred = nom.predict(ctx)
-    k = np.linalg.norm(nom.M, axis=1)
-    n = len(ctx.t)
-    tilted = np.any(np.abs(wrap180(ctx.ang[:, 1:])) > 5.0)
-    # angles from an attitude reference (a hand-held unit tracked optically) are not a turntable's
-    source = ctx.rec.meta.get(ATTITUDE_SOURCE_KEY, "turntable")
-    no_table = None if source == "turntable" else f"needs a turntable (the angles come from: {source})"
-    out: dict[str, tuple[np.ndarray, list[str], str | None]] = {}
-    none = np.zeros((n, 3, 0))
-    for stage in fx.STAGES:
-        Q = _stage_Q(ctx, stage)
-        why = no_table or (None if tilted else "needs poses tilted about the inner axes")
-        out[f"stage_hard_iron:{stage}"] = (_through_M(nom, Q), ["m[0]", "m[1]", "m[2]"], why)
-        soft = np.stack([np.einsum("nij,jk,nlk,nl->ni", Q, E, Q, h) for E in _SYM], axis=2)
-        out[f"stage_soft_iron:{stage}"] = (_through_M(nom, soft), ["Axx", "Ayy", "Azz", "Axy", "Axz", "Ayz"], why)
-    u = (pred - nom.b) / k
-    out["nonlinearity"] = (np.stack([np.eye(3)[j] * u[:, j:j + 1] ** 3 for j in range(3)], axis=2),
-                           ["c3[0]", "c3[1]", "c3[2]"], None)
-    if temp is not None and np.all(np.isfinite(temp)) and np.ptp(temp) > 0.05:
-        tc = (temp - temp.mean())[:, None, None] * np.eye(3)[None]
-        out["temperature_drift"] = (tc, ["bias_per_c[0]", "bias_per_c[1]", "bias_per_c[2]"], None)
-    else:
-        out["temperature_drift"] = (none, [], "needs temp_c that changes during the run")
-    tt = ctx.t - ctx.t.mean()
-    drift = np.einsum("nji,jk->nik", ctx.R, np.eye(3)) * tt[:, None, None]
-    out["field_drift"] = (_through_M(nom, drift), ["rate_per_s[0]", "rate_per_s[1]", "rate_per_s[2]"], None)
-    moving = ctx.moving.sum()
-    if moving >= 20:
-        dpred = np.zeros_like(pred)
-        for s in np.unique(ctx.segment[ctx.moving]):
-            i = np.flatnonzero(ctx.segment == s)
-            if len(i) >= 2:
-                dpred[i] = np.gradient(pred[i], _strict(ctx.t[i], ctx.rate_hz), axis=0)
-        out["time_lag"] = (-dpred[:, :, None], ["lag_s"], None)
-    else:
-        out["time_lag"] = (none, [], "needs samples taken while the table turns (a characterize run)")
-    s = hysteresis_signs(ctx.ang, nom.v)
-    if np.any(s > 0) and np.any(s < 0):
-        out["hysteresis"] = (_through_M(nom, np.stack([np.eye(3)[j] * s[:, j:j + 1] for j in range(3)], axis=2)),
-                             ["offset[0]", "offset[1]", "offset[2]"], None)
-    else:
-        out["hysteresis"] = (none, [], "needs holds approached from both sides")
-    cols = []
-    for g in ((1e-3, 0, 0, 0), (0, 1e-3, 0, 0), (0, 0, 1e-3, 0), (0, 0, 0, 1e-3)):
-        geo = TableGeometry(nonperp_deg=(g[0], g[1]), encoder_zero_deg=(0.0, g[2], g[3]))
-        Rg = platform_attitude(ctx.ang[:, 0], ctx.ang[:, 1], ctx.ang[:, 2], geo)
-        cols.append((np.einsum("nji,j->ni", Rg, nom.v) @ nom.M.T + nom.b - pred) / 1e-3)
-    out["table_axis_error"] = (np.stack(cols, axis=2), ["nonperp_deg[0]", "nonperp_deg[1]", "encoder_zero_deg[0]",
-                                                        "encoder_zero_deg[1]"],
-                               no_table or (None if tilted else "needs poses tilted about the inner axes"))
-    grad = [np.einsum("nji,jk,nkl,l->ni", ctx.R, G, ctx.R, e) for G in _GRAD for e in np.eye(3)]
-    out["field_gradient"] = (_through_M(nom, np.stack(grad, axis=2)),
-                             [f"G{g}*r{r}" for g in ("xx", "yy", "xy", "xz", "yz") for r in "xyz"], no_table)
-    return out
 
 
 def generic_columns(ctx: Context, nom: Nominal, temp: np.ndarray | None) -> dict[str, np.ndarray]:

@@ -15,7 +15,8 @@ The method, in the order :func:`analyze` runs it:
    sample; the residuals are what the twin does not predict.
 2. **Noise.** Estimate each axis's noise as AR(1) plus white (quantisation) from first differences of
    the residual inside the static holds (else every contiguous run of samples): a difference cancels
-   any pose's mean, so slow model errors and drifts do not inflate it. The data and every regressor are
+   any pose's mean, so slow model errors and drifts do not inflate it; the AR part only where the
+   differences' autocorrelations show it (noise.ar_evidence). The data and every regressor are
    prewhitened with it (Kalman innovations).
 3. **Linear twin.** Around the nominal fit the twin is linear in everything: the nominal Jacobian J0
    (M, b and two field-direction coordinates) plus, for each catalogue effect (physics/effects.py),

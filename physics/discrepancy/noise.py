@@ -54,6 +54,10 @@ class NoiseModel:
 #: Lags of the differences' autocovariance that the noise model is fitted to.
 NOISE_LAGS = 12
 
+#: The AR part must show in the differences' autocovariance at lags 2..NOISE_LAGS (z-score of their
+#: negated sum) for the noise to be modelled as coloured; below it the noise is white.
+AR_Z = 2.0
+
 
 def noise_model(r: np.ndarray, segment: np.ndarray) -> NoiseModel:
     """AR(1)-plus-white noise per axis (and per trailing column) from first differences inside segments.
@@ -78,9 +82,24 @@ def noise_model(r: np.ndarray, segment: np.ndarray) -> NoiseModel:
     G = g.reshape(len(g), -1)
     sig, phi, white = np.empty(G.shape[1]), np.empty(G.shape[1]), np.empty(G.shape[1])
     k = np.arange(len(g))
+    n = max(int(same.sum()), 1)
     for i in range(G.shape[1]):
-        sig[i], phi[i], white[i] = _fit_difference_acov(G[:, i], k)
+        if ar_evidence(G[:, i], n) < AR_Z:
+            # White noise: a fitted AR part would be the lags' sampling noise, and a spurious slow part
+            # (phi 0.7 on 1 LSB of 3) nearly doubles the noise every slow effect's test is judged against.
+            sig[i], phi[i], white[i] = 0.0, 0.0, float(np.sqrt(max((2.0 * G[0, i] - G[1, i]) / 5.0, 1e-300)))
+        else:
+            sig[i], phi[i], white[i] = _fit_difference_acov(G[:, i], k)
     return NoiseModel(sig.reshape(shape), phi.reshape(shape), white.reshape(shape))
+
+
+def ar_evidence(g: np.ndarray, n: int) -> float:
+    """z-score of an AR part in the first differences' autocovariance ``g`` (lags 0..), from ``n``
+    differences: the negated sum of the autocorrelations at lags >= 2. White noise's differences are
+    MA(1) (rho_1 = -1/2, zero beyond), and by Bartlett's formula that sum's variance is ~1/n (the
+    neighbouring lags' covariances cancel most of the 1.5/n each lag has alone); an AR(1) part adds
+    u phi^(k-1) / g(0) to each lag's negation."""
+    return float(-np.sum(g[2:]) / max(g[0], 1e-300) * np.sqrt(n))
 
 
 def _fit_difference_acov(g: np.ndarray, k: np.ndarray) -> tuple[float, float, float]:

@@ -338,6 +338,11 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
             if got is not None:
                 min_p2[k] = float(stats.chi2.sf(got[1] / c_scale, max(got[2], 1)))
         m_eff2, p_ref2 = _m_eff(min_p2, len(stat) ** 2)
+    # ... but never fewer tries than two independent window searches: measured on 64 nulls at their 10 %
+    # quantile and extrapolated four orders of magnitude into the tail, the pair's count alone let pairs
+    # of windows through on 3 of 300 nulls (each at p ~1e-5 after its search)
+    if m_eff2 < m_eff * m_eff:
+        m_eff2, p_ref2 = m_eff * m_eff, p_ref
     log_p2 = _search_log_p(lp2, m_eff2, stat2 / c_scale, df2, p_ref2, 4)
     if log_p2 >= single.log_p:
         return WindowSearch(**{**single.__dict__, "log_p": min(single.log_p + float(np.log(3.0)), 0.0)})

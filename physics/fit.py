@@ -193,8 +193,7 @@ def _fit_rejecting(rec: Recording, screened: dict[int, str], run: Callable[[Reco
     Returns the calibration, every rejected row with its reason, and (when the model-based rejection
     was abandoned because too many rows disagree) a sentence saying so for the refusal that follows.
     """
-    candidates = np.ones(len(rec), bool)
-    candidates[list(screened)] = False
+    candidates = _good(rec, screened)
     keep = candidates.copy()
     trimmed = False
     cal = run(rec.select(keep))
@@ -233,12 +232,15 @@ def _fit_rejecting(rec: Recording, screened: dict[int, str], run: Callable[[Reco
     return cal, out, None
 
 
-def _kept(rec: Recording, rejected: dict[int, str]) -> Recording:
-    if not rejected:
-        return rec
+def _good(rec: Recording, rejected: dict[int, str]) -> np.ndarray:
+    """The rows not rejected (a mask)."""
     keep = np.ones(len(rec), bool)
     keep[list(rejected)] = False
-    return rec.select(keep)
+    return keep
+
+
+def _kept(rec: Recording, rejected: dict[int, str]) -> Recording:
+    return rec.select(_good(rec, rejected)) if rejected else rec
 
 
 def _require_good(rec: Recording, rejected: dict[int, str]) -> None:
@@ -376,9 +378,7 @@ def quality(rec: Recording, cal: Calibration) -> dict[str, object]:
     """
     f_b = es.specific_force(rec, cal.acc)
     _fill_field(rec, cal, f_b)
-    v_base = base_rotation(cal.base_tilt_deg).T @ field_direction(cal.inclination_deg, cal.declination_deg)
-    pred = cal.mag.measure(np.einsum("nji,j->ni", es.rotations(rec), v_base))
-    rms = np.sqrt(np.mean((rec.mag - pred) ** 2, axis=0)).tolist()
+    rms = np.sqrt(np.mean(model_residuals(rec, cal) ** 2, axis=0)).tolist()
     if cal.heading_model and cal.heading_model["kind"] == "two_axis":
         rms[2] = None  # the two-axis compass does not use z_m
     # the paper averages the readings at each position (eq. 5): score per-pose means, not single samples

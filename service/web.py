@@ -35,11 +35,14 @@ from procedures.states import ACTIVE
 from service import plots
 from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_session, require, start_session
 from service.db import Analysis, Batch, Calibration, Device, Limit, Run, RunEvent, Sample, Station
+from service.identity import CHOICES, is_serial_prompt
 from service.schemas import Id, Index, Serial, no_nul
 from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
 templates = Jinja2Templates(directory=str(HERE / "templates"))
+# a serial prompt's answer buttons (run and batch pages; static/common.js draws the same live)
+templates.env.globals.update(is_serial_prompt=is_serial_prompt, serial_choices=CHOICES)
 STATIC = HERE / "static"
 #: What /ui/static serves (a fixed list: nothing else under the package is reachable).
 STATIC_TYPES = {".css": "text/css; charset=utf-8", ".js": "text/javascript; charset=utf-8",

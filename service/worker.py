@@ -326,10 +326,8 @@ def batch_certified(s: Session, run: Run) -> dict[str, str]:
 
 
 async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot: dict[str, Any], proc: Any,
-                 params: Any, given: dict[str, str], resume: dict[str, Any] | None = None,
-                 check: UnitCheck | None = None) -> tuple[_Finish, float | None]:
-    check = check or UnitCheck(typed={int(k): str(v) for k, v in given.items()},
-                               slots=list(range(len(snapshot["compasses"]))))
+                 params: Any, given: dict[str, str], resume: dict[str, Any] | None,
+                 check: UnitCheck) -> tuple[_Finish, float | None]:
     identify_first = proc.name != BATCH  # a batch's unit is mounted only after its prompt
     async with AsyncExitStack() as stack:
         try:

@@ -397,8 +397,13 @@ def _fit_terms(A0: np.ndarray, parts: list[np.ndarray], zr: np.ndarray) -> tuple
 
 def _implausible(name: str, c: np.ndarray, eff: dict) -> list[str]:
     """The parameters of catalogue effect ``name`` (coefficients ``c``) beyond its plausible range."""
-    entry = fx.CATALOGUE[name.split(":")[0]]
     params, _ = parameters(name, c, np.zeros_like(c), eff[name][1])  # sizes only: the sigma is not needed
+    return _beyond_plausible(name, params)
+
+
+def _beyond_plausible(name: str, params: dict[str, Any]) -> list[str]:
+    """The named parameters of effect variant ``name`` beyond the catalogue's plausible range."""
+    entry = fx.CATALOGUE[name.split(":")[0]]
     return [k for k, lim in entry.plausible.items()
             if k in params and np.max(np.abs(np.asarray(params[k], float))) > lim]
 
@@ -476,8 +481,7 @@ def _finding(name: str, c: np.ndarray, cv: np.ndarray, eff: dict, row: dict, con
     # the line effect has no columns in eff (a search found its frequency): no labels
     params, sigma = parameters(name, c, sd, eff[name][1] if name in eff else [], mains_hz)
     impact = _heading_impact(ctx, y, nom, contrib)
-    plausible = {k: v for k, v in entry.plausible.items() if k in params}
-    implausible = [k for k, lim in plausible.items() if np.max(np.abs(np.asarray(params[k], float))) > lim]
+    implausible = _beyond_plausible(name, params)
     where = _where(name, ctx, contrib)
     explanation = f"{entry.title}: {entry.description} Signature: {entry.signature}."
     if np.isinf(sd).any():

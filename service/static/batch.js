@@ -58,14 +58,7 @@
         if (exists) continue;
         const div = cc.el("div", { className: "prompt", "data-run": p.run, "data-prompt": p.id });
         div.append(cc.el("span", { className: "prompt-text" }, p.text));
-        // a serial prompt (the unit reports another serial than the one typed) takes one of three answers
-        const answers = p.id.startsWith("serial-") ? ["typed", "identified", "skip"] : [null];
-        if (isOperator) {
-          for (const a of answers) {
-            div.append(" ", cc.el("button", { type: "button", className: "answer", "data-run": p.run, "data-prompt": p.id,
-                                              "data-answer": a }, a || "Done"));
-          }
-        }
+        if (isOperator) for (const b of cc.answerButtons(p.id, { "data-run": p.run })) div.append(" ", b);
         div.append(" ", cc.el("a", { href: `/ui/runs/${p.run}` }, `run ${p.run}`));
         prompts.append(div);
       }

@@ -58,6 +58,14 @@ const cc = {
     return e;
   },
 
+  /** The answer buttons of operator prompt `id`: a serial prompt (serial-SLOT: a unit reporting another
+   *  serial than the one typed) takes typed, identified or skip (data-answer); any other prompt, Done. */
+  answerButtons(id, attrs) {
+    const answers = id.startsWith("serial-") ? ["typed", "identified", "skip"] : [null];
+    return answers.map((a) => cc.el("button", { type: "button", className: "answer", "data-prompt": id, "data-answer": a,
+                                                ...(attrs || {}) }, a || "Done"));
+  },
+
   /** Repeat fn every ms milliseconds (the first time after `first` ms, default ms), never overlapping,
    *  until it returns false; a failure is logged as a warning (a poll may fail while the service
    *  restarts) and retried. Returns a function that stops it. */

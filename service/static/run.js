@@ -129,13 +129,7 @@
     if (!prompts || findPrompt(id)) return;
     const div = cc.el("div", { className: "prompt", "data-prompt": id });
     div.append(cc.el("span", { className: "prompt-text" }, text));
-    // a serial prompt (a unit reporting another serial than the one typed) takes one of three answers
-    const answers = id.startsWith("serial-") ? ["typed", "identified", "skip"] : [null];
-    if (isOperator) {
-      for (const a of answers) {
-        div.append(cc.el("button", { type: "button", className: "answer", "data-prompt": id, "data-answer": a }, a || "Done"), " ");
-      }
-    }
+    if (isOperator) for (const b of cc.answerButtons(id)) div.append(b, " ");
     prompts.append(div);
   }
 

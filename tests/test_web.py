@@ -616,8 +616,10 @@ def test_example_script_reports_wall_time_left(tmp_path: Path, request: pytest.F
         assert r.returncode == 0 and "completed" in r.stdout, r.stdout + r.stderr
         left = [float(x) for x in re.findall(r"~(\d+) s left", r.stdout)]
         assert len(left) >= 3 and left[-1] == 0, r.stdout
-        # (table seconds would be 40 times the wall time; the margin is for an estimate, not a measurement)
-        assert max(left) <= 1.5 * wall + 1, f"the script said {max(left):.0f} s left of a run that took {wall:.1f} s"
+        # Table seconds would be 40 times the wall time. The margin is for an estimate, not a measurement:
+        # on a busy machine a stalled step costs 40x its stall in table time, and the pace the estimate
+        # extrapolates from jumps (a loaded CI run said 9 s of a 5.3 s run).
+        assert max(left) <= 3 * wall + 2, f"the script said {max(left):.0f} s left of a run that took {wall:.1f} s"
         with s.app.state.sessions() as session:
             progress = list(session.scalars(select(RunEvent.data).where(RunEvent.kind == "progress").order_by(RunEvent.id)))
         assert progress and progress[-1]["left_s"] == 0 and progress[-1]["left_wall_s"] == 0, progress[-1]

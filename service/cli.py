@@ -575,12 +575,28 @@ def _run(coro: object) -> int:
     return 1
 
 
+def _control_time_scale(url: str, given: float | None) -> float:
+    """The time scale a simulated station reports on its control port; a --time-scale that says
+    otherwise is refused (the recording's t would be neither table nor wall time)."""
+    import asyncio
+
+    from drivers.sim.station import control_request
+    try:
+        reported = float(asyncio.run(control_request(url, {"time": None}))["time_scale"])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        _fail(f"--control {url}: {e}")
+    if given is not None and abs(given - reported) > 1e-9 * reported:
+        _fail(f"--time-scale {given:g}: the station at --control {url} runs at time scale {reported:g}")
+    return reported
+
+
 @app.command(cls=_Command)
 def calibrate(
     modbus: str = typer.Option(..., metavar="<url>", help="The table's Modbus URL: tcp://HOST:PORT, rtu+tcp://HOST:PORT or a serial device."),
     compass: list[str] = typer.Option(..., metavar="<url>", help="A compass's serial URL (a device path or socket://HOST:PORT); repeat per slot."),
     output: Path = typer.Option(Path("out"), "-o", "--output", help="Directory for recordings and calibrations."),
-    time_scale: float = typer.Option(1.0, help="The station's time scale (a simulator run faster than real time)."),
+    time_scale: Optional[float] = typer.Option(None, help="The station's time scale (a simulator run faster than real time; default 1, or what --control reports)."),
+    control: Optional[str] = typer.Option(None, metavar="<url>", help="A simulator's control port (the `control` of `compasscal sim`'s line): the time scale is learnt from it, so the recording's t is table time."),
     samples: int = typer.Option(CalibrateParams().samples, help="Samples per pose."),
     method: Method = typer.Option(METHODS[0], help="Calibration method."),  # type: ignore[valid-type]
     evaluate: bool = typer.Option(False, help="Then check each calibration on the table, level and at pitch and roll up to 60 deg."),
@@ -588,8 +604,11 @@ def calibrate(
 ) -> None:
     """Run the calibration procedure on a station (real or simulated) and calibrate every unit in its fixture."""
     _station_urls(modbus, compass)
-    if not time_scale > 0:
+    if time_scale is not None and not time_scale > 0:
         _fail(f"--time-scale must be > 0, got {time_scale:g}")
+    if control is not None:
+        time_scale = _control_time_scale(control, time_scale)
+    time_scale = 1.0 if time_scale is None else time_scale
     params = _procedure_params("calibrate", {"samples": samples, "method": method.value})
     _output_dir(output, "--output")
     truths = _read_json(truth, "--truth") if truth is not None else None

@@ -5,8 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 from typer.testing import CliRunner
 
+from physics.recording import parse_recording
 from service.cli import app
 
 runner = CliRunner()
@@ -62,8 +64,11 @@ def test_calibrate_against_a_sim_process_writes_recordings_and_calibrations(tmp_
     try:
         d = json.loads(sim.stdout.readline())
         out = tmp_path / "run"
+        # no --time-scale: calibrate asks the simulator's control port
         r = runner.invoke(app, ["calibrate", "--modbus", d["modbus"], "--compass", d["compasses"][0]["url"],
-                                "--time-scale", "20", "-o", str(out), "--truth", str(truth)])
+                                "--control", d["control"], "-o", str(out), "--truth", str(truth)])
+        contradicted = runner.invoke(app, ["calibrate", "--modbus", d["modbus"], "--compass", d["compasses"][0]["url"],
+                                           "--control", d["control"], "--time-scale", "1", "-o", str(out)])
     finally:
         sim.send_signal(signal.SIGINT)
         sim.communicate(timeout=10)
@@ -74,6 +79,10 @@ def test_calibrate_against_a_sim_process_writes_recordings_and_calibrations(tmp_
     cal = json.loads((out / f"{serial}.cal.json").read_text())
     assert cal["format"] == "compasscal-calibration/1" and cal["serial"] == serial
     assert (out / f"{serial}.csv").read_text().count("\n") > 18 * 60
+    rec = parse_recording((out / f"{serial}.csv").read_text())
+    # table time: the plan turns for minutes (at time scale 20 the run took seconds of wall time)
+    assert np.ptp(rec.t) > 60, np.ptp(rec.t)
+    assert contradicted.exit_code != 0 and "runs at time scale 20" in " ".join(contradicted.output.split())
     assert (out / f"{serial}.png").stat().st_size > 10_000
 
 

@@ -82,6 +82,8 @@ def test_calibrate_refuses_bad_parameters_and_outputs_naming_the_option(tmp_path
     base = ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1"]
     refused([*base, "--samples", "0", "-o", str(tmp_path)], "--samples")
     refused([*base, "--time-scale", "0", "-o", str(tmp_path)], "--time-scale")
+    refused([*base, "--control", "127.0.0.1:1", "-o", str(tmp_path)], "--control", "tcp://HOST:PORT")
+    refused([*base, "--control", f"tcp://127.0.0.1:{free_port()}", "-o", str(tmp_path)], "--control", "control port")
     (tmp_path / "afile").write_text("")
     refused([*base, "-o", str(tmp_path / "afile")], "--output", "afile")
 

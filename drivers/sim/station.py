@@ -144,17 +144,48 @@ class SimStation:
 
     async def _serve_control(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """The side channel: one JSON object per line. ``{"fault": {...}}`` injects a fault (the
-        ``[[fault]]`` keys), ``{"time": null}`` asks for the simulated time. Replies one JSON line each."""
+        ``[[fault]]`` keys), ``{"time": null}`` asks for the simulated time. Replies one JSON line each,
+        with the simulated time and the time scale (how a client learns that t is table time)."""
         try:
             while line := await reader.readline():
                 try:
                     msg = json.loads(line)
                     if "fault" in msg:
                         self.inject(parse_fault(msg["fault"]))
-                    reply: dict[str, Any] = {"ok": True, "sim_time": self.clock.now()}
+                    reply: dict[str, Any] = {"ok": True, "sim_time": self.clock.now(), "time_scale": self.clock.time_scale}
                 except Exception as e:  # a bad request must not take the station down
                     reply = {"ok": False, "error": str(e)}
                 writer.write((json.dumps(reply) + "\n").encode())
                 await writer.drain()
         finally:
             writer.close()
+
+
+async def control_request(url: str, message: dict[str, Any], timeout_s: float = 3.0) -> dict[str, Any]:
+    """Send one request to a simulated station's control port (``tcp://HOST:PORT``, the ``control`` of
+    :meth:`SimStation.describe`) and return its reply. Raises ``OSError`` (naming the URL) when the port
+    does not answer, ``ValueError`` for a malformed URL or a refused request."""
+    from urllib.parse import urlsplit
+
+    u = urlsplit(url)
+    if u.scheme != "tcp" or not u.hostname or u.port is None:
+        raise ValueError(f"control URL {url!r}: expected tcp://HOST:PORT")
+    try:
+        reader, writer = await asyncio.wait_for(asyncio.open_connection(u.hostname, u.port), timeout_s)
+        try:
+            writer.write((json.dumps(message) + "\n").encode())
+            await writer.drain()
+            line = await asyncio.wait_for(reader.readline(), timeout_s)
+        finally:
+            writer.close()
+    except asyncio.TimeoutError:
+        raise OSError(f"control port {url}: no answer within {timeout_s:g} s") from None
+    except OSError as e:
+        raise OSError(f"control port {url}: {e.strerror or e}") from None
+    try:
+        reply = json.loads(line)
+    except ValueError:
+        raise OSError(f"control port {url}: not a simulated station's reply ({line[:60]!r})") from None
+    if not isinstance(reply, dict) or not reply.get("ok"):
+        raise ValueError(f"control port {url} refused {message}: {reply.get('error') if isinstance(reply, dict) else reply}")
+    return reply

@@ -201,7 +201,7 @@ def run_proof(n: int, seed: int, workers: int = 2, progress: Callable[[int, int,
         d.update({"verdict": r.get("verdict"),
                   "findings": [{k: f.get(k) for k in FINDING_KEYS} for f in r.get("findings", [])],
                   "heldout_ratio": o.heldout_ratio, "heldout_before": o.heldout_before, "seconds": o.seconds,
-                  "error": o.error})
+                  "error": o.error, "heading_error_deg": r.get("heading_error_deg")})
         if c.kind in OPEN_KINDS:
             d["judgement"] = judge_open(c, o.result)
         per_case.append(d)

@@ -211,6 +211,9 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         t = final.get(name) or Test(name, np.zeros((len(zr), 0)))  # the test given every other effect kept
         row = {"statistic": t.statistic, "df": t.df, "p_value": t.p_value, "p_adjusted": t.p_adjusted}
         if name in by_name:
+            # found by a search: its p pays for the dictionary's size and for the window's fitted edges,
+            # as when it was chosen (the backward test alone counts only the round's catalogue tests)
+            row["p_adjusted"] = float(min(1.0, t.p_value * dic.family * np.exp(by_name[name].test.search)))
             findings.append(discovered_finding(by_name[name], c, cv, contrib, row, nom, ctx,
                                                _heading_impact(ctx, y_raw, nom, contrib)))
             continue
@@ -226,12 +229,12 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     findings.extend(_parameter_findings(nom, calibration, A0, ctx))
     findings.sort(key=lambda f: (f["effect"] in (fx.UNEXPLAINED, fx.PARAMETER_SHIFT), -(f["heading_impact_deg"] or 0.0)))
 
-    heading_before = _heading_error(ctx, y_raw, nom0)
+    heading_before, heading_rms_before = _heading_error(ctx, y_raw, nom0)
     # after: the nominal parameters as refitted together with the effects, on readings with the
     # fitted effects taken out (what a compass that also corrected them would report)
     v_after = nom.v + coef[12:14] @ nom.basis
     nom_after = Nominal(nom.M + coef[:9].reshape(3, 3), nom.b + coef[9:12], v_after / np.linalg.norm(v_after), nom.basis)
-    heading_after = _heading_error(ctx, y_raw - (fitted - np.einsum("nip,p->ni", J0, coef[:14])), nom_after)
+    heading_after, heading_rms_after = _heading_error(ctx, y_raw - (fitted - np.einsum("nip,p->ni", J0, coef[:14])), nom_after)
     result: dict[str, Any] = {
         "verdict": "discrepancy" if findings else "consistent",
         "model": "table",
@@ -247,7 +250,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
                            "interleaved in time",
                     "rms_before_lsb": ho_before.tolist(), "rms_after_lsb": ho_after.tolist(),
                     "improvement_pct": float(100.0 * (1.0 - ho_after.mean() / max(ho_before.mean(), 1e-300)))},
-        "heading_error_deg": {"before": heading_before, "after": heading_after},
+        "heading_error_deg": {"before": heading_before, "after": heading_after,
+                              "rms_before": heading_rms_before, "rms_after": heading_rms_after},
         "nominal": _nominal_json(nom),
         "findings": findings,
         "tests": all_tests,
@@ -531,11 +535,12 @@ def _heading_impact(ctx: Context, y: np.ndarray, nom: Nominal, contrib: np.ndarr
     return float(np.max(np.abs(d))) if np.isfinite(d).all() else None
 
 
-def _heading_error(ctx: Context, y: np.ndarray, nom: Nominal) -> float | None:
-    """Max level heading error of hold means, with the nominal calibration, against the table."""
+def _heading_error(ctx: Context, y: np.ndarray, nom: Nominal) -> tuple[float | None, float | None]:
+    """Level heading error of hold means, with the nominal calibration, against the table: its maximum
+    and its RMS over the level holds (PHYSICS.md reports both)."""
     lev = _level(ctx) & (ctx.hold >= 0)
     if not lev.any():
-        return None
+        return None, None
     g = ctx.hold[lev]
     n = np.bincount(g)
     keep = n > 0
@@ -543,7 +548,9 @@ def _heading_error(ctx: Context, y: np.ndarray, nom: Nominal) -> float | None:
     first = np.flatnonzero(lev)[[np.flatnonzero(g == i)[0] for i in np.flatnonzero(keep)]]
     _, dec = field_angles(nom.v)
     err = wrap180(_corrected_heading(mean, nom, ctx.R[first]) - (ctx.ang[first, 0] - dec))
-    return float(np.max(np.abs(err))) if np.isfinite(err).all() else None
+    if not np.isfinite(err).all():
+        return None, None
+    return float(np.max(np.abs(err))), float(np.sqrt(np.mean(err * err)))
 
 
 def _folds(ctx: Context) -> np.ndarray:

@@ -91,8 +91,10 @@ def summary(result: dict[str, Any]) -> str:
                 "structure, and the nominal model stands.")
     head = result.get("heading_error_deg") or {}
     h = ""
-    if head.get("before") is not None and head.get("after") is not None:
-        h = f"; level heading error {head['before']:.3g} -> {head['after']:.3g} deg"
+    if head.get("rms_before") is not None and head.get("rms_after") is not None:
+        h = f"; level heading error {head['rms_before']:.3g} -> {head['rms_after']:.3g} deg RMS"
+    elif head.get("before") is not None and head.get("after") is not None:
+        h = f"; level heading error {head['before']:.3g} -> {head['after']:.3g} deg (maximum)"
     rb = _mean(result.get("residual_rms_before_lsb"))
     ra = _mean(result.get("residual_rms_after_lsb"))
     floor = _mean(result.get("noise_floor_lsb"))

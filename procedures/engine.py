@@ -33,6 +33,7 @@ from drivers import DriverError, Sample, SampleStream, Station
 from drivers.compass import CompassError, CompassNak, CompassTimeout, FixtureError
 from drivers.protocol import fault_name
 from drivers.turntable import MoveTimeout
+from physics.fit import screen_rows
 from physics.recording import Recording, concat, format_recording
 from physics.table import Motion
 from procedures.calibrate import PROCEDURES
@@ -163,6 +164,8 @@ class Engine:
         self._streaming = False
         self._table_used = 0.0  # table seconds until the last move, settle or acquisition ended
         self._replayed_until = 0.0  # table time of the last sample a replay took over
+        self._kept: dict[int, list[Recording]] = {}  # per slot: every recording kept, in order (the fit's rows)
+        self._flagged: dict[int, set[int]] = {}  # per slot: rows already flagged as bad
 
     # ---------------------------------------------------------------------------------- control
     def pause(self) -> None:
@@ -335,6 +338,7 @@ class Engine:
             recs = self.replay.take(step)
             for slot, rec in sorted(recs.items()):
                 self.sink.add(slot, rec)
+                self._flag_bad(slot, rec, step.step)
                 self._samples += len(rec)
                 self._replayed_until = max(self._replayed_until, float(rec.t[-1]))
             return dict(recs)
@@ -475,10 +479,30 @@ class Engine:
             th = times[slot] if times is not None else self._sample_times(slot, samples)
             rec = self._recording(int(slot), samples, label, a, th)
             self.sink.add(int(slot), rec)
+            self._flag_bad(int(slot), rec, label)
             out[int(slot)] = rec
             self._samples += len(samples)
         self.on_event(SamplesStored(label, self._samples))
         return out
+
+    def _flag_bad(self, slot: int, rec: Recording, label: str) -> None:
+        """Screen the slot's samples so far as the fit will (physics.fit.screen_rows: a brown-out's zeros,
+        a reading far off its pose's median) and warn, as it happens, of each bad sample not flagged
+        before, by its row in the unit's recording (the fit lists the same rows in quality.rejected_rows).
+        The samples stay recorded: the fit drops them, the recording keeps what the compass said."""
+        kept = self._kept.setdefault(slot, [])
+        kept.append(rec)
+        flagged = self._flagged.setdefault(slot, set())
+        bad = {i: why for i, why in screen_rows(concat(kept)).items() if i not in flagged}
+        if not bad:
+            return
+        flagged.update(bad)
+        rows = sorted(bad)
+        listed = ", ".join(map(str, rows[:20])) + (f" and {len(rows) - 20} more" if len(rows) > 20 else "")
+        why = "; ".join(f"row {i}: {bad[i]}" for i in rows[:2])
+        who = self.serials.get(slot) or f"slot {slot}"
+        self.on_event(StepWarning(f"{who}: {len(rows)} bad sample(s) flagged after {label}, rows {listed} "
+                                  f"(the fit drops them): {why}"))
 
     def _sample_times(self, slot: Any, samples: list[Sample]) -> np.ndarray:
         """The samples' times on the compass's clock, continuing the slot's previous step."""

@@ -125,3 +125,49 @@ def test_cli_fit_prints_the_dropped_rows(tmp_path: Path) -> None:
     assert f"{len(bad)} of {len(rec)} rows dropped as bad samples" in r.output
     for i in sorted(bad):
         assert f"sample {i} " in r.output
+
+
+def test_the_live_engine_flags_the_rows_the_fit_drops() -> None:
+    """A simulated compass sends checksummed but wrong readings mid-run (a brown-out's zeros, then
+    corrupted values): the engine warns of each as it arrives, by its row in the unit's recording, and
+    the calibration at the end drops exactly those rows; the recording keeps what the compass said."""
+    import re
+
+    from drivers.sim.config import reference_config
+    from procedures.events import StepWarning
+    from test_characterize import _sim_run
+
+    from drivers.sim.config import FaultConfig
+    from procedures.events import StepStarted
+    from procedures.steps import Acquire
+
+    faults = {3: FaultConfig(kind="bad_readings", slot=0, count=4, pattern="zeros"),
+              8: FaultConfig(kind="bad_readings", slot=0, count=3, pattern="random")}
+
+    def control(engine, st) -> None:  # corrupt readings as the 3rd and 8th acquisitions start
+        inner, seen = engine.on_event, []
+
+        def on_event(e) -> None:
+            inner(e)
+            if isinstance(e, StepStarted) and isinstance(e.step, Acquire):
+                seen.append(e)
+                if len(seen) in faults:
+                    st.inject(faults[len(seen)])
+        engine.on_event = on_event
+
+    result, sink, *_, events, _status, _ = _sim_run(reference_config(seed=6, time_scale=10), "calibrate",
+                                                     {"samples": 30}, control=control)
+    assert result.state.value == "completed", result.reason
+    said = [e.warning for e in events if isinstance(e, StepWarning) and "bad sample" in e.warning]
+    flagged = {int(i) for w in said for i in re.search(r"rows ([\d, ]+) \(", w).group(1).split(", ")}
+    assert said and all("(the fit drops them)" in w for w in said), said
+    dropped = {r["index"] for r in result.outcome.results[0]["quality"]["rejected_rows"]}
+    assert dropped == flagged
+    # the recording keeps what the compass said: the wrong readings are those rows, and only those
+    # (a corrupted line sent before an acquisition began is not in the recording: up to 4 + 3)
+    rec = sink.recording(0)
+    zeros = set(np.flatnonzero(np.all(rec.mag == 0, axis=1)).tolist())
+    # far (500 LSB: noise is 3) from the median of its 11 neighbours, at least 7 of them of its own pose
+    med = np.array([np.median(rec.mag[max(0, i - 5):i + 6], axis=0) for i in range(len(rec))])
+    wild = set(np.flatnonzero(np.any(np.abs(rec.mag - med) > 500, axis=1)).tolist()) - zeros
+    assert flagged == zeros | wild and 2 <= len(zeros) <= 4 and 1 <= len(wild) <= 3, (zeros, wild, flagged)

@@ -56,6 +56,9 @@ class CompassDevice:
         self.avg = DEFAULT_AVG
         self.baud = DEFAULT_BAUD
         self.seq = 0
+        #: patterns of the next RAW lines to corrupt (fault ``bad_readings``): "zeros" or "random"
+        self.bad: list[str] = []
+        self._bad_rng = random.Random(serial)
         self._inbuf = b""
 
     def power_on(self) -> None:
@@ -82,6 +85,8 @@ class CompassDevice:
                     sa[i] += a[i]
                 st += temp
             mag, acc, temp = [round(v / n) for v in sm], [round(v / n) for v in sa], st / n
+        if self.bad:  # a checksummed but wrong reading: a brown-out's zeros, or a corrupted value
+            mag = [0, 0, 0] if self.bad.pop(0) == "zeros" else [self._bad_rng.randint(-32767, 32767) for _ in range(3)]
         status = 0
         mag = [max(-32767, min(32767, v)) for v in mag]
         acc = [max(-32767, min(32767, v)) for v in acc]
@@ -466,6 +471,11 @@ class CompassSim:
         """Inject ``nbytes`` random bytes (non-ASCII included) between two lines."""
         if self._transport is not None and not self._silent:
             self._transport.write(self._rng.randbytes(nbytes))
+
+    def bad_readings(self, count: int, pattern: str = "zeros") -> None:
+        """The next ``count`` RAW lines carry a wrong magnetometer reading with a valid checksum: all
+        zeros (a brown-out) or random int16 values (``pattern="random"``)."""
+        self.device.bad.extend([pattern] * count)
 
     def fuse_next(self) -> None:
         """The next line loses its CRLF, so it fuses with the one after."""

@@ -46,7 +46,9 @@ FORMS: dict[str, str] = {
     "slot": "a slot number of the fixture (0 for the first [[unit]])",
     "kind": "one of " + ", ".join(
         ["axis_alarm", "axis_silent", "stuck_encoder", "estop", "compass_silent", "garbage",
-         "fused_line", "truncated_line", "compass_reset", "port_vanish"]),
+         "fused_line", "truncated_line", "compass_reset", "port_vanish", "bad_readings"]),
+    "count": "bad_readings: how many consecutive readings are wrong, >= 1",
+    "pattern": "bad_readings: \"zeros\" (a brown-out) or \"random\" (corrupted values)",
 }
 
 
@@ -129,7 +131,7 @@ class UnitConfig(_Strict):
 
 
 FaultKind = Literal["axis_alarm", "axis_silent", "stuck_encoder", "estop", "compass_silent", "garbage",
-                    "fused_line", "truncated_line", "compass_reset", "port_vanish"]
+                    "fused_line", "truncated_line", "compass_reset", "port_vanish", "bad_readings"]
 AXIS_FAULTS = {"axis_alarm", "axis_silent", "stuck_encoder"}
 
 
@@ -143,6 +145,8 @@ class FaultConfig(_Strict):
     at_angle_deg: float | None = None
     code: int = Field(0x20, ge=1, le=0xFFFF)
     nbytes: int = Field(40, ge=1)
+    count: int = Field(1, ge=1)
+    pattern: Literal["zeros", "random"] = "zeros"
 
     @model_validator(mode="after")
     def _target(self) -> "FaultConfig":

@@ -140,7 +140,8 @@ class SimStation:
              "fused_line": sim.fuse_next,
              "truncated_line": sim.truncate_next,
              "compass_reset": sim.reset,
-             "port_vanish": sim.vanish}[f.kind]()
+             "port_vanish": sim.vanish,
+             "bad_readings": lambda: sim.bad_readings(f.count, f.pattern)}[f.kind]()
 
     async def _serve_control(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """The side channel: one JSON object per line. ``{"fault": {...}}`` injects a fault (the

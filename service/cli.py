@@ -486,6 +486,8 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                            info=f"table {e.table_s:.0f} s, {e.samples} samples, ~{_wall_left(e, time_scale):.0f} s left")
             elif isinstance(e, events.StepStarted) and isinstance(e.step, Acquire):
                 bar.update(task, description=f"calibrate: {e.step.step}")
+            elif isinstance(e, events.StepWarning):  # e.g. bad samples flagged: said as it happens
+                bar.console.print(f"[yellow]warning:[/] {escape(e.warning)}")
 
         async with open_station(modbus, compasses, time_scale=time_scale) as station:
             result, serials, sink = await run_procedure(station, "calibrate", params, out_dir=out, on_event=on_event)

@@ -145,17 +145,23 @@ def _robust_sigma(x: np.ndarray, floor: np.ndarray) -> np.ndarray:
 
 
 def screen_rows(rec: Recording) -> dict[int, str]:
-    """Model-free screen of the magnetometer rows: {sample index: reason} of the ones to drop.
+    """Model-free screen of the magnetometer and accelerometer rows: {sample index: reason} of the
+    ones to drop (a row goes as a whole: its attitude and its field were read together).
 
-    A row is dropped when all three axes read exactly 0 (no field-sensing magnetometer does; a
-    brown-out or a dropped frame does), or when one axis is more than REJECT_SIGMA robust sigmas and
-    GROSS_FRACTION of its amplitude (half the span of the pose medians, about k) from the median of
-    its pose (poses of at least 3 samples; sigma is the recording's MAD about the pose medians).
+    A row is dropped when all three axes of either sensor read exactly 0 (no sensor in a field or under
+    gravity does; a brown-out or a dropped frame does), or when one axis is more than REJECT_SIGMA
+    robust sigmas and GROSS_FRACTION of its amplitude (half the span of the pose medians, about k)
+    from the median of its pose (poses of at least 3 samples; sigma is the recording's MAD about the
+    pose medians). One corrupted accelerometer row in a hundred moves the levelling, and with it the
+    heading, by tenths of a degree.
     """
     out: dict[int, str] = {}
-    mag = rec.mag
-    for i in np.flatnonzero(np.all(mag == 0.0, axis=1)):
-        out[int(i)] = "all three axes read exactly 0 (a brown-out or a dropped reading)"
+    sensors = [("m", "magnetometer", rec.mag)]
+    if rec.acc is not None and np.all(np.isfinite(rec.acc)):
+        sensors.append(("a", "accelerometer", rec.acc))
+    for _, name, x in sensors:
+        for i in np.flatnonzero(np.all(x == 0.0, axis=1)):
+            out.setdefault(int(i), f"all three {name} axes read exactly 0 (a brown-out or a dropped reading)")
     if len(rec) == 0:
         return out
     group = _pose_groups(rec)
@@ -165,18 +171,19 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     multi = usable & (n[group] >= 3)
     if not multi.any():
         return out
-    med = np.full((group.max() + 1, 3), np.nan)
-    for g in np.unique(group[multi]):
-        med[g] = np.median(mag[multi & (group == g)], axis=0)
-    dev = mag - med[group]
-    amplitude = 0.5 * (np.nanmax(med, axis=0) - np.nanmin(med, axis=0))
-    sigma = _robust_sigma(dev[multi], np.maximum(2e-4 * amplitude, 1e-12))
-    z = np.abs(dev) / sigma
-    gross = (z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude)
-    for i in np.flatnonzero(multi & np.any(gross, axis=1)):
-        a = int(np.argmax(z[i]))
-        out[int(i)] = (f"{'m' + 'xyz'[a]} = {mag[i, a]:g} is {abs(dev[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) from the "
-                       f"median of its pose's samples ({med[group[i], a]:g})")
+    for prefix, _, x in sensors:
+        med = np.full((group.max() + 1, 3), np.nan)
+        for g in np.unique(group[multi]):
+            med[g] = np.median(x[multi & (group == g)], axis=0)
+        dev = x - med[group]
+        amplitude = 0.5 * (np.nanmax(med, axis=0) - np.nanmin(med, axis=0))
+        sigma = _robust_sigma(dev[multi], np.maximum(2e-4 * amplitude, 1e-12))
+        z = np.abs(dev) / sigma
+        gross = (z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude)
+        for i in np.flatnonzero(multi & np.any(gross, axis=1)):
+            a = int(np.argmax(z[i]))
+            out.setdefault(int(i), f"{prefix + 'xyz'[a]} = {x[i, a]:g} is {abs(dev[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) "
+                                   f"from the median of its pose's samples ({med[group[i], a]:g})")
     return out
 
 

@@ -153,8 +153,8 @@ def test_the_live_engine_flags_the_rows_the_fit_drops() -> None:
     from procedures.events import StepStarted
     from procedures.steps import Acquire
 
-    faults = {3: FaultConfig(kind="bad_readings", slot=0, count=4, pattern="zeros"),
-              8: FaultConfig(kind="bad_readings", slot=0, count=3, pattern="random")}
+    faults = {3: FaultConfig(kind="bad_readings", slot=0, count=8, pattern="zeros"),
+              8: FaultConfig(kind="bad_readings", slot=0, count=6, pattern="random")}
 
     def control(engine, st) -> None:  # corrupt readings as the 3rd and 8th acquisitions start
         inner, seen = engine.on_event, []
@@ -176,10 +176,13 @@ def test_the_live_engine_flags_the_rows_the_fit_drops() -> None:
     dropped = {r["index"] for r in result.outcome.results[0]["quality"]["rejected_rows"]}
     assert dropped == flagged
     # the recording keeps what the compass said: the wrong readings are those rows, and only those
-    # (a corrupted line sent before an acquisition began is not in the recording: up to 4 + 3)
+    # (a corrupted line sent before the acquisition began reading is not in the recording: up to 8 + 6)
     rec = sink.recording(0)
     zeros = set(np.flatnonzero(np.all(rec.mag == 0, axis=1)).tolist())
-    # far (500 LSB: noise is 3) from the median of its 11 neighbours, at least 7 of them of its own pose
-    med = np.array([np.median(rec.mag[max(0, i - 5):i + 6], axis=0) for i in range(len(rec))])
+    # far (500 LSB: noise is 3) from the median of its pose's non-zero readings
+    pose = np.cumsum(np.r_[True, np.any(np.diff(np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t]), axis=0) != 0, axis=1)
+                            | (rec.step[1:] != rec.step[:-1])])
+    ok = ~np.all(rec.mag == 0, axis=1)
+    med = np.array([np.median(rec.mag[(pose == p) & ok], axis=0) for p in pose])
     wild = set(np.flatnonzero(np.any(np.abs(rec.mag - med) > 500, axis=1)).tolist()) - zeros
-    assert flagged == zeros | wild and 2 <= len(zeros) <= 4 and 1 <= len(wild) <= 3, (zeros, wild, flagged)
+    assert flagged == zeros | wild and 1 <= len(zeros) <= 8 and 1 <= len(wild) <= 6, (zeros, wild, flagged)

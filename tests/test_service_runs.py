@@ -330,9 +330,12 @@ def test_an_interrupted_calibration_resumes_from_its_last_checkpoint(api: Api):
         [resumed] = [d for kind, d in events if kind == "step" and "resumed_from" in d]
         assert resumed["resumed_from"] == first and resumed["samples"] == 20 * len(passed)
         new = parse_recording(api.get(f"/runs/{done['id']}/samples", role="viewer").text)
-        n = 20 * len(passed)  # the replayed part: exactly the first run's samples of the passed poses
-        keep = np.isin(old.step, [str(p) for p in passed])
-        assert keep.sum() == n and np.array_equal(new.mag[:n], old.mag[keep]) and np.array_equal(new.t[:n], old.t[keep])
+        # the replayed part: exactly the first run's first samples, those of the poses it passed (the
+        # abort may have come after the next pose acquired, before its checkpoint: those are not replayed;
+        # several poses share a label, so the rows are taken in order, not by label)
+        n = 20 * len(passed)
+        assert len(old) >= n and set(map(str, old.step[:n])) <= set(map(str, passed))
+        assert np.array_equal(new.mag[:n], old.mag[:n]) and np.array_equal(new.t[:n], old.t[:n])
         assert np.all(np.diff(new.t) >= 0) and new.t[n] > new.t[n - 1]  # table time goes on after the replay
         assert new.meta.get("resumed_from") == str(first)
         # a completed run is not resumed

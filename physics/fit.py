@@ -41,7 +41,7 @@ from physics.sensor import LinearSensor
 from physics.table import TableGeometry, base_rotation, platform_attitude
 
 #: Methods by name; the first is the default.
-METHODS = ("joint", "error-separation", "peak-picking", "ellipsoid", "deviation5", "two-axis", "maxmin")
+METHODS = ("joint", "error-separation", "peak-picking", "ellipsoid", "deviation5", "two-axis", "maxmin", "twelve-position")
 
 #: A calibrated field whose magnitude varies more than this across a level turn means the data
 #: are not what the model says (mixed units, angles in radians, a magnet on the table...).
@@ -67,6 +67,7 @@ _COMPARISON: dict[str, Callable[[Recording, es.Accel], Calibration]] = {
     "deviation5": comparison.deviation5,
     "two-axis": comparison.two_axis,
     "maxmin": comparison.maxmin,
+    "twelve-position": comparison.twelve_position,
 }
 
 

@@ -10,6 +10,7 @@ The caller fills ``quality`` and ``sigma``; a method sets I and D only when it e
 - :func:`deviation5`  seed 004: ellipsoid, then ``A + B sin + C cos + D sin 2 + E cos 2`` at level.
 - :func:`two_axis`    seed 003 (Cho and Park): x-y max/min over a level turn, h_z from the extended dip.
 - :func:`maxmin`      per-axis max/min over all poses: hard iron and scale only.
+- :func:`twelve_position` seed 002: each body axis down and up, each at two headings 180 deg apart.
 
 A recording that cannot support a method raises :class:`~physics.errorsep.InsufficientData` naming
 what is missing and which parameters it leaves undetermined.
@@ -51,6 +52,8 @@ TWO_AXIS_TILT_RANGE_DEG = (10.0, 70.0)
 #: maxmin: each body axis must come within this angle of the field and of its opposite. The extreme
 #: reading is then at least k cos(tol), so k is at most 1 - cos(tol) (1.5 % at 10 deg) too small.
 MAXMIN_TOL_DEG = 10.0
+#: twelve_position: a face counts when one body axis is within this of the vertical (deg).
+TWELVE_FACE_TOL_DEG = 2.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -368,6 +371,85 @@ def maxmin(rec: Recording, acc: Accel) -> Calibration:
     return _base("maxmin", rec, acc, LinearSensor(np.eye(3), k, bias), notes)
 
 
-METHODS = {"ellipsoid": ellipsoid, "deviation5": deviation5, "two_axis": two_axis, "maxmin": maxmin}
+# --------------------------------------------------------------------------------------------------
+# Twelve positions (seed 002)
+# --------------------------------------------------------------------------------------------------
 
-__all__ = ["METHODS", "deviation5", "ellipsoid", "fit_ellipsoid", "maxmin", "two_axis"]
+#: The twelve positions as table angles (psi_t, theta_t, phi_t): each body axis down and up, each at
+#: two headings 180 deg apart (z down and up by roll 0/180, x by pitch -+90, y by roll +-90).
+TWELVE_POSITIONS = [(psi, th, ph) for th, ph in ((0.0, 0.0), (0.0, 180.0), (-90.0, 0.0), (90.0, 0.0), (0.0, 90.0), (0.0, -90.0))
+                    for psi in (0.0, 180.0)]
+
+
+def twelve_position(rec: Recording, acc: Accel) -> Calibration:
+    """Twelve-position calibration (seed 002: a tilt-compensated three-axis AMR compass calibrated at
+    twelve positions; the paper gives only the name, so these are the textbook equations).
+
+    The positions are the six faces (each body axis pointing down, then up) at two headings 180 deg
+    apart. With the model ``m = A h_b + b`` (``A = diag(k) M_o``) and a unit lab field
+    ``(cos I cos D, cos I sin D, sin I)``, turning a face through 180 deg about the vertical reverses
+    the field's horizontal part and keeps its vertical part ``Z = sin I``. So for each face, with
+    ``u`` the body's down direction and ``C`` its attitude at the first heading:
+
+    - the pair's mean is ``b + Z A u``: over the six faces, a linear least squares in ``b`` and
+      ``G = Z A`` (every column of A, so misalignment too, from the vertical field alone);
+    - the pair's half difference is ``A C^T (cos I cos D, cos I sin D, 0)``: ``C G^-1`` of it is
+      ``cot I (cos D, sin D)``, averaged over the faces, which gives I and D;
+    - then ``A = G / sin I``, ``k`` its row norms and ``M_o`` its normalised rows.
+
+    The table is taken as level (the base tilt is not in the equations) and the poses as exact.
+    """
+    ang = table_angles(rec)
+    keys, inverse = _poses(ang)
+    means = _pose_means(inverse, np.asarray(rec.mag, dtype=float))
+    C = platform_attitude(keys[:, 0], keys[:, 1], keys[:, 2])
+    down = C[:, 2, :]  # the lab's down direction in body axes (row 2 of C_Lb)
+    axis = np.argmax(np.abs(down), axis=1)
+    vertical = np.abs(down[np.arange(len(keys)), axis]) >= np.cos(np.radians(TWELVE_FACE_TOL_DEG))
+    faces: dict[tuple[int, int], tuple[int, int]] = {}
+    for i in np.flatnonzero(vertical):
+        face = (int(axis[i]), int(np.sign(down[i, axis[i]])))
+        if face in faces:
+            continue
+        # its partner: the same tilt, the heading 180 deg on
+        partner = [j for j in np.flatnonzero(vertical) if np.allclose(keys[j, 1:], keys[i, 1:], atol=0.01)
+                   and abs(wrap180(keys[j, 0] - keys[i, 0] - 180.0)) < 0.01]
+        if partner:
+            faces[face] = (int(i), int(partner[0]))
+    missing = [f"{AXES[a]} {'down' if s > 0 else 'up'}" for a in range(3) for s in (1, -1) if (a, s) not in faces]
+    if missing:
+        raise InsufficientData(
+            "twelve_position: needs each body axis pointing down and up (within "
+            f"{TWELVE_FACE_TOL_DEG:g} deg of the vertical), each at two headings 180 deg apart; missing: "
+            f"{', '.join(missing)}. Without a face its column of the sensor matrix and the bias are "
+            "undetermined. Run the calibration with method twelve-position (it visits the twelve positions).")
+    pairs = list(faces.values())
+    avg = np.array([(means[i] + means[j]) / 2.0 for i, j in pairs])
+    half = np.array([(means[i] - means[j]) / 2.0 for i, j in pairs])
+    u = np.array([down[i] for i, _ in pairs])
+    X = np.hstack([np.ones((len(pairs), 1)), u])  # avg = b + G u
+    sol, *_ = np.linalg.lstsq(X, avg, rcond=None)
+    bias, G = sol[0], sol[1:].T
+    hor = np.array([C[i] @ np.linalg.solve(G, h) for (i, _), h in zip(pairs, half)])  # cot I (cos D, sin D, 0)
+    xy = hor[:, :2].mean(axis=0)
+    cot = float(np.hypot(*xy))
+    inc = float(np.degrees(np.arctan2(1.0, cot)))
+    dec = float(np.degrees(np.arctan2(xy[1], xy[0])))
+    A = G / np.sin(np.radians(inc))
+    k = np.linalg.norm(A, axis=1)
+    spread = np.degrees(np.arctan(np.linalg.norm(hor[:, :2] - xy, axis=1) / max(cot, 1e-12)))
+    notes = [
+        "twelve_position (seed 002): bias and the full sensor matrix from the six faces' vertical field, "
+        "I and D from their 180-deg differences; the base is taken as level.",
+        f"twelve_position: the faces' horizontal fields agree within {spread.max():.3f} deg; "
+        f"off-vertical residual {np.abs(hor[:, 2]).max() / max(cot, 1e-12):.2g} of the horizontal field.",
+    ]
+    cal = _base("twelve_position", rec, acc, LinearSensor(A / k[:, None], k, bias), notes)
+    cal.inclination_deg, cal.declination_deg = inc, dec % 360.0
+    return cal
+
+
+METHODS = {"ellipsoid": ellipsoid, "deviation5": deviation5, "two_axis": two_axis, "maxmin": maxmin,
+           "twelve_position": twelve_position}
+
+__all__ = ["METHODS", "TWELVE_POSITIONS", "deviation5", "ellipsoid", "fit_ellipsoid", "maxmin", "twelve_position", "two_axis"]

@@ -17,6 +17,8 @@ from physics import errorsep as es
 from physics.calibration import Calibration
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, evaluate as evaluate_recording, fit
+from physics.heading import circular_mean_deg, wrap180
+from physics.methods import TWELVE_POSITIONS
 from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_timeline
 from physics.table import Motion
@@ -45,7 +47,10 @@ class CalibrateParams(_Params):
     z_step_deg: azimuth step of the level rotation about z (a full turn).
     tilt_step_deg: step of the sweeps about y and x (full turns of the middle and inner axes).
     sweep_psi_deg: azimuth at which the y and x sweeps are made.
-    method: the fit (physics.fit.METHODS); the joint least-squares fit by default.
+    method: the fit (physics.fit.METHODS); the joint least-squares fit by default. Two comparison
+    methods bring their own plan: ``twelve-position`` visits its twelve positions (the steps and
+    sweep_psi_deg are not used), ``maxmin`` makes its turns about y and x at the headings where x and
+    y point along the field, found from the level turn (sweep_psi_deg is not used).
     """
 
     z_step_deg: float = Field(45.0, gt=0, le=120, description="a turn needs at least three poses")
@@ -119,10 +124,61 @@ def _per_slot(data: Collected, work: Any) -> Outcome:
     return out
 
 
+def twelve_position_poses(p: CalibrateParams = CalibrateParams()) -> list[Pose]:
+    """The twelve positions of the seed-002 method (physics.methods.TWELVE_POSITIONS): each body axis
+    down and up, each at two headings 180 deg apart."""
+    return [Pose("twelve_position", psi, th, ph, p.samples) for psi, th, ph in TWELVE_POSITIONS]
+
+
+def _peak_deg(angle: np.ndarray, mag: np.ndarray, axis: int) -> float:
+    """Where sensor ``axis`` reads most over a turn (deg): the phase of its fitted sinusoid."""
+    coef, _ = es.fit_sinusoid(angle, mag[:, axis])
+    return float(np.degrees(np.arctan2(coef[2], coef[1])) % 360.0)
+
+
+def _fixture_peak(data: Collected, step: str, column: str, axis: int) -> float:
+    """The peak of ``axis`` over the turn labelled ``step`` (angle column ``column``), averaged over the
+    fixture's units (mounted alike, they peak within their misalignments of each other)."""
+    peaks = []
+    for rec in data.recordings().values():
+        keep = rec.step == step
+        peaks.append(_peak_deg(getattr(rec, column)[keep], rec.mag[keep], axis))
+    # no data: the plan's length is being estimated (Procedure.plan), any angle will do
+    return round(circular_mean_deg(peaks), 2) if peaks else 0.0
+
+
+def maxmin_visit(p: CalibrateParams, data: Collected) -> ProcedureGen:
+    """The plan of the maxmin method: every sensor axis pointed along and against the field.
+
+    The level turn gives the heading at which x and at which y point along the field's horizontal
+    part (psi near D and D - 90). A turn about y there swings x and z through the vertical plane that
+    holds the field, a turn about x at the other swings y and z: each turn's sinusoids say at which
+    angle each axis peaks, and the axis is then held there and opposite (so the extremes are
+    measured, not missed by up to half a step)."""
+    yield from visit([Pose("rotate_z", float(a), 0.0, 0.0, p.samples) for a in _turn(p.z_step_deg)], p.settle_s, data)
+    psi_x = _fixture_peak(data, "rotate_z", "psi_t", 0)
+    psi_y = _fixture_peak(data, "rotate_z", "psi_t", 1)
+    for label, psi, column, axes in (("sweep_y", psi_x, "theta_t", (0, 2)), ("sweep_x", psi_y, "phi_t", (1, 2))):
+        def pose(step: str, a: float, psi: float = psi, label: str = label) -> Pose:
+            return Pose(step, psi, a if label == "sweep_y" else 0.0, a if label == "sweep_x" else 0.0, p.samples)
+        yield from visit([pose(label, float(a)) for a in _turn(p.tilt_step_deg)], p.settle_s, data)
+        peaks = [_fixture_peak(data, label, column, i) for i in axes]
+        extremes = sorted({round(float(wrap180(a + d)), 2) for a in peaks for d in (0.0, 180.0)})
+        yield from visit([pose("maxmin_" + label[-1], a) for a in extremes], p.settle_s, data)
+    return Outcome()
+
+
 def calibrate(p: CalibrateParams) -> ProcedureGen:
-    """The error-separation calibration of every unit in the fixture, ending in the fit."""
+    """The calibration of every unit in the fixture, ending in the fit: the error-separation poses
+    (:func:`calibration_poses`), or the plan of a comparison method that needs its own (the twelve
+    positions; maxmin's field-aligned turns)."""
     data = Collected()
-    yield from visit(calibration_poses(p), p.settle_s, data)
+    if p.method == "twelve-position":
+        yield from visit(twelve_position_poses(p), p.settle_s, data)
+    elif p.method == "maxmin":
+        yield from maxmin_visit(p, data)
+    else:
+        yield from visit(calibration_poses(p), p.settle_s, data)
 
     def work(rec: Recording) -> dict[str, Any]:
         cal = fit(rec, p.method, bootstrap=0)

@@ -15,7 +15,8 @@ from typing import Any, Union
 from pydantic import BaseModel
 
 from physics.recording import Recording
-from physics.simulate import SCAN_AXES, Scan  # noqa: F401  (re-exported: a step of the step language)
+from physics.sensor import Unit
+from physics.simulate import SCAN_AXES, Pose, Scan, World, simulate_recording  # noqa: F401  (Scan, SCAN_AXES: re-exported, steps of the step language)
 from physics.table import Motion, move_seconds
 
 
@@ -155,3 +156,26 @@ def drive(gen: ProcedureGen, respond: Callable[[Step], Reply]) -> Outcome:
         except StopIteration as stop:
             return stop.value
         reply = respond(step)
+
+
+def simulate_run(gen: ProcedureGen, unit: Unit, world: World, rng: Any, pause_s: float = 5.0) -> tuple[Outcome, list[Move]]:
+    """Run a procedure offline on one simulated unit in slot 0 (physics.simulate): each acquisition is
+    answered with the samples the unit gives at the angles of the last move, ``pause_s`` of table
+    time after the previous one, so a plan that depends on its data gets data. Scans are not
+    simulated here. Returns the outcome and the moves made."""
+    here, t, moves = Move(0.0), [0.0], []
+
+    def respond(step: Step) -> Reply:
+        nonlocal here
+        if isinstance(step, Move):
+            here = step
+            moves.append(step)
+        elif isinstance(step, Acquire):
+            rec = simulate_recording(unit, [Pose(step.step, here.psi, here.theta, here.phi, step.samples)], world, rng=rng)
+            rec.t = rec.t + t[0]
+            t[0] = float(rec.t[-1]) + pause_s
+            return {0: rec}
+        elif isinstance(step, Scan):
+            raise NotImplementedError("simulate_run does not simulate scans (physics.simulate.simulate_timeline does)")
+        return _empty_reply(step)
+    return drive(gen, respond), moves

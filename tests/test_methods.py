@@ -11,10 +11,12 @@ import pytest
 from physics.calibration import Calibration, attitude_grid, level_turn, truth_errors, truth_summary
 from physics.errorsep import Accel, InsufficientData, accelerometer
 from physics.frames import rot_x, rot_y, rot_z
-from physics.methods import deviation5, ellipsoid, maxmin, two_axis
+from physics.heading import wrap180
+from physics.methods import TWELVE_POSITIONS, deviation5, ellipsoid, maxmin, twelve_position, two_axis
 from physics.sensor import LinearSensor, Unit, random_unit, reference_unit
 from physics.simulate import Pose, World, simulate_recording
-from procedures.calibrate import calibration_poses
+from procedures.calibrate import PROCEDURES, calibration_poses, twelve_position_poses
+from procedures.steps import simulate_run
 
 WORLD = World()  # I = 55 deg, D = 23 deg, ideal table
 
@@ -267,6 +269,60 @@ def test_maxmin_refuses_default_poses_and_names_the_axes(reference_default):
         maxmin(rec, acc)
     msg = str(e.value)
     assert "x axis: comes within 3" in msg and "sweep about the table's y axis (pitch) at psi_t = 2" in msg
+
+
+def _run_calibrate(method: str, unit: Unit, world: World, seed: int = 2):
+    """``calibrate`` with ``method`` offline (procedures.steps.simulate_run): slot 0's result and the
+    table angles of every move."""
+    proc = PROCEDURES["calibrate"]
+    out, moves = simulate_run(proc.run(proc.validate({"method": method})), unit, world, np.random.default_rng(seed))
+    return out.results[0], [(m.psi, m.theta, m.phi) for m in moves]
+
+
+def test_maxmin_has_a_plan_that_points_every_axis_along_the_field():
+    """method maxmin: its turns about y and x are made where the level turn found x and y along the
+    field (here D = -37 deg, far from the default sweep azimuth), and each axis is then held at its
+    extremes: the method is no longer refused, each axis reaches the field within a degree."""
+    world = World(inclination_deg=62.0, declination_deg=-37.0)
+    unit = random_unit(np.random.default_rng(5))
+    result, moves = _run_calibrate("maxmin", unit, world)
+    cal = result["calibration"]
+    assert cal.method == "maxmin"
+    [closest] = [n for n in cal.notes if n.startswith("maxmin: closest approach")]
+    approach = [float(x) for x in closest.split(": ")[-1].replace("/", " ").replace(",", " ").split() if x[0].isdigit()]
+    assert len(approach) == 6 and max(approach) < 2.0, closest
+    sweep_psi = {round(m[0], 1) for m in moves if abs(m[1]) > 1 or abs(m[2]) > 1}
+    assert all(min(abs(wrap180(p - d)) for d in (-37.0, -127.0)) < 3.0 for p in sweep_psi), sweep_psi
+    np.testing.assert_allclose(cal.mag.k, unit.mag.k, rtol=0.01)  # the extremes are measured, not missed
+
+
+def test_twelve_position_is_exact_on_a_linear_unit_and_finds_the_field():
+    """Seed 002's twelve positions: noise-free, the bias, the full sensor matrix (misalignment
+    included), I and D come out exact; with noise the heading error is small and the procedure
+    visits exactly the twelve positions."""
+    world = World(inclination_deg=48.0, declination_deg=-12.0)
+    unit = random_unit(np.random.default_rng(11))
+    exact = replace(unit, mag=replace(unit.mag, noise_lsb=0.0))
+    rec = _rec(exact, twelve_position_poses(), world)
+    cal = twelve_position(rec, _true_acc(exact))
+    np.testing.assert_allclose(cal.mag.M, exact.mag.M, rtol=1e-3, atol=0.5)
+    np.testing.assert_allclose(cal.mag.bias, exact.mag.bias, atol=0.5)
+    assert abs(cal.inclination_deg - 48.0) < 0.01 and abs(wrap180(cal.declination_deg + 12.0)) < 0.01
+    # the truth itself is not error-free here (quantised counts): within 0.05 deg of its figure
+    truth = Calibration("truth", exact.mag, acc=exact.acc)
+    truth.inclination_deg, truth.declination_deg = 48.0, -12.0
+    assert truth_summary(cal, exact, world)["tilted_max"] < truth_summary(truth, exact, world)["tilted_max"] + 0.05
+
+    result, moves = _run_calibrate("twelve-position", unit, world)
+    assert sorted(set(moves)) == sorted(set(TWELVE_POSITIONS))
+    s = truth_summary(result["calibration"], unit, world)
+    assert s["level_max"] < 0.1 and s["tilted_max"] < 0.2
+
+
+def test_twelve_position_refuses_without_its_faces_and_names_them(reference_default):
+    _, rec, acc = reference_default  # the default poses: no face has x or y vertical at two headings
+    with pytest.raises(InsufficientData, match=r"twelve_position: needs each body axis.*missing: .*x down"):
+        twelve_position(rec, acc)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -13,14 +13,15 @@ from contextlib import asynccontextmanager
 
 from drivers import Station
 from drivers.compass import SerialFixture
-from drivers.turntable import Turntable
+from drivers.turntable import POLL_INTERVAL, Turntable
 
 
 @asynccontextmanager
 async def open_station(modbus: str, compasses: list[str], *, time_scale: float = 1.0,
                        sample_rate_hz: int = 20, name: str = "station") -> AsyncIterator[Station]:
     """Connect a station's table (Modbus URL) and fixture (one serial URL per slot); close both after."""
-    table = Turntable(modbus)
+    # status polls at the same table-time interval whatever the time scale (not more often than every 0.5 ms)
+    table = Turntable(modbus, poll_interval=max(POLL_INTERVAL / time_scale, 0.0005))
     fixture = SerialFixture({slot: url for slot, url in enumerate(compasses)})
     await table.connect()
     try:

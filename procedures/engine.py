@@ -166,6 +166,7 @@ class Engine:
         self._replayed_until = 0.0  # table time of the last sample a replay took over
         self._kept: dict[int, list[Recording]] = {}  # per slot: every recording kept, in order (the fit's rows)
         self._flagged: dict[int, set[int]] = {}  # per slot: rows already flagged as bad
+        self._held: Any = None  # encoder angles where the table holds since the last move, if known
 
     # ---------------------------------------------------------------------------------- control
     def pause(self) -> None:
@@ -284,14 +285,16 @@ class Engine:
 
     async def _do(self, step: Step) -> Any:
         if isinstance(step, Move):
-            return await self._retry(lambda: self.station.table.move_to(
+            self._held = await self._retry(lambda: self.station.table.move_to(
                 step.psi, step.theta, step.phi, speed_dps=self.station.speed_dps, accel_dps2=self.station.accel_dps2), MoveTimeout)
+            return self._held
         if isinstance(step, Settle):
             await asyncio.sleep(step.seconds / self.station.time_scale)
             return None
         if isinstance(step, Acquire):
             await self._stream()
             return await self._acquire(step)
+        self._held = None  # anything else (a scan, a prompt, a pause): read the encoders afresh
         if isinstance(step, Scan):
             await self._retry(lambda: self.station.table.move_to(
                 *step.start_angles, speed_dps=self.station.speed_dps, accel_dps2=self.station.accel_dps2), MoveTimeout)
@@ -374,13 +377,16 @@ class Engine:
 
         A read that times out keeps what arrived (sent to the sink at once) and the retry reads only
         what is missing, so a pose holds its planned count however late a busy host delivers lines."""
-        before = await self.station.table.positions()
+        # where the last move stopped (read back in position), else the encoders now: a round trip
+        # saved per pose is a time-scale's worth of table time on a simulated station
+        before = self._held if self._held is not None else await self.station.table.positions()
         parts: dict[int, list[Recording]] = {}
         await self._retry(lambda: self._read_missing(step, parts, before), CompassTimeout)
         after = await self.station.table.positions()
         moved = float(np.max(np.abs(np.subtract(after, before))))
         if moved > HOLD_TOLERANCE_DEG:
             raise DriverError(f"the table moved {moved:.3f} deg while {step.step} was acquiring")
+        self._held = before
         return {slot: concat(recs) for slot, recs in parts.items()}
 
     async def _read_missing(self, step: Acquire, parts: dict[int, list[Recording]], held: Any) -> None:

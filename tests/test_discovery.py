@@ -436,3 +436,38 @@ def test_a_lab_window_is_not_taken_by_a_stage_gain_in_the_same_window() -> None:
     (a, b), = first["model"]["segments"]
     (ta, tb), = case.model["segments"]
     assert abs(a - ta) < 2.0 and abs(b - tb) < 2.0
+
+
+def test_whitening_restarts_at_each_segment_and_the_window_statistic_matches_the_tall_svd() -> None:
+    """whiten_all filters the whole series at once and takes each segment's carry-over back out; it must
+    equal the Kalman innovations computed sample by sample, restarted at each segment (the nulls' time
+    loop, written independently), for white and coloured axes and segments of 1 to 700 samples. The
+    window refinement's statistic from the columns' Gram matrix must equal |B^T y|^2 with B the tall SVD's
+    complement, including a column that lies in span Q."""
+    from physics.discrepancy.lrt import _complement, complement_statistic
+    from physics.discrepancy.noise import NoiseModel, _whiten_each
+    rng = np.random.default_rng(5)
+    seg = np.repeat(np.arange(40), rng.choice([1, 2, 7, 60, 240, 700], 40))
+    noise = NoiseModel(np.array([2.0, 0.0, 1.5]), np.array([0.7, 0.0, 0.95]), np.array([1.0, 3.0, 0.2]))
+    X = rng.normal(size=(len(seg), 3))
+    loop = _whiten_each(X[:, :, None], NoiseModel(*(a[:, None] for a in (noise.sigma, noise.phi, noise.white))), seg)[:, :, 0]
+    fast = whiten_all(X, noise, seg).reshape(3, -1).T
+    assert np.allclose(fast, loop, atol=1e-10), np.max(np.abs(fast - loop))
+    # a plain loop over segments for a column block, as whiten_all was written before
+    from scipy import signal
+    K, S = noise.kalman()
+    cols = rng.normal(size=(len(seg), 3, 4))
+    ref = np.empty((3, len(seg), 4))
+    first = np.r_[True, seg[1:] != seg[:-1]]
+    for j in range(3):
+        for lo, hi in zip(np.flatnonzero(first), np.r_[np.flatnonzero(first)[1:], len(seg)]):
+            ref[j, lo:hi] = signal.lfilter([1.0, -noise.phi[j]], [1.0, -noise.phi[j] * (1 - K[j])], cols[lo:hi, j], axis=0)
+        ref[j] /= S[j]
+        ref[j, first] *= S[j] / noise.floor[j]
+    assert np.allclose(whiten_all(cols, noise, seg), ref.reshape(3 * len(seg), 4), atol=1e-10)
+    # the statistic
+    Q = _orth(rng.normal(size=(300, 6)))
+    y = rng.normal(size=300)
+    for Xc in (rng.normal(size=(300, 3)), np.column_stack([rng.normal(size=300), Q[:, 0] * 3.0, np.zeros(300)])):
+        B = _complement(Xc, Q)
+        assert complement_statistic(Xc, Q, y) == pytest.approx(float(np.sum((B.T @ y) ** 2)), rel=1e-9)

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from physics.discrepancy.lrt import Test, _complement, _orth, _score, chi2_logsf
+from physics.discrepancy.lrt import Test, _complement, _orth, _score, chi2_logsf, complement_statistic
 from physics.discrepancy.noise import NoiseModel, whiten_all
 from physics.discrepancy.twin import ATTITUDE_SOURCE_KEY, Context, Nominal, _stage_Q
 
@@ -539,9 +539,7 @@ def window_statistic(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarr
     m = (ctx.t >= t0) & (ctx.t < t1)
     if other is not None:
         m = m | other
-    Xw = whiten_all(X * m[:, None, None], noise, ctx.segment)
-    B = _complement(Xw, Q)
-    return float(np.sum((B.T @ y) ** 2)) if B.shape[1] else 0.0
+    return complement_statistic(whiten_all(X * m[:, None, None], noise, ctx.segment), Q, y)
 
 
 def refine_window(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray, a: int, b: int,

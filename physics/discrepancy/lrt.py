@@ -37,6 +37,21 @@ def _complement(X: np.ndarray, Q: np.ndarray, rcond: float = 1e-6) -> np.ndarray
     return U[:, s > 1e-3]
 
 
+def complement_statistic(X: np.ndarray, Q: np.ndarray, y: np.ndarray) -> float:
+    """``|B^T y|^2`` for B = :func:`_complement` (X, Q), from the columns' 3x3-sized Gram matrix instead of
+    a tall SVD (the window refinement computes it thousands of times per analysis): with the projected
+    columns Xp = U S V^T, B^T y = S^-1 V^T Xp^T y over the kept directions (s > 1e-3, i.e. s^2 > 1e-6)."""
+    if X.shape[1] == 0:
+        return 0.0
+    norm = np.linalg.norm(X, axis=0)
+    Xn = X[:, norm > 0] / norm[norm > 0]
+    A = Q.T @ Xn  # Xp = Xn - Q A: its Gram matrix and Xp^T y without forming Xp
+    lam, V = np.linalg.eigh(Xn.T @ Xn - A.T @ A)
+    keep = lam > 1e-6
+    u = V[:, keep].T @ (Xn.T @ y - A.T @ (Q.T @ y))
+    return float(np.sum(u * u / lam[keep]))
+
+
 @dataclass
 class Test:
     """One nested test: what the columns add to the current model."""

@@ -38,11 +38,11 @@ class NoiseModel:
         """Steady-state Kalman gain K and innovation sigma of the AR(1)-plus-white model."""
         s2, p, q = self.sigma ** 2, self.phi, self.white ** 2
         e2 = s2 * (1.0 - p * p)
-        P = s2
-        for _ in range(200):  # converges geometrically (phi^2 per step at worst)
-            Pm = p * p * P + e2
-            P = Pm * q / np.maximum(Pm + q, 1e-300)
-        Pm = p * p * P + e2
+        # the Riccati fixed point Pm = p^2 Pm q / (Pm + q) + e2, a quadratic's positive root, written
+        # without cancellation for either sign of B
+        B = q * (1.0 - p * p) - e2
+        root = np.sqrt(B * B + 4.0 * e2 * q)
+        Pm = np.where(B > 0, 2.0 * e2 * q / np.maximum(B + root, 1e-300), 0.5 * (root - B))
         return Pm / np.maximum(Pm + q, 1e-300), np.sqrt(Pm + q)
 
     def spectrum(self, f: np.ndarray, rate_hz: float) -> np.ndarray:
@@ -152,17 +152,37 @@ def whiten_all(X: np.ndarray, noise: NoiseModel, segment: np.ndarray) -> np.ndar
     X3 = X[:, :, None] if flat else X
     K, S = noise.kalman()
     first = np.r_[True, segment[1:] != segment[:-1]]
-    starts = np.flatnonzero(first)
-    ends = np.r_[starts[1:], len(segment)]
     out = np.empty((3, X3.shape[0], X3.shape[2]))
     for j in range(3):
-        b, a = [1.0, -noise.phi[j]], [1.0, -noise.phi[j] * (1.0 - K[j])]
-        for lo, hi in zip(starts, ends):
-            out[j, lo:hi] = signal.lfilter(b, a, X3[lo:hi, j, :], axis=0)
+        if noise.phi[j] == 0.0:  # white noise: the filter is the identity and S the floor
+            out[j] = X3[:, j, :] / noise.floor[j]
+            continue
+        out[j] = _filter_segments([1.0, -noise.phi[j]], [1.0, -noise.phi[j] * (1.0 - K[j])], X3[:, j, :], segment)
         out[j] /= S[j]
         out[j, first] *= S[j] / noise.floor[j]  # a segment's first sample: nothing to predict it from
     out = out.reshape(3 * X3.shape[0], X3.shape[2])
     return out[:, 0] if flat else out
+
+
+def _filter_segments(b: list[float], a: list[float], x: np.ndarray, segment: np.ndarray) -> np.ndarray:
+    """``lfilter(b, a)`` (first order) along axis 0 of ``x`` (N, p), restarted from rest at each segment.
+
+    One filter over the whole series, less each segment's carry-over from the one before: at a
+    segment's first sample s the continuous output exceeds the restarted one by
+    d_s = b1 x_{s-1} - a1 y_{s-1}, which decays by c = -a1 per sample after it. That excess is itself
+    a first-order filter's output, driven at each start by d_s less what is left of the previous
+    segment's (c^length d_prev). A loop over 50-odd segments per call had cost the analyser most of its
+    time."""
+    y = signal.lfilter(b, a, x, axis=0)
+    starts = np.flatnonzero(np.r_[True, segment[1:] != segment[:-1]])
+    if starts.size < 2:
+        return y
+    c = -a[1]
+    d = np.zeros((starts.size,) + x.shape[1:])
+    d[1:] = b[1] * x[starts[1:] - 1] - a[1] * y[starts[1:] - 1]
+    drive = np.zeros_like(y)
+    drive[starts[1:]] = d[1:] - (c ** np.diff(starts).astype(float))[(...,) + (None,) * (x.ndim - 1)] * d[:-1]
+    return y - signal.lfilter([1.0], [1.0, -c], drive, axis=0)
 
 
 def _whiten_each(e: np.ndarray, noise: NoiseModel, segment: np.ndarray) -> np.ndarray:

@@ -6,8 +6,11 @@ Device behaviour (PROTOCOLS.md), and the choices this simulator makes where the 
 - Power-on defaults: RATE 20 Hz, AVG 1, 115200 baud, seq 0; the boot banner is printed at start
   (lost if nobody is connected yet, as on a real port).
 - RAW lines are due every 1/rate simulated seconds (wall interval 1/(rate*time_scale)); a late loop
-  catches up with the missed lines (each stamped at its own simulated time), unless it fell more than
-  a second of simulated time behind. The line rate is capped by what the baud rate carries
+  catches up with the missed lines, unless it fell more than a second of simulated time behind. Each
+  line is measured when it is sent, as a device measures when it reports: a line due while the
+  table was still moving, but sent late by a busy host after the table stopped, would pair a moving
+  table's reading with the held encoder angles (the station stamps a line when it arrives), and at
+  time scale 20 a 50-ms stall is a second of table time. The line rate is capped by what the baud rate carries
   (baud/720 lines/s, ~13 at 9600).
 - AVG n: the world's ``read(t)`` is called n times at the sample's time (its noise makes them differ)
   and the mean is rounded to the nearest integer (half to even), temperature to 0.1 deg C.
@@ -437,7 +440,7 @@ class CompassSim:
             if next_t is None or rate != rate_used or now - next_t > max(1.0, period):
                 next_t, rate_used = now + period, rate  # (re)start the grid: no burst of stale lines
             while next_t <= now:
-                self._out(self.device.raw_line(next_t))
+                self._out(self.device.raw_line(now))
                 next_t += period
                 if self.device.line_rate() != rate_used:
                     break  # a reset inside the loop changed the rate

@@ -8,7 +8,7 @@ heading computation and the same evaluations then score every method alike.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -183,9 +183,12 @@ def truth_errors(cal: Calibration, unit: Unit, world: World, angles: np.ndarray,
     """
     C = platform_attitude(angles[:, 0], angles[:, 1], angles[:, 2], world.geometry)
     h_b, f_true = to_body(C, world.field_L), to_body(C, SPECIFIC_FORCE_L)
-    mag = unit.mag.measure(h_b)
+    # the expected readings, not rounded: rounding one noise-free reading is an error of up to half a
+    # count per axis (0.08 deg on a weak unit's horizontal field) that no calibration can remove, while
+    # in noise (several counts) the rounding averages out like the rest of the noise
+    mag = replace(unit.mag, quantized=False).measure(h_b)
     if cal.acc is not None and unit.acc is not None and not true_tilt:
-        f_b = cal.specific_force(unit.acc.measure(f_true))
+        f_b = cal.specific_force(replace(unit.acc, quantized=False).measure(f_true))
     else:
         f_b = f_true
     return heading_error(cal.heading(mag, f_b, stage), reference_heading(C, world.declination_deg))

@@ -289,3 +289,18 @@ def test_error_separation_is_exact_on_noise_free_random_units() -> None:
         cal = fit(recording(unit, world, samples=2), "error-separation", bootstrap=0)
         assert np.allclose(cal.mag.angles_deg, unit.mag.angles_deg, atol=1e-5)
         assert truth_summary(cal, unit, world)["tilted_max"] < 1e-5
+
+
+def test_the_true_calibration_scores_zero_on_a_weak_quantised_unit() -> None:
+    """The truth score is the calibration's error, not the rounding of one noise-free reading: a weak
+    unit (1000 LSB per field, I 70 deg: 340 LSB horizontal) with integer outputs, scored with its own
+    true sensors, must give 0 (rounding each reading had given up to 0.08 deg, four times the level target)."""
+    rng = np.random.default_rng(2)
+    unit = random_unit(rng, mag_noise_lsb=3.0)
+    unit.mag.k[:] = 1000.0
+    assert unit.mag.quantized and unit.acc.quantized
+    world = World(70.0, 10.0, TableGeometry(base_tilt_deg=(0.05, -0.03)))
+    cal = Calibration(method="truth", mag=unit.mag, acc=unit.acc, inclination_deg=70.0, declination_deg=10.0,
+                      base_tilt_deg=(0.05, -0.03))
+    s = truth_summary(cal, unit, world)
+    assert s["level_max"] < 1e-9 and s["tilted_max"] < 1e-9, s

@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from physics import errorsep as es
 from physics.calibration import Calibration
@@ -19,8 +19,9 @@ from physics.errorsep import InsufficientData
 from physics.fit import METHODS, evaluate as evaluate_recording, fit
 from physics.heading import circular_mean_deg, wrap180
 from physics.methods import TWELVE_POSITIONS
+from physics.precision import TARGET_LEVEL_DEG, TARGET_TILTED_DEG, UnitPrecision, unit_precision
 from physics.recording import Recording, RecordingError, concat
-from physics.simulate import Pose, plan_timeline
+from physics.simulate import Pose, plan_cost, plan_timeline
 from physics.table import Motion
 from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, ProcedureGen, Prompt, Scan, Settle
 
@@ -57,6 +58,11 @@ class CalibrateParams(_Params):
     tilt_step_deg: float = Field(60.0, gt=0, le=120, description="a turn needs at least three poses")
     sweep_psi_deg: float = 315.0
     method: str = "joint"
+    adaptive: bool = Field(False, description="after the plan, add the poses that lower the predicted heading error "
+                           "fastest until every unit meets the targets at 95 % confidence or budget_s ends (joint method)")
+    target_level_deg: float = Field(TARGET_LEVEL_DEG, gt=0, le=10, description="adaptive: level heading error target, deg")
+    target_tilted_deg: float = Field(TARGET_TILTED_DEG, gt=0, le=10, description="adaptive: heading error target at pitch and roll up to 60 deg")
+    budget_s: float = Field(180.0, gt=0, le=3600, description="adaptive: table seconds the whole calibration may take")
 
     @field_validator("method")
     @classmethod
@@ -64,6 +70,12 @@ class CalibrateParams(_Params):
         if v not in METHODS:
             raise ValueError(f"expected one of {', '.join(METHODS)}")
         return v
+
+    @model_validator(mode="after")
+    def _adaptive_needs_joint(self) -> "CalibrateParams":
+        if self.adaptive and self.method != "joint":
+            raise ValueError(f"adaptive: needs method 'joint' (the covariance it predicts from), got {self.method!r}")
+        return self
 
 
 def calibration_poses(p: CalibrateParams = CalibrateParams()) -> list[Pose]:
@@ -173,17 +185,144 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
     (:func:`calibration_poses`), or the plan of a comparison method that needs its own (the twelve
     positions; maxmin's field-aligned turns)."""
     data = Collected()
+    precision: dict[int, dict[str, Any]] = {}
     if p.method == "twelve-position":
         yield from visit(twelve_position_poses(p), p.settle_s, data)
     elif p.method == "maxmin":
         yield from maxmin_visit(p, data)
     else:
-        yield from visit(calibration_poses(p), p.settle_s, data)
+        poses = calibration_poses(p)
+        yield from visit(poses, p.settle_s, data)
+        if p.adaptive:
+            spent = plan_cost(poses).total_s + p.settle_s * len(poses)
+            here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
+            precision = yield from extend_to_target(p, data, spent, here)
 
-    def work(rec: Recording) -> dict[str, Any]:
-        cal = fit(rec, p.method, bootstrap=0)
-        return {"calibration": cal, "quality": cal.quality}
-    return _per_slot(data, work)
+    out = Outcome()
+    for slot, rec in data.recordings().items():
+        try:
+            cal = fit(rec, p.method, bootstrap=0)
+        except (RecordingError, InsufficientData, ValueError) as e:
+            out.results[slot] = {"error": str(e)}
+            continue
+        if slot in precision:
+            cal.quality["precision"] = precision[slot]
+            cal.notes.append(precision[slot]["why"])
+        out.results[slot] = {"calibration": cal, "quality": cal.quality}
+    return out
+
+
+# --- adaptive extension (issue 14, part 3) ----------------------------------------------------------
+
+#: Poses the adaptive extension chooses from: the level turn every 45 deg, and each quarter heading with the
+#: platform pitched or rolled by +-60 and +-120 deg or upside down (where a weak axis sees the field).
+ADAPTIVE_POSES = ([(float(a), 0.0, 0.0) for a in _turn(45.0)]
+                  + [(float(a), th, ph) for a in _turn(90.0)
+                     for th, ph in ((60.0, 0.0), (-60.0, 0.0), (0.0, 60.0), (0.0, -60.0), (120.0, 0.0), (-120.0, 0.0),
+                                    (0.0, 120.0), (0.0, -120.0), (180.0, 0.0))])
+#: Table seconds of poses chosen per round between refits (the choice is made on the information the
+#: poses will add; the refit then checks the prediction on the data they gave).
+ROUND_S = 20.0
+
+
+def _unit_precisions(data: Collected) -> dict[int, UnitPrecision]:
+    """Each slot's precision model from a joint fit of its data so far (a slot whose fit fails is left out)."""
+    out = {}
+    for slot, rec in data.recordings().items():
+        try:
+            out[slot] = unit_precision(rec, fit(rec, "joint", bootstrap=0))
+        except (RecordingError, InsufficientData, ValueError, np.linalg.LinAlgError):
+            continue
+    return out
+
+
+#: Hold lengths the extension chooses from, in multiples of ``samples``: a long hold spreads a move's
+#: seconds over more samples, a short one lets the next pose come sooner.
+HOLDS = (1, 4)
+
+
+def _pose_seconds(p: CalibrateParams, here: tuple[float, float, float], pose: tuple[float, float, float], samples: int) -> float:
+    return plan_cost([Pose("adaptive", *pose, samples=samples)], start=here).total_s + p.settle_s
+
+
+def choose_poses(units: dict[int, UnitPrecision], targets: dict[str, float], p: CalibrateParams,
+                 here: tuple[float, float, float], left_s: float) -> tuple[list[Pose], float]:
+    """Poses (up to :data:`ROUND_S` of table time, within ``left_s``) that lower the units' predicted heading
+    errors fastest: each in turn the candidate (pose and hold length) with the largest fall per table second
+    of the sum over units of their worst 1-sigma error over target, counting the poses already chosen.
+    Returns them and their seconds."""
+    cands = np.array(ADAPTIVE_POSES)
+    per = {s: (u.mag.per_sample(cands), u.acc.per_sample(cands) if u.acc else None) for s, u in units.items()}
+    added = {s: [np.zeros((14, 14)), np.zeros((14, 14)) if u.acc else None] for s, u in units.items()}
+
+    def with_pose(extra: dict[int, list], c: int, n: int) -> dict[int, list]:
+        return {s: [a[0] + n * per[s][0][c], None if a[1] is None else a[1] + n * per[s][1][c]] for s, a in extra.items()}
+
+    def objective(extra: dict[int, list]) -> float:
+        return sum(max(sig[k] / t for k, t in targets.items())
+                   for sig in (u.sigma_max(extra[s][0], extra[s][1]) for s, u in units.items()))
+
+    chosen: list[Pose] = []
+    spent = 0.0
+    now = objective(added)
+    while spent < ROUND_S:
+        best, best_rate = None, 0.0
+        for c, pose in enumerate(ADAPTIVE_POSES):
+            for hold in HOLDS:
+                n = hold * p.samples
+                cost = _pose_seconds(p, here, pose, n)
+                if spent + cost > left_s:
+                    continue
+                rate = (now - objective(with_pose(added, c, n))) / cost
+                if rate > best_rate:
+                    best, best_rate = (c, n, cost), rate
+        if best is None:
+            break
+        c, n, cost = best
+        added = with_pose(added, c, n)
+        now = objective(added)
+        chosen.append(Pose("adaptive", *ADAPTIVE_POSES[c], samples=n))
+        spent += cost
+        here = ADAPTIVE_POSES[c]
+    return chosen, spent
+
+
+def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
+                     here: tuple[float, float, float]) -> ProcedureGen:
+    """Add poses until every unit's predicted heading error (95 % quantile of its largest error level and at
+    +-60 deg, from its joint fit's covariance: physics.precision) meets the targets, or the table-time budget
+    would be exceeded. Returns per slot what was predicted, whether the targets were met and why it stopped."""
+    targets = {"level": p.target_level_deg, "tilted": p.target_tilted_deg}
+    added = 0
+    while True:
+        units = _unit_precisions(data)
+        predicted = {s: u.quantile() for s, u in units.items()}
+        pending = {s: units[s] for s in units if any(predicted[s][k] > t for k, t in targets.items())}
+        if not pending:
+            break
+        poses, seconds = choose_poses(pending, targets, p, here, p.budget_s - spent_s)
+        if not poses:  # the budget cannot take another pose
+            break
+        yield from visit(poses, p.settle_s, data)
+        spent_s += seconds
+        added += len(poses)
+        here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
+    out = {}
+    for s, q in predicted.items():
+        met = all(q[k] <= t for k, t in targets.items())
+        if met:
+            why = (f"predicted heading error (95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
+                   f"within the targets {targets['level']:g} and {targets['tilted']:g} deg"
+                   + (f" after {added} added poses" if added else " with the plan alone"))
+        else:
+            why = (f"predicted heading error (95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
+                   f"above the targets {targets['level']:g} / {targets['tilted']:g} deg when the {p.budget_s:g}-s table-time "
+                   f"budget ended ({added} poses added); a longer budget, or a unit with less noise per field, would reach them")
+        out[s] = {"predicted_level_deg": q["level"], "predicted_tilted_deg": q["tilted"], "confidence": 0.95,
+                  "target_level_deg": targets["level"], "target_tilted_deg": targets["tilted"], "met": met,
+                  "stopped": "reached" if met else "budget", "added_poses": added,
+                  "table_s": spent_s, "why": why}
+    return out
 
 
 # --- building blocks and checks -----------------------------------------------------------------

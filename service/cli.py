@@ -522,6 +522,10 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
         print_calibration(cal)
         calibration_figure(sink.recording(slot), cal, out / f"{serials[slot]}.png")
         console.print(f"calibration written to {path}, plot to {out / f'{serials[slot]}.png'}")
+        if "precision" in cal.quality:
+            pr = cal.quality["precision"]
+            colour = "green" if pr["met"] else "yellow"
+            console.print(f"[{colour}]adaptive: {escape(pr['why'])}; {pr['table_s']:.0f} s of table time[/]")
         if check is not None and check.outcome is not None and slot in check.outcome.results:
             ev = check.outcome.results[slot]
             console.print(f"evaluate on the table: heading error max {ev['level_max_deg']:.4f} deg level, "
@@ -561,7 +565,10 @@ def _procedure_params(procedure: str, parameters: dict[str, Any]) -> dict[str, A
     except ValidationError as e:
         err = e.errors()[0]
         field = ".".join(str(x) for x in err["loc"])
-        _fail(f"--{field.replace('_', '-')} {err.get('input')}: {err['msg']}")
+        if not field:  # a rule across options (e.g. --adaptive needs the joint method): its message names them
+            _fail(str(err["msg"]).removeprefix("Value error, "))
+        option = {"budget_s": "budget"}.get(field, field)
+        _fail(f"--{option.replace('_', '-')} {err.get('input')}: {err['msg']}")
     return parameters
 
 
@@ -601,6 +608,8 @@ def calibrate(
     control: Optional[str] = typer.Option(None, metavar="<url>", help="A simulator's control port (the `control` of `compasscal sim`'s line): the time scale is learnt from it, so the recording's t is table time."),
     samples: int = typer.Option(CalibrateParams().samples, help="Samples per pose."),
     method: Method = typer.Option(METHODS[0], help="Calibration method."),  # type: ignore[valid-type]
+    adaptive: bool = typer.Option(False, help="After the plan, add poses until every unit's predicted heading error meets the targets (0.02 deg level, 0.05 deg tilted) at 95 % confidence, or --budget ends (joint method)."),
+    budget: float = typer.Option(CalibrateParams().budget_s, metavar="<seconds>", help="With --adaptive: table seconds the whole calibration may take."),
     evaluate: bool = typer.Option(False, help="Then check each calibration on the table, level and at pitch and roll up to 60 deg."),
     truth: Optional[Path] = typer.Option(None, help="True parameters written by `sim --truth`: also score against them."),
 ) -> None:
@@ -611,7 +620,10 @@ def calibrate(
     if control is not None:
         time_scale = _control_time_scale(control, time_scale)
     time_scale = 1.0 if time_scale is None else time_scale
-    params = _procedure_params("calibrate", {"samples": samples, "method": method.value})
+    given = {"samples": samples, "method": method.value}
+    if adaptive:
+        given.update(adaptive=True, budget_s=budget)
+    params = _procedure_params("calibrate", given)
     _output_dir(output, "--output")
     truths = _read_json(truth, "--truth") if truth is not None else None
     failed = _run(_calibrate_station(modbus, compass, output, time_scale, params, truths, evaluate))

@@ -64,9 +64,9 @@ def test_calibrate_against_a_sim_process_writes_recordings_and_calibrations(tmp_
     try:
         d = json.loads(sim.stdout.readline())
         out = tmp_path / "run"
-        # no --time-scale: calibrate asks the simulator's control port
+        # no --time-scale: calibrate asks the simulator's control port; --adaptive: the plan extended as the unit needs
         r = runner.invoke(app, ["calibrate", "--modbus", d["modbus"], "--compass", d["compasses"][0]["url"],
-                                "--control", d["control"], "-o", str(out), "--truth", str(truth)])
+                                "--control", d["control"], "-o", str(out), "--truth", str(truth), "--adaptive"])
         contradicted = runner.invoke(app, ["calibrate", "--modbus", d["modbus"], "--compass", d["compasses"][0]["url"],
                                            "--control", d["control"], "--time-scale", "1", "-o", str(out)])
     finally:
@@ -78,6 +78,9 @@ def test_calibrate_against_a_sim_process_writes_recordings_and_calibrations(tmp_
     assert "run completed" in said and "Table 1" in said and "against the true unit" in said
     cal = json.loads((out / f"{serial}.cal.json").read_text())
     assert cal["format"] == "compasscal-calibration/1" and cal["serial"] == serial
+    pr = cal["quality"]["precision"]
+    assert pr["stopped"] in ("reached", "budget") and pr["met"] == (pr["stopped"] == "reached") and pr["table_s"] <= 180.0
+    assert f"adaptive: {' '.join(pr['why'].split())}" in said
     assert (out / f"{serial}.csv").read_text().count("\n") > 18 * 60
     rec = parse_recording((out / f"{serial}.csv").read_text())
     # table time: the plan turns for minutes (at time scale 20 the run took seconds of wall time)

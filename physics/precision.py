@@ -1,0 +1,175 @@
+"""How well a calibration will point, predicted from the data it came from, and which pose buys the most.
+
+The joint fit's parameters have the covariance ``(J^T J)^-1`` of its whitened Jacobian (errorsep:
+``raw = M R^T v + b`` for the magnetometer and the accelerometer alike; parameters [M, b, t]). A heading
+error is a function of the magnetometer's M, b and the accelerometer's (the compass levels itself with
+it); linearised about the fit, ``e(attitude) = G_mag dp_mag + G_acc dp_acc``, with the gradients G taken
+numerically on the fitted model's own noise-free readings (the fitted unit in the fitted world). The
+prediction of a target (the level turn, or every heading at pitch and roll up to 60 deg) is the 95 %
+quantile over draws of dp of the largest |e| over its attitudes: the unit meets the target "at 95 %
+confidence" when that quantile is within it.
+
+Each pose of a plan adds ``n J_pose^T J_pose`` to the information (n samples at one attitude); the
+information after a candidate pose is known before the pose is made, so a procedure can choose the
+pose that lowers the worst predicted error the most per second of table time. Pure functions, no I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from physics import errorsep as es
+from physics.calibration import Calibration, attitude_grid, level_turn, truth_errors
+from physics.recording import Recording
+from physics.sensor import LinearSensor, Unit
+from physics.simulate import World
+from physics.table import TableGeometry, platform_attitude
+
+#: The targets of the production line (PHYSICS.md): max level and max tilted (+-60 deg) heading error, deg.
+TARGET_LEVEL_DEG, TARGET_TILTED_DEG = 0.02, 0.05
+#: Confidence at which a unit is said to meet a target.
+CONFIDENCE = 0.95
+#: Draws of the parameters for the quantile (fixed, so that predictions compare without noise).
+DRAWS = 400
+
+
+@dataclass
+class SensorInfo:
+    """One vector sensor's fit as the precision model needs it: M, b, the unit field (or specific force)
+    in the table's base frame v with its tangent basis, each axis's noise (LSB), and the information
+    matrix over [M (row-major), b, t] gathered so far."""
+
+    M: np.ndarray
+    b: np.ndarray
+    v: np.ndarray
+    basis: np.ndarray
+    noise: np.ndarray
+    info: np.ndarray
+
+    def per_sample(self, angles: np.ndarray) -> np.ndarray:
+        """Information (14, 14) one sample adds at each of ``angles`` (K, 3): (K, 14, 14)."""
+        R = platform_attitude(angles[:, 0], angles[:, 1], angles[:, 2])
+        out = np.empty((len(angles), 14, 14))
+        for k in range(len(angles)):
+            J = es._jacobian(R[k:k + 1], self.M, self.v, self.basis, 1.0 / self.noise)
+            out[k] = J.T @ J
+        return out
+
+    def covariance(self, extra: np.ndarray | None = None) -> np.ndarray:
+        """Covariance (12, 12) of M and b, with ``extra`` information added."""
+        F = self.info if extra is None else self.info + extra
+        return np.linalg.pinv(F)[:12, :12]
+
+
+def sensor_info(R: np.ndarray, raw: np.ndarray, sensor: LinearSensor) -> SensorInfo:
+    """The information of a fitted sensor on readings ``raw`` (N, 3) made at nominal attitudes R (N, 3, 3):
+    v is the direction that its corrected readings give in the base frame, the noise their residual."""
+    M, b = sensor.M, sensor.bias
+    h = np.linalg.solve(M, (raw - b).T).T  # = R^T v per sample
+    v = np.einsum("nij,nj->i", R, h)
+    v /= np.linalg.norm(v)
+    r = raw - np.einsum("ij,nkj,k->ni", M, R, v) - b
+    noise = np.maximum(np.sqrt(np.mean(r * r, axis=0)), 1e-9 * np.abs(raw).max())
+    basis = es._tangent_basis(v)
+    J = es._jacobian(R, M, v, basis, 1.0 / noise)
+    return SensorInfo(M, b, v, basis, noise, J.T @ J)
+
+
+@dataclass
+class UnitPrecision:
+    """A unit's calibration, its information so far and its heading gradients at the targets' attitudes."""
+
+    mag: SensorInfo
+    acc: SensorInfo | None
+    gradients: dict[str, tuple[np.ndarray, np.ndarray | None]]  # target -> (G_mag (K, 12), G_acc (K, 12))
+
+    def sigma_max(self, extra_mag: np.ndarray | None = None, extra_acc: np.ndarray | None = None) -> dict[str, float]:
+        """Largest 1-sigma heading error (deg) over each target's attitudes."""
+        Cm = self.mag.covariance(extra_mag)
+        Ca = self.acc.covariance(extra_acc) if self.acc is not None else None
+        out = {}
+        for name, (Gm, Ga) in self.gradients.items():
+            var = np.einsum("ki,ij,kj->k", Gm, Cm, Gm)
+            if Ga is not None and Ca is not None:
+                var = var + np.einsum("ki,ij,kj->k", Ga, Ca, Ga)
+            out[name] = float(np.sqrt(max(var.max(), 0.0)))
+        return out
+
+    def quantile(self, confidence: float = CONFIDENCE, draws: int = DRAWS) -> dict[str, float]:
+        """The ``confidence`` quantile (deg) of the largest |heading error| over each target's attitudes."""
+        rng = np.random.default_rng(0)
+        Lm = _factor(self.mag.covariance())
+        zm = Lm @ rng.standard_normal((12, draws))
+        za = None
+        if self.acc is not None:
+            za = _factor(self.acc.covariance()) @ rng.standard_normal((12, draws))
+        out = {}
+        for name, (Gm, Ga) in self.gradients.items():
+            e = Gm @ zm
+            if Ga is not None and za is not None:
+                e = e + Ga @ za
+            out[name] = float(np.quantile(np.max(np.abs(e), axis=0), confidence))
+        return out
+
+
+def _factor(C: np.ndarray) -> np.ndarray:
+    """A square root of a covariance (symmetric, possibly singular)."""
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    return V * np.sqrt(np.clip(w, 0.0, None))
+
+
+def target_attitudes() -> dict[str, np.ndarray]:
+    """Encoder angles of each target, as the accuracy benchmark scores them: the level turn (5-deg steps) and
+    the +-60 deg grid (every 30 deg of pitch and roll, headings every 15 deg)."""
+    return {"level": level_turn(5.0), "tilted": attitude_grid()}
+
+
+def heading_gradients(cal: Calibration, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """d(heading error)/d[M, b] (deg per unit) of the magnetometer and of the accelerometer at ``angles``,
+    on the noise-free readings of the fitted unit in the fitted world (central differences)."""
+    world = World(cal.inclination_deg, cal.declination_deg, TableGeometry(base_tilt_deg=tuple(cal.base_tilt_deg)))
+    unit = Unit("fit", replace(cal.mag, noise_lsb=0.0), None if cal.acc is None else replace(cal.acc, noise_lsb=0.0))
+
+    def grad(which: str) -> np.ndarray:
+        s: LinearSensor = getattr(cal, which)
+        p0 = np.r_[s.M.ravel(), s.bias]
+        G = np.empty((len(angles), 12))
+        for j in range(12):
+            h = 1e-6 * max(abs(p0[j]), np.abs(s.M).max() * 1e-3)
+            out = []
+            for sign in (1.0, -1.0):
+                p = p0.copy()
+                p[j] += sign * h
+                moved = replace(cal, **{which: LinearSensor.from_matrix(p[:9].reshape(3, 3), p[9:])})
+                out.append(truth_errors(moved, unit, world, angles))
+            G[:, j] = (out[0] - out[1]) / (2 * h)
+        return G
+    return grad("mag"), (grad("acc") if cal.acc is not None else None)
+
+
+def unit_precision(rec: Recording, cal: Calibration) -> UnitPrecision:
+    """The precision model of ``cal`` fitted (joint) to ``rec``'s rows that the fit kept."""
+    dropped = {row["index"] for row in cal.quality.get("rejected_rows", [])} if cal.quality else set()
+    keep = np.setdiff1d(np.arange(len(rec)), np.fromiter(dropped, int, len(dropped)))
+    good = rec.select(keep)
+    R = es.rotations(good)
+    mag = sensor_info(R, good.mag, cal.mag)
+    acc = None
+    if cal.acc is not None and good.acc is not None and np.all(np.isfinite(good.acc)):
+        acc = sensor_info(R, good.acc, cal.acc)
+    grads = {name: heading_gradients(cal, a) for name, a in target_attitudes().items()}
+    return UnitPrecision(mag, acc, grads)
+
+
+def worst_ratio(units: list[UnitPrecision], targets: dict[str, float],
+                extra: list[tuple[np.ndarray, np.ndarray | None]] | None = None) -> float:
+    """The largest predicted 1-sigma error over target, over units and targets, with extra information."""
+    worst = 0.0
+    for i, u in enumerate(units):
+        em, ea = extra[i] if extra else (None, None)
+        s = u.sigma_max(em, ea)
+        worst = max(worst, max(s[name] / t for name, t in targets.items()))
+    return worst
+

@@ -1,0 +1,94 @@
+"""The predicted heading error (physics/precision.py) and the adaptive calibration plan it drives
+(procedures/calibrate.py, issue 14 part 3)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from physics.calibration import truth_summary
+from physics.fit import fit
+from physics.precision import unit_precision
+from physics.sensor import random_unit, reference_unit
+from physics.simulate import World, simulate_recording
+from physics.table import TableGeometry
+from procedures.calibrate import PROCEDURES, CalibrateParams, calibration_poses
+from procedures.steps import simulate_run
+
+
+def _units(n: int, seed: int) -> list[tuple]:
+    rng = np.random.default_rng(seed)
+    return [(random_unit(rng, mag_noise_lsb=3.0),
+             World(rng.uniform(40, 70), rng.uniform(0, 360), TableGeometry(base_tilt_deg=tuple(rng.uniform(-0.1, 0.1, 2)))))
+            for _ in range(n)]
+
+
+def _fit(rec):  # noqa: ANN001, ANN202
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fit(rec, "joint", bootstrap=0)
+
+
+def test_the_predicted_spread_matches_repeated_calibrations_and_bounds_the_true_error() -> None:
+    """One unit calibrated on 16 noise draws: the spread of its true level error matches the predicted
+    1-sigma scale (the largest error's spread over repeats), and the predicted 95 % bound covers the
+    true error in at least 13 of 16 (binomial: fewer than 1 % of honest predictions would cover fewer).
+    A weaker unit (a third of the field in counts) is predicted worse by about its noise-to-field ratio."""
+    unit, world = _units(1, 4)[0]
+    errors, bounds, sigmas = [], [], []
+    for s in range(16):
+        rec = simulate_recording(unit, calibration_poses(CalibrateParams()), world, rng=np.random.default_rng(s))
+        cal = _fit(rec)
+        up = unit_precision(rec, cal)
+        q, sig = up.quantile(), up.sigma_max()
+        errors.append(truth_summary(cal, unit, world)["level_max"])
+        bounds.append(q["level"])
+        sigmas.append(sig["level"])
+    errors, bounds = np.array(errors), np.array(bounds)
+    assert np.sum(errors <= bounds) >= 13, (errors, bounds)
+    # the bound is a bound, not a wild overstatement: the median error is a sizeable share of it
+    assert 0.2 < np.median(errors / bounds) < 0.9, errors / bounds
+    # the predicted sigma follows the unit's own noise over its sensitivity
+    weak = unit.mag.__class__(unit.mag.M_o, unit.mag.k / 3.0, unit.mag.bias, noise_lsb=3.0, quantized=True)
+    rec = simulate_recording(unit.__class__("weak", weak, unit.acc), calibration_poses(CalibrateParams()), world,
+                             rng=np.random.default_rng(99))
+    ratio = unit_precision(rec, _fit(rec)).sigma_max()["level"] / np.median(sigmas)
+    assert 2.4 < ratio < 3.6, ratio
+
+
+def test_adaptive_stops_at_the_plan_for_a_good_unit_and_extends_for_a_weak_one() -> None:
+    """The reference unit meets the targets with the plan alone (no pose added, table time that of the
+    plan, under 2 min); a weak unit (1100 LSB per field) gets poses until the budget, and the result says
+    which and why; the predicted error falls with the poses it added."""
+    proc = PROCEDURES["calibrate"]
+    params = proc.validate({"adaptive": True})
+    ref = reference_unit(3.0, 4.0)
+    world = World(55.0, 23.0, TableGeometry(base_tilt_deg=(0.05, -0.03)))
+    out, moves = simulate_run(proc.run(params), ref, world, np.random.default_rng(1))
+    pr = out.results[0]["calibration"].quality["precision"]
+    assert pr["met"] and pr["stopped"] == "reached" and pr["added_poses"] == 0 and len(moves) == 18
+    assert pr["table_s"] <= 120.0 and "with the plan alone" in pr["why"]
+
+    unit, world = _units(1, 7)[0]
+    unit.mag.k[:] = 1100.0
+    plain = proc.validate({})
+    base, _ = simulate_run(proc.run(plain), unit, world, np.random.default_rng(2))
+    rec_free = simulate_recording(unit, calibration_poses(plain), world, rng=np.random.default_rng(2))
+    before = unit_precision(rec_free, _fit(rec_free)).quantile()
+    out, moves = simulate_run(proc.run(params), unit, world, np.random.default_rng(2))
+    cal = out.results[0]["calibration"]
+    pr = cal.quality["precision"]
+    assert pr["added_poses"] > 0 and len(moves) == 18 + pr["added_poses"]
+    assert pr["table_s"] <= params.budget_s and pr["table_s"] > params.budget_s - 15.0
+    assert pr["predicted_level_deg"] < 0.9 * before["level"], (pr, before)
+    assert (pr["met"], pr["stopped"]) in ((True, "reached"), (False, "budget"))
+    assert pr["why"] in cal.notes and ("budget" in pr["why"]) == (not pr["met"])
+    assert "precision" not in base.results[0]["calibration"].quality  # not adaptive: as before
+
+
+def test_adaptive_needs_the_joint_fit() -> None:
+    with pytest.raises(ValidationError, match="adaptive: needs method 'joint'"):
+        PROCEDURES["calibrate"].validate({"adaptive": True, "method": "ellipsoid"})

@@ -273,7 +273,7 @@ def test_scorer_reports_analyser_errors() -> None:
 
 #: The end-to-end tests check the outcome's structure, not the analyser's power: fewer simulated
 #: nulls (the analyser's default is 200) keep the file within its time budget.
-E2E_ANALYZE = {"null_sims": 60}
+E2E_ANALYZE = {"null_sims": 20}
 
 def test_run_proof_end_to_end() -> None:
     progress: list[tuple[int, int, str]] = []

@@ -9,7 +9,7 @@ PORT ?= 8000
 DB ?=
 DB_ENV := $(if $(strip $(DB)),COMPASSCAL_DATABASE_URL='$(if $(findstring ://,$(DB)),$(DB),sqlite:///$(abspath $(DB)))')
 
-.PHONY: run demo test test-serial bench clean
+.PHONY: run demo test test-parallel bench clean
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -27,15 +27,17 @@ run: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(VENV)/bin/compasscal demo -o $(OUT)/demo
 
-# What CI runs: two processes (pytest-xdist; each has its own PostgreSQL database), then the tests
-# marked serial (they stop PostgreSQL) on their own.
+# One test at a time: what CI runs. On two processes with a third job on the machine, tests of the
+# simulated station at time scale 20 still fail now and then (a compass line measured before a move
+# ended but delivered after the acquisition began: milliseconds of wall time, 20x in table time).
 test: $(VENV)/.installed
+	$(PY) -m pytest -q
+
+# Faster on an idle machine: two processes (pytest-xdist; each has its own PostgreSQL database), then
+# the tests marked serial (they stop PostgreSQL) on their own.
+test-parallel: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 -m "not serial"
 	$(PY) -m pytest -q -m serial
-
-# One test at a time (slower; for a machine without a core to spare).
-test-serial: $(VENV)/.installed
-	$(PY) -m pytest -q
 
 bench: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py

@@ -453,3 +453,25 @@ def test_a_serial_a_compass_reports_is_checked_like_one_typed(api: Api):
     assert done["status"] == "completed" and done["samples_count"] > 0, done
     assert "GAO/2017" in unit.get("error", "") and "give serials in the request" in unit["error"], unit
     assert api.get("/devices/GAO%2F2017", role="viewer").status_code in (404, 422)
+
+
+def test_an_adaptive_calibration_over_the_api_says_whether_the_unit_reached_its_target(api: Api):
+    """POST /runs with ``adaptive``: a budget the short plan leaves room in; the stored calibration carries
+    the prediction, the verdict on the targets and why, in its notes (which the certificate lists). A comparison
+    method cannot be adaptive: 422 naming the rule."""
+    with sim_station(reference_config(seed=1, time_scale=20)) as info:
+        make_station(api, info)
+        bad = api.post("/runs", role="operator", json={"station": "lab-1", "procedure": "calibrate",
+                                                         "parameters": {"adaptive": True, "method": "ellipsoid"}})
+        assert bad.status_code == 422 and "adaptive: needs method 'joint'" in bad.text
+        body = {"station": "lab-1", "procedure": "calibrate",
+                "parameters": {"samples": 10, "adaptive": True, "target_level_deg": 0.001, "budget_s": 90}}
+        r = api.post("/runs", role="operator", json=body)
+        assert r.status_code == 202, r.text
+        done = wait_run(api, r.json()["id"])
+        assert done["status"] == "completed", done["reason"]
+        assert done["samples_count"] > 18 * 10  # an unreachable level target: poses were added
+        cal = api.get("/devices/GAO2017-REF/calibrations/current", role="viewer").json()
+        pr = cal["quality"]["precision"]
+        assert pr["met"] is False and pr["stopped"] == "budget" and pr["added_poses"] > 0 and pr["table_s"] <= 90
+        assert pr["predicted_level_deg"] > 0.001 and pr["why"] in cal["notes"]

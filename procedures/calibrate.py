@@ -194,7 +194,7 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
         poses = calibration_poses(p)
         yield from visit(poses, p.settle_s, data)
         if p.adaptive:
-            spent = plan_cost(poses).total_s + p.settle_s * len(poses)
+            spent = _plan_seconds(poses, p)
             here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
             precision = yield from extend_to_target(p, data, spent, here)
 
@@ -223,6 +223,19 @@ ADAPTIVE_POSES = ([(float(a), 0.0, 0.0) for a in _turn(45.0)]
 #: Table seconds of poses chosen per round between refits (the choice is made on the information the
 #: poses will add; the refit then checks the prediction on the data they gave).
 ROUND_S = 20.0
+
+
+def _plan_seconds(poses: list[Pose], p: CalibrateParams) -> float:
+    """Nominal table seconds of the calibration's poses (moves, the drive's settling, the procedure's
+    settle, samples), as the adaptive extension counts its budget."""
+    return plan_cost(poses).total_s + p.settle_s * len(poses)
+
+
+def adaptive_reserve(p: CalibrateParams) -> float:
+    """Table seconds an adaptive extension may add after the plan (0 when not adaptive)."""
+    if not getattr(p, "adaptive", False) or p.method != "joint":
+        return 0.0
+    return max(p.budget_s - _plan_seconds(calibration_poses(p), p), 0.0)
 
 
 def _unit_precisions(data: Collected) -> dict[int, UnitPrecision]:
@@ -628,7 +641,8 @@ BATCH = "batch_calibrate"
 
 PROCEDURES: dict[str, Procedure] = {
     proc.name: proc for proc in (
-        Procedure(NAME, VERSION, CalibrateParams, calibrate, "error-separation calibration, ending in the fit"),
+        Procedure(NAME, VERSION, CalibrateParams, calibrate, "error-separation calibration, ending in the fit",
+                  reserve=adaptive_reserve),
         Procedure("rotate_z", "1", RotateParams, rotate_z, "a turn about z at fixed tilt"),
         Procedure("sweep", "1", SweepParams, sweep, "a full turn of one axis, with each sensor axis's peak"),
         Procedure("accel6", "1", Accel6Params, accel6, "six-position accelerometer calibration"),
@@ -637,6 +651,6 @@ PROCEDURES: dict[str, Procedure] = {
         Procedure("characterize", "1", CharacterizeParams, characterize,
                   "holds from both sides, tilts, turns both ways at two speeds: the discrepancy analysis's run"),
         Procedure(BATCH, "1", BatchCalibrateParams, batch_calibrate,
-                  "one unit of a batch: mount prompt, then the error-separation calibration"),
+                  "one unit of a batch: mount prompt, then the error-separation calibration", reserve=adaptive_reserve),
     )
 }

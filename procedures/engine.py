@@ -204,8 +204,9 @@ class Engine:
         plan = self.procedure.plan(self.params)
         # progress weighs each step by its nominal table time (a scan lasts far longer than a move)
         nominal = [w for s, w in zip(plan, step_seconds(plan, self._motion())) if isinstance(s, TIMED_STEPS)]
-        total = max(sum(nominal), 1e-9)
-        left_nominal, done = total, 0
+        reserve = self.procedure.reserve(self.params) if self.procedure.reserve else 0.0
+        total = max(sum(nominal) + reserve, 1e-9)
+        left_nominal, done, here = total, 0, (0.0, 0.0, 0.0)
         self._t0 = time.monotonic()
         self._set_state(RunState.running)
         outcome: Outcome | None = None
@@ -232,10 +233,14 @@ class Engine:
                     self.on_event(StepStarted(step, self.table_time()))
                     reply = await self._do(step)
                 if isinstance(step, TIMED_STEPS):
-                    # a data-dependent tail beyond the plan counts as nothing left of it
-                    left_nominal -= nominal[done] if done < len(nominal) else 0.0
-                    done += 1
                     elapsed = self._table_used = self.table_time()
+                    # a data-dependent tail beyond the plan spends the reserve by its steps' nominal seconds
+                    # (not by the clock: the fits that choose its poses take table time at a time scale)
+                    spent = nominal[done] if done < len(nominal) else step_seconds([step], self._motion(), here)[0]
+                    left_nominal -= min(spent, left_nominal)
+                    done += 1
+                    if isinstance(step, Move):
+                        here = (step.psi, step.theta, step.phi)
                     frac = min(1.0, max(0.0, 1.0 - left_nominal / total))
                     # the plan's remaining table time at the pace so far (table s per planned s), that
                     # pace trusted as the plan gets done: early on it mostly measures the homing (a
@@ -247,6 +252,8 @@ class Engine:
                     left = 0.0 if frac >= 1.0 else max(0.0, round(left, 1))
                     self.on_event(Progress(round(100.0 * frac, 1), elapsed, left, self._samples,
                                            left_wall_s=round(left / self.station.time_scale, 1)))
+            if left_nominal > 1e-6 * total and done:  # a tail that used less than its reserve: done now
+                self.on_event(Progress(100.0, self._table_used, 0.0, self._samples, left_wall_s=0.0))
             self._set_state(RunState.completed)
             self.on_event(Result(tuple(sorted(outcome.results)) if outcome else ()))
         except Aborted:

@@ -99,6 +99,9 @@ class Procedure:
     params: type[BaseModel]
     run: Callable[[Any], ProcedureGen]
     doc: str = ""
+    #: Table seconds the data-dependent tail (left out of :meth:`plan`) may add at most, from the
+    #: parameters: progress and time left count it until the run ends (an adaptive extension's budget).
+    reserve: Callable[[Any], float] | None = None
 
     def validate(self, parameters: dict[str, Any] | None) -> BaseModel:
         """Validated parameters (pydantic raises, naming each bad field)."""

@@ -74,8 +74,8 @@ def serial_prompt_text(slot: int, typed: str, identified: str) -> str:
 
 @dataclass(frozen=True)
 class _Checked(Procedure):
-    """A procedure run with its units' identity check; its plan (for progress) is the procedure's
-    own, since the check takes no table time and its prompts depend on the units mounted."""
+    """A procedure run with its units' identity check; its plan and reserve (for progress) are the
+    procedure's own, since the check takes no table time and its prompts depend on the units mounted."""
 
     inner: Procedure | None = None
 
@@ -103,7 +103,7 @@ class UnitCheck:
     def procedure(self, proc: Procedure) -> Procedure:
         """``proc`` with the check in front of its first table step."""
         return _Checked(proc.name, proc.version, proc.params, lambda params: self._run(proc.run(params)), proc.doc,
-                        inner=proc)
+                        proc.reserve, inner=proc)
 
     @property
     def nothing_left(self) -> bool:

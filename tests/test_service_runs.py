@@ -475,3 +475,7 @@ def test_an_adaptive_calibration_over_the_api_says_whether_the_unit_reached_its_
         pr = cal["quality"]["precision"]
         assert pr["met"] is False and pr["stopped"] == "budget" and pr["added_poses"] > 0 and pr["table_s"] <= 90
         assert pr["predicted_level_deg"] > 0.001 and pr["why"] in cal["notes"]
+        # progress counts the budget's reserve: the added poses are not reported as done, and it ends at 100
+        progress = [d["percent"] for kind, d in read_events(api, done["id"]) if kind == "progress"]
+        assert progress == sorted(progress) and progress[-1] == 100.0
+        assert sum(1 for x in progress if x < 100.0) > 3 * 18, str(progress)  # move, settle, acquire per planned pose, and more

@@ -19,7 +19,7 @@ from physics.errorsep import InsufficientData
 from physics.fit import METHODS, evaluate as evaluate_recording, fit
 from physics.heading import circular_mean_deg, wrap180
 from physics.methods import TWELVE_POSITIONS
-from physics.precision import TARGET_LEVEL_DEG, TARGET_TILTED_DEG, UnitPrecision, unit_precision
+from physics.precision import CONFIDENCE, TARGET_LEVEL_DEG, TARGET_TILTED_DEG, UnitPrecision, unit_precision
 from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_cost, plan_timeline
 from physics.table import Motion
@@ -198,17 +198,14 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
             here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
             precision = yield from extend_to_target(p, data, spent, here)
 
-    out = Outcome()
-    for slot, rec in data.recordings().items():
-        try:
-            cal = fit(rec, p.method, bootstrap=0)
-        except (RecordingError, InsufficientData, ValueError) as e:
-            out.results[slot] = {"error": str(e)}
-            continue
-        if slot in precision:
-            cal.quality["precision"] = precision[slot]
-            cal.notes.append(precision[slot]["why"])
-        out.results[slot] = {"calibration": cal, "quality": cal.quality}
+    def work(rec: Recording) -> dict[str, Any]:
+        cal = fit(rec, p.method, bootstrap=0)
+        return {"calibration": cal, "quality": cal.quality}
+    out = _per_slot(data, work)
+    for slot, pr in precision.items():
+        if "calibration" in out.results.get(slot, {}):
+            out.results[slot]["calibration"].quality["precision"] = pr
+            out.results[slot]["calibration"].notes.append(pr["why"])
     return out
 
 
@@ -225,17 +222,15 @@ ADAPTIVE_POSES = ([(float(a), 0.0, 0.0) for a in _turn(45.0)]
 ROUND_S = 20.0
 
 
-def _plan_seconds(poses: list[Pose], p: CalibrateParams) -> float:
-    """Nominal table seconds of the calibration's poses (moves, the drive's settling, the procedure's
-    settle, samples), as the adaptive extension counts its budget."""
-    return plan_cost(poses).total_s + p.settle_s * len(poses)
+def _plan_seconds(poses: list[Pose], p: CalibrateParams, start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> float:
+    """Nominal table seconds of poses from ``start`` (moves, the drive's settling, the procedure's settle,
+    samples), as the adaptive extension counts its budget."""
+    return plan_cost(poses, start=start).total_s + p.settle_s * len(poses)
 
 
 def adaptive_reserve(p: CalibrateParams) -> float:
     """Table seconds an adaptive extension may add after the plan (0 when not adaptive)."""
-    if not getattr(p, "adaptive", False) or p.method != "joint":
-        return 0.0
-    return max(p.budget_s - _plan_seconds(calibration_poses(p), p), 0.0)
+    return max(p.budget_s - _plan_seconds(calibration_poses(p), p), 0.0) if p.adaptive else 0.0
 
 
 def _unit_precisions(data: Collected) -> dict[int, UnitPrecision]:
@@ -252,10 +247,6 @@ def _unit_precisions(data: Collected) -> dict[int, UnitPrecision]:
 #: Hold lengths the extension chooses from, in multiples of ``samples``: a long hold spreads a move's
 #: seconds over more samples, a short one lets the next pose come sooner.
 HOLDS = (1, 4)
-
-
-def _pose_seconds(p: CalibrateParams, here: tuple[float, float, float], pose: tuple[float, float, float], samples: int) -> float:
-    return plan_cost([Pose("adaptive", *pose, samples=samples)], start=here).total_s + p.settle_s
 
 
 def choose_poses(units: dict[int, UnitPrecision], targets: dict[str, float], p: CalibrateParams,
@@ -283,7 +274,7 @@ def choose_poses(units: dict[int, UnitPrecision], targets: dict[str, float], p: 
         for c, pose in enumerate(ADAPTIVE_POSES):
             for hold in HOLDS:
                 n = hold * p.samples
-                cost = _pose_seconds(p, here, pose, n)
+                cost = _plan_seconds([Pose("adaptive", *pose, samples=n)], p, here)
                 if spent + cost > left_s:
                     continue
                 rate = (now - objective(with_pose(added, c, n))) / cost
@@ -331,7 +322,7 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
             why = (f"predicted heading error (95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
                    f"above the targets {targets['level']:g} / {targets['tilted']:g} deg when the {p.budget_s:g}-s table-time "
                    f"budget ended ({added} poses added); a longer budget, or a unit with less noise per field, would reach them")
-        out[s] = {"predicted_level_deg": q["level"], "predicted_tilted_deg": q["tilted"], "confidence": 0.95,
+        out[s] = {"predicted_level_deg": q["level"], "predicted_tilted_deg": q["tilted"], "confidence": CONFIDENCE,
                   "target_level_deg": targets["level"], "target_tilted_deg": targets["tilted"], "met": met,
                   "stopped": "reached" if met else "budget", "added_poses": added,
                   "table_s": spent_s, "why": why}

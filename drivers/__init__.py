@@ -130,6 +130,11 @@ class SampleStream(Protocol):
         (after yielding every sample received)."""
         ...
 
+    def recent(self, n: int) -> list[Sample]:
+        """The last ``n`` samples received, oldest first (lines delivered on time before a late burst
+        place the burst's lines on the sample clock)."""
+        ...
+
 
 class Fixture(Protocol):
     """The slots of a station's fixture, one compass each, driven together. A call that fails on some

@@ -49,6 +49,11 @@ SCAN_AXIS = {"psi": "z", "theta": "y", "phi": "x"}
 SCAN_GAP_S = 0.5
 #: The other axes must hold within this (deg) during an acquisition or a scan.
 HOLD_TOLERANCE_DEG = 0.01
+#: An acquisition reads again at most this many times for lines measured before it began (then keeps
+#: what it reads, so a compass whose clock the estimate misjudges cannot stall a pose).
+STALE_REREADS = 3
+#: How many of a compass's latest lines are searched for a read's first line (its delivery burst).
+HISTORY_SCAN = 4096
 
 
 #: Wall seconds an identification of the fixture's compasses may take.
@@ -398,25 +403,34 @@ class Engine:
 
     async def _read_missing(self, step: Acquire, parts: dict[int, list[Recording]], held: Any) -> None:
         """Read what each slot still lacks of ``step.samples`` (a slot that got more than it needed in
-        a failed read has the surplus left out), keep it (`_keep`) and add it to ``parts``; then raise
-        the read's error, if any (a `CompassTimeout` when every failed slot timed out)."""
-        have = {int(slot): sum(len(r) for r in parts.get(int(slot), [])) for slot in self.station.fixture.compasses}
-        need = step.samples - min(have.values(), default=0)
-        timeout = need / self.station.sample_rate_hz / self.station.time_scale + self.acquire_margin_s
-        error: CompassError | None = None
-        got: dict[Any, Sequence[Sample]]
-        try:
-            got = dict(await self.station.fixture.read_all(need, timeout=timeout))
-        except FixtureError as e:
-            got = dict(e.results)
-            got.update({slot: err.samples for slot, err in e.errors.items() if isinstance(err, CompassError)})
-            timeouts = all(isinstance(err, CompassTimeout) for err in e.errors.values())
-            error = CompassTimeout(str(e)) if timeouts else e
-        kept = self._keep(step.step, {slot: list(s)[: step.samples - have.get(int(slot), 0)] for slot, s in got.items()}, held)
-        for slot, rec in kept.items():
-            parts.setdefault(slot, []).append(rec)
-        if error is not None:
-            raise error
+        a failed read has the surplus left out; lines measured before the read began are left out and
+        read again, see `_measured_before`), keep it (`_keep`) and add it to ``parts``; then raise the
+        read's error, if any (a `CompassTimeout` when every failed slot timed out)."""
+        start = time.monotonic()
+        for attempt in range(STALE_REREADS + 1):
+            have = {int(slot): sum(len(r) for r in parts.get(int(slot), [])) for slot in self.station.fixture.compasses}
+            need = step.samples - min(have.values(), default=0)
+            if need <= 0:
+                return
+            timeout = need / self.station.sample_rate_hz / self.station.time_scale + self.acquire_margin_s
+            error: CompassError | None = None
+            got: dict[Any, Sequence[Sample]]
+            try:
+                got = dict(await self.station.fixture.read_all(need, timeout=timeout))
+            except FixtureError as e:
+                got = dict(e.results)
+                got.update({slot: err.samples for slot, err in e.errors.items() if isinstance(err, CompassError)})
+                timeouts = all(isinstance(err, CompassTimeout) for err in e.errors.values())
+                error = CompassTimeout(str(e)) if timeouts else e
+            # a line measured before the read began (while the table was still moving) but delivered
+            # after it is not this pose's: left out, and read again
+            if attempt < STALE_REREADS:
+                got = {slot: list(s)[self._measured_before(slot, list(s), start):] for slot, s in got.items()}
+            kept = self._keep(step.step, {slot: s[: step.samples - have.get(int(slot), 0)] for slot, s in got.items()}, held)
+            for slot, rec in kept.items():
+                parts.setdefault(slot, []).append(rec)
+            if error is not None:
+                raise error
 
     async def _scan(self, step: Scan) -> dict[int, Recording]:
         """Turn one axis while every compass streams; label each sample with the encoder angles at
@@ -517,11 +531,45 @@ class Engine:
         self.on_event(StepWarning(f"{who}: {len(rows)} bad sample(s) flagged after {label}, rows {listed} "
                                   f"(the fit drops them): {why}"))
 
+    def _measured_before(self, slot: Any, samples: list[Sample], start: float) -> int:
+        """How many of ``samples`` (the first ones of a read) the compass measured before ``start``
+        (host time), though they arrived after it: a busy host (or a USB adapter's latency timer)
+        delivers lines late, in bursts, and at time scale 20 a 50-ms delay is a second of table time.
+        The estimate (`_on_sample_clock`) is never earlier than the truth, so a line measured after
+        ``start`` is never left out."""
+        if not samples:
+            return 0
+        t = self._on_sample_clock(slot, samples)
+        if t is None:
+            return 0  # no longer in the history: nothing to place it by
+        early = t < start
+        return len(samples) if early.all() else int(np.argmin(early))
+
+    def _on_sample_clock(self, slot: Any, samples: list[Sample]) -> np.ndarray | None:
+        """When the compass measured ``samples`` (consecutive lines as received; host seconds), on its
+        own sample clock (:func:`sample_clock`) through its latest lines: those delivered on time
+        before a late burst anchor the steady numbering, so the burst's lines show their true age,
+        which the burst alone (its lines sharing one arrival time) cannot. None when the samples are
+        no longer in the compass's history."""
+        latest = self.station.fixture.compasses[slot].recent(HISTORY_SCAN)
+        first = next((i for i in range(len(latest) - 1, -1, -1) if latest[i] is samples[0]), None)
+        if first is None or first + len(samples) > len(latest) or latest[first + len(samples) - 1] is not samples[-1]:
+            return None
+        t = sample_clock(np.array([s.t_host for s in latest]), np.array([s.seq for s in latest]),
+                         self.station.sample_rate_hz * self.station.time_scale)
+        return t[first:first + len(samples)]
+
     def _sample_times(self, slot: Any, samples: list[Sample]) -> np.ndarray:
-        """The samples' times on the compass's clock, continuing the slot's previous step."""
+        """The samples' times on the compass's clock (`_on_sample_clock`), continuing the slot's
+        previous step and never before it."""
         seq = np.array([s.seq for s in samples])
-        t = sample_clock(np.array([s.t_host for s in samples]), seq,
-                         self.station.sample_rate_hz * self.station.time_scale, after=self._clock.get(slot))
+        after = self._clock.get(slot)
+        t = self._on_sample_clock(slot, samples)
+        if t is None:
+            t = sample_clock(np.array([s.t_host for s in samples]), seq,
+                             self.station.sample_rate_hz * self.station.time_scale, after=after)
+        elif after is not None:
+            t = np.maximum(t, after[0] + 1e-6)
         self._clock[slot] = (float(t[-1]), int(seq[-1]))
         return t
 

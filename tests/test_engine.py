@@ -245,3 +245,32 @@ def test_events_keep_their_wire_format():
     for event, kind, data in cases:
         assert event.kind == kind and event.data() == data, event
         assert json.loads(json.dumps(event.data())) == data
+
+
+def test_lines_measured_while_the_table_moved_but_delivered_late_are_not_a_poses_samples(tmp_path: Path):
+    """A busy host (or a USB adapter's latency timer) holds a compass's lines back and delivers them in
+    one burst after the pose's acquisition has begun. Lines measured while the table was still moving
+    must not count as the pose's samples: each pose keeps exactly its 60 samples, all at its angles."""
+    cfg = reference_config(seed=7, time_scale=20)
+    delayed: list[int] = []
+
+    def control(engine: Engine, st: SimStation) -> None:
+        def on_event(e: Event, inner=engine.on_event) -> None:
+            inner(e)
+            if isinstance(e, StepStarted) and isinstance(e.step, Move) and engine._samples >= 60 and len(delayed) < 4:
+                delayed.append(engine._samples)  # hold everything from the move's start until well after it
+                st.compasses[0].delay_output(0.35)
+        engine.on_event = on_event
+    result, serials, sink, st, events, wall, status = run(cfg, "calibrate", {}, out=tmp_path, control=control)
+    assert result.state is RunState.completed, result.reason
+    assert len(delayed) == 4
+    rec = parse_recording(sink.path(0).read_text())
+    poses = [f"{s}@{p:.1f},{t:.1f},{f:.1f}" for s, p, t, f in zip(rec.step, rec.psi_t, rec.theta_t, rec.phi_t)]
+    names, counts = np.unique(poses, return_counts=True)
+    assert len(names) == 18 and set(counts) == {60}, dict(zip(names, counts))
+    # every sample reads the field at its pose's angles: within noise of the pose's median (3 LSB
+    # noise; a line from a move 45 deg away is thousands of LSB off)
+    for name in names:
+        m = rec.mag[np.array(poses) == name]
+        worst = float(np.max(np.abs(m - np.median(m, axis=0))))
+        assert worst < 25.0, (name, worst)

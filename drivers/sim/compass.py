@@ -5,13 +5,14 @@ Device behaviour (PROTOCOLS.md), and the choices this simulator makes where the 
 
 - Power-on defaults: RATE 20 Hz, AVG 1, 115200 baud, seq 0; the boot banner is printed at start
   (lost if nobody is connected yet, as on a real port).
-- RAW lines are due every 1/rate simulated seconds (wall interval 1/(rate*time_scale)); a late loop
-  catches up with the missed lines, unless it fell more than a second of simulated time behind. Each
-  line is measured when it is sent, as a device measures when it reports: a line due while the
-  table was still moving, but sent late by a busy host after the table stopped, would pair a moving
-  table's reading with the held encoder angles (the station stamps a line when it arrives), and at
-  time scale 20 a 50-ms stall is a second of table time. The line rate is capped by what the baud rate carries
-  (baud/720 lines/s, ~13 at 9600).
+- RAW lines are due every 1/rate simulated seconds (wall interval 1/(rate*time_scale)) and each is
+  measured at its due time (the table's true angles then, from its history), so ``seq`` is a steady
+  sample clock, as on a device. A loop late on a busy host catches up with the missed lines, which
+  then reach the host late, as behind a busy host's serial stack; the station places each line on
+  the sample clock and leaves out of a pose the lines measured before its acquisition began. A loop
+  more than a second of simulated time behind skips the missed lines, and ``seq`` counts them (the
+  host sees dropped samples). The line rate is capped by what the baud rate carries (baud/720
+  lines/s, ~13 at 9600).
 - AVG n: the world's ``read(t)`` is called n times at the sample's time (its noise makes them differ)
   and the mean is rounded to the nearest integer (half to even), temperature to 0.1 deg C.
   Counts at +-32767 set the saturation bits (b0 mag, b1 accel).
@@ -331,8 +332,8 @@ class CompassSim:
     """One simulated compass on a pty (``/dev/pts/N``) or TCP (``socket://127.0.0.1:PORT``) port.
 
     Run inside an asyncio loop: ``url = await sim.start("pty")`` ... ``await sim.stop()``. Fault
-    injection (`go_silent`, `garbage`, `fuse_next`, `truncate_next`, `reset`, `vanish`, `reappear`) is a
-    side channel, never part of the protocol.
+    injection (`go_silent`, `delay_output`, `garbage`, `fuse_next`, `truncate_next`, `reset`, `vanish`,
+    `reappear`) is a side channel, never part of the protocol.
     """
 
     def __init__(
@@ -357,6 +358,7 @@ class CompassSim:
         self._silent = False
         self._fuse = False
         self._truncate = False
+        self._held: list[bytes] | None = None  # lines held back by `delay_output`
 
     # -- life cycle ----------------------------------------------------------------------------
 
@@ -437,10 +439,14 @@ class CompassSim:
                 continue
             now = self.clock.now()
             period = 1.0 / rate
-            if next_t is None or rate != rate_used or now - next_t > max(1.0, period):
+            if next_t is None or rate != rate_used:
                 next_t, rate_used = now + period, rate  # (re)start the grid: no burst of stale lines
+            elif now - next_t > max(1.0, period):
+                missed = int((now - next_t) / period)  # skipped, and counted by seq as dropped lines
+                self.device.seq = (self.device.seq + missed) & 0xFFFF
+                next_t += missed * period
             while next_t <= now:
-                self._out(self.device.raw_line(now))
+                self._out(self.device.raw_line(next_t))
                 next_t += period
                 if self.device.line_rate() != rate_used:
                     break  # a reset inside the loop changed the rate
@@ -461,6 +467,9 @@ class CompassSim:
         if self._truncate:
             self._truncate = False
             line = line[: max(1, len(line) // 2)]
+        if self._held is not None:
+            self._held.append(line)
+            return
         if self._transport.write(line):
             self.lines_sent += 1
 
@@ -469,6 +478,21 @@ class CompassSim:
     def go_silent(self, on: bool = True) -> None:
         """Stop (or resume) all output and ignore input; the sample clock keeps running, so seq jumps."""
         self._silent = on
+
+    def delay_output(self, seconds: float) -> None:
+        """Hold every line back for ``seconds`` (wall), then deliver them in one burst: each is measured
+        and numbered on time, as a device does, but reaches the host late, as behind a busy host or a
+        USB adapter's latency timer."""
+        if self._held is not None:
+            return
+        self._held = []
+
+        def release() -> None:
+            held, self._held = self._held or [], None
+            for line in held:
+                self._out(line)
+
+        asyncio.get_running_loop().call_later(seconds, release)
 
     def garbage(self, nbytes: int = 64) -> None:
         """Inject ``nbytes`` random bytes (non-ASCII included) between two lines."""

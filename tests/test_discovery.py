@@ -471,3 +471,25 @@ def test_whitening_restarts_at_each_segment_and_the_window_statistic_matches_the
     for Xc in (rng.normal(size=(300, 3)), np.column_stack([rng.normal(size=300), Q[:, 0] * 3.0, np.zeros(300)])):
         B = _complement(Xc, Q)
         assert complement_statistic(Xc, Q, y) == pytest.approx(float(np.sum((B.T @ y) ** 2)), rel=1e-9)
+
+
+def test_a_spectral_line_reports_a_p_that_pays_for_its_frequency_search() -> None:
+    """A null recording of the open-world proof (seed 13, null 65: white 3 LSB noise) whose
+    strongest spectral line passes at alpha 0.05. The line was chosen by a search over ~8000
+    frequencies; its reported p_adjusted must pay for that search as its selection did, not be the
+    known-frequency test of the final model (4e-4 there, against the search's 0.03)."""
+    from physics.discrepancy.lrt import line_search
+    from proof.generator import ordinary_plan
+    from proof.runner import make_task_case, proof_tasks
+
+    task = proof_tasks(0, 13, ordinary_plan(), nulls=0, open_n=0, open_nulls=66)[65]
+    gen, ana = np.random.SeedSequence(task.seed).spawn(2)
+    rec = make_task_case(task, np.random.default_rng(gen)).rec
+    ctx = context(rec)
+    r0 = np.asarray(rec.mag, float) - fit_nominal(ctx, np.asarray(rec.mag, float)).predict(ctx)
+    searched = line_search(r0, ctx, estimate_noise(r0, ctx))
+    a = analyze(rec, alpha=0.05, null_sims=100, rng=np.random.default_rng(ana))
+    lines = [f for f in a.result["findings"] if f["effect"] == "mains_interference"]
+    assert lines, [f["effect"] for f in a.result["findings"]]
+    assert lines[0]["p_adjusted"] >= searched["p_value"], (lines[0]["p_adjusted"], searched)
+    assert lines[0]["p_adjusted"] > 0.05 * 0.6 / 100  # the line search alone gave ~1e-3 before the round's count

@@ -10,6 +10,7 @@ with a message saying what to install, they are never skipped.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import socket
@@ -25,6 +26,8 @@ from urllib.parse import urlsplit
 
 CHROMIUM = Path("/usr/bin/chromium")
 DEBIAN_PACKAGES = ("chromium", "chromium-driver")
+#: Held while installing them, so that parallel test processes install once.
+INSTALL_LOCK = Path("/tmp/compasscal-chromium-install.lock")
 #: Flags for this machine: no sandbox (root in a container), no GPU, and none of Chromium's own
 #: traffic (updates, sync, field trials...) towards a network that is closed anyway. The resolver
 #: rule is a second fence behind the page's request filter: no host name but localhost resolves.
@@ -66,10 +69,14 @@ def ensure_chromium(binary: Path = CHROMIUM, timeout_s: float = 900.0) -> Path:
             log.append(f"apt-get {' '.join(args)}: exit {r.returncode}: {(r.stderr or r.stdout).strip()[-1500:]}")
         return r.returncode == 0
 
-    install = ("install", "-y", *DEBIAN_PACKAGES)
-    # the package lists may be missing or stale: update once and retry
-    if not apt_get(*install) and apt_get("update"):
-        apt_get(*install)
+    # wait for dpkg's lock rather than fail on it (another apt-get, e.g. unattended upgrades)
+    install = ("-o", "DPkg::Lock::Timeout=600", "install", "-y", *DEBIAN_PACKAGES)
+    # one installer at a time: under pytest-xdist each worker process gets here at once
+    with open(INSTALL_LOCK, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        # the package lists may be missing or stale: update once and retry
+        if not binary.exists() and not apt_get(*install) and apt_get("update"):
+            apt_get(*install)
     if not binary.exists():
         what = "\n".join(log) or f"apt-get reported success, yet {binary} is still missing"
         raise BrowserSetupError(f"{binary} is missing and apt-get could not install {' and '.join(DEBIAN_PACKAGES)}:\n"

@@ -209,6 +209,15 @@ def test_dictionary_blocks_and_their_columns() -> None:
     d = np.array([0.01, 0.0, -0.02])
     expect = np.einsum("nji,j->ni", ctx.R, d) @ nom.M.T
     assert np.allclose(np.einsum("nip,p->ni", Xl, d), expect)
+    # weighted Bonferroni: the blocks' shares of the dictionary's alpha add up to it (no more false
+    # alarms), and an offset that comes and goes, the commonest cause, gets a larger share than any other
+    noise = estimate_noise(np.asarray(rec.mag, float) - nom.predict(ctx), ctx)
+    Q0 = _orth(whiten_all(nominal_columns(ctx, nom), noise, ctx.segment))
+    dic = dv.Dictionary(ctx, nom, np.asarray(rec.temp_c, float), noise, Q0)
+    tested = [*dic.fixed, *dic.windowed]
+    assert sum(1.0 / dic.cost(b) for b in tested) == pytest.approx(1.0)
+    offsets = [b for b in tested if b.form == "offset" and b.windowed]
+    assert len(offsets) == 4 and max(dic.cost(b) for b in offsets) < min(dic.cost(b) for b in tested if b not in offsets)
 
 
 def _check_schema(r: dict) -> None:

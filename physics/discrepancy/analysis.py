@@ -213,7 +213,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         if name in by_name:
             # found by a search: its p pays for the dictionary's size and for the window's fitted edges,
             # as when it was chosen (the backward test alone counts only the round's catalogue tests)
-            row["p_adjusted"] = float(min(1.0, t.p_value * dic.family * np.exp(by_name[name].test.search)))
+            row["p_adjusted"] = float(min(1.0, t.p_value * dic.cost(by_name[name].block) * np.exp(by_name[name].test.search)))
             findings.append(discovered_finding(by_name[name], c, cv, contrib, row, nom, ctx,
                                                _heading_impact(ctx, y_raw, nom, contrib)))
             continue

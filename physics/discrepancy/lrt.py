@@ -82,7 +82,7 @@ class Test:
         return self.statistic - 2.0 * self.df - 2.0 * self.search
 
 
-def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: int = 0) -> None:
+def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: float = 0) -> None:
     """Statistic, null-calibrated chi-square p and Bonferroni p of every test on whitened residual y.
 
     ``null`` holds whitened null residuals (K, 3N) from simulations; the statistic's null distribution

@@ -482,11 +482,12 @@ def test_whitening_restarts_at_each_segment_and_the_window_statistic_matches_the
         assert complement_statistic(Xc, Q, y) == pytest.approx(float(np.sum((B.T @ y) ** 2)), rel=1e-9)
 
 
-def test_a_spectral_line_reports_a_p_that_pays_for_its_frequency_search() -> None:
-    """A null recording of the open-world proof (seed 13, null 65: white 3 LSB noise) whose
-    strongest spectral line passes at alpha 0.05. The line was chosen by a search over ~8000
-    frequencies; its reported p_adjusted must pay for that search as its selection did, not be the
-    known-frequency test of the final model (4e-4 there, against the search's 0.03)."""
+def test_a_spectral_line_the_twin_does_not_confirm_is_left_out() -> None:
+    """A null recording of the open-world proof (seed 13, null 65: white 3 LSB noise) whose strongest
+    spectral line passes the periodogram's test at alpha 0.05 (p 1.5e-3 over ~8000 frequencies, against
+    a running median of the spectrum). The twin's test at that frequency, null-calibrated and paying for
+    the same search, does not confirm it: no line is reported, and a note says why. (Before, the line
+    was a finding, with the twin's known-frequency p of 4e-4 as its p_adjusted.)"""
     from physics.discrepancy.lrt import line_search
     from proof.generator import ordinary_plan
     from proof.runner import make_task_case, proof_tasks
@@ -496,9 +497,7 @@ def test_a_spectral_line_reports_a_p_that_pays_for_its_frequency_search() -> Non
     rec = make_task_case(task, np.random.default_rng(gen)).rec
     ctx = context(rec)
     r0 = np.asarray(rec.mag, float) - fit_nominal(ctx, np.asarray(rec.mag, float)).predict(ctx)
-    searched = line_search(r0, ctx, estimate_noise(r0, ctx))
+    assert line_search(r0, ctx, estimate_noise(r0, ctx))["p_value"] < 2e-3  # the periodogram's line
     a = analyze(rec, alpha=0.05, null_sims=100, rng=np.random.default_rng(ana))
-    lines = [f for f in a.result["findings"] if f["effect"] == "mains_interference"]
-    assert lines, [f["effect"] for f in a.result["findings"]]
-    assert lines[0]["p_adjusted"] >= searched["p_value"], (lines[0]["p_adjusted"], searched)
-    assert lines[0]["p_adjusted"] > 0.05 * 0.6 / 100  # the line search alone gave ~1e-3 before the round's count
+    assert not [f for f in a.result["findings"] if f["effect"] == "mains_interference"], a.result["findings"]
+    assert any("not confirmed by the twin" in n for n in a.result["notes"]), a.result["notes"]

@@ -27,9 +27,9 @@ run: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(VENV)/bin/compasscal demo -o $(OUT)/demo
 
-# One test at a time: what CI runs. On two processes with a third job on the machine, tests of the
-# simulated station at time scale 20 still fail now and then (a compass line measured before a move
-# ended but delivered after the acquisition began: milliseconds of wall time, 20x in table time).
+# One test at a time: what CI runs. On two processes with a third job on the machine, a simulated
+# station in a test's process can still miss the turntable driver's 2 x 0.4 s Modbus timeout now and
+# then (its server thread starved of the CPU), which fails that run as an unreachable axis should.
 test: $(VENV)/.installed
 	$(PY) -m pytest -q
 

@@ -81,6 +81,29 @@ def test_nulls_false_alarm_rarely() -> None:
     assert len(alarms) <= 1, alarms
 
 
+def test_a_null_calibrated_p_is_never_lighter_tailed_than_the_bartlett_scaled_chi_square() -> None:
+    """The tests' null distribution is c chi2(nu) from the mean and variance of a few hundred simulated
+    statistics. The variance is uncertain by +-10 %; a low draw (nu above df) made the tail lighter than
+    chi-square and p several times too small at 1e-4, where the tests decide (false alarms on nulls).
+    Whatever the draw, p is at least that of the Bartlett-scaled chi2(df)."""
+    from scipy import stats
+
+    from physics.discrepancy.lrt import Test, _orth, _score
+    rng = np.random.default_rng(4)
+    n, df = 600, 27
+    basis = _orth(rng.normal(size=(n, df)))
+    lighter = 0
+    for _ in range(40):
+        null = rng.normal(size=(200, n))
+        y = basis @ rng.normal(size=df) * 1.6  # a large statistic, far in the tail
+        t = Test("x", basis)
+        _score([t], y, null)
+        mean = float(np.mean(np.sum((null @ basis) ** 2, axis=1)))
+        floor = float(stats.chi2.sf(t.statistic * df / mean, df))
+        lighter += t.p_value < floor * (1 - 1e-9)
+    assert lighter == 0
+
+
 @pytest.mark.parametrize("name", list(fx.CATALOGUE))
 def test_each_concealed_effect_is_found_named_and_fitted(name: str) -> None:
     unit = _unit()

@@ -422,11 +422,19 @@ class Engine:
                 got.update({slot: err.samples for slot, err in e.errors.items() if isinstance(err, CompassError)})
                 timeouts = all(isinstance(err, CompassTimeout) for err in e.errors.values())
                 error = CompassTimeout(str(e)) if timeouts else e
-            # a line measured before the read began (while the table was still moving) but delivered
-            # after it is not this pose's: left out, and read again
-            if attempt < STALE_REREADS:
-                got = {slot: list(s)[self._measured_before(slot, list(s), start):] for slot, s in got.items()}
-            kept = self._keep(step.step, {slot: s[: step.samples - have.get(int(slot), 0)] for slot, s in got.items()}, held)
+            keep: dict[Any, list[Sample]] = {}
+            times: dict[Any, np.ndarray] = {}
+            for slot, samples in got.items():
+                samples = list(samples)
+                clock = self._on_sample_clock(slot, samples) if samples else None
+                # a line measured before the read began (while the table was still moving) but
+                # delivered after it is not this pose's: left out, and read again
+                skip = _measured_before(clock, start) if attempt < STALE_REREADS else 0
+                stop = skip + step.samples - have.get(int(slot), 0)
+                keep[slot] = samples[skip:stop]
+                if keep[slot]:
+                    times[slot] = self._sample_times(slot, keep[slot], None if clock is None else clock[skip:stop])
+            kept = self._keep(step.step, keep, held, times)
             for slot, rec in kept.items():
                 parts.setdefault(slot, []).append(rec)
             if error is not None:
@@ -531,20 +539,6 @@ class Engine:
         self.on_event(StepWarning(f"{who}: {len(rows)} bad sample(s) flagged after {label}, rows {listed} "
                                   f"(the fit drops them): {why}"))
 
-    def _measured_before(self, slot: Any, samples: list[Sample], start: float) -> int:
-        """How many of ``samples`` (the first ones of a read) the compass measured before ``start``
-        (host time), though they arrived after it: a busy host (or a USB adapter's latency timer)
-        delivers lines late, in bursts, and at time scale 20 a 50-ms delay is a second of table time.
-        The estimate (`_on_sample_clock`) is never earlier than the truth, so a line measured after
-        ``start`` is never left out."""
-        if not samples:
-            return 0
-        t = self._on_sample_clock(slot, samples)
-        if t is None:
-            return 0  # no longer in the history: nothing to place it by
-        early = t < start
-        return len(samples) if early.all() else int(np.argmin(early))
-
     def _on_sample_clock(self, slot: Any, samples: list[Sample]) -> np.ndarray | None:
         """When the compass measured ``samples`` (consecutive lines as received; host seconds), on its
         own sample clock (:func:`sample_clock`) through its latest lines: those delivered on time
@@ -559,12 +553,12 @@ class Engine:
                          self.station.sample_rate_hz * self.station.time_scale)
         return t[first:first + len(samples)]
 
-    def _sample_times(self, slot: Any, samples: list[Sample]) -> np.ndarray:
-        """The samples' times on the compass's clock (`_on_sample_clock`), continuing the slot's
-        previous step and never before it."""
+    def _sample_times(self, slot: Any, samples: list[Sample], clock: np.ndarray | None = None) -> np.ndarray:
+        """The samples' times on the compass's clock (``clock`` if already placed, else
+        `_on_sample_clock`), continuing the slot's previous step and never before it."""
         seq = np.array([s.seq for s in samples])
         after = self._clock.get(slot)
-        t = self._on_sample_clock(slot, samples)
+        t = clock if clock is not None else self._on_sample_clock(slot, samples)
         if t is None:
             t = sample_clock(np.array([s.t_host for s in samples]), seq,
                              self.station.sample_rate_hz * self.station.time_scale, after=after)
@@ -687,6 +681,18 @@ def encoder_track(trace: list[tuple[float, float, float]], start: float, stop: f
         x = prof.distance(np.asarray(t, dtype=float) - tau) + sign * np.interp(t, when, departure)
         return start + sign * np.maximum(x, 0.0)
     return angle
+
+
+def _measured_before(t: np.ndarray | None, start: float) -> int:
+    """How many of a read's first lines, by their times on the compass's sample clock
+    (`Engine._on_sample_clock`; None: not placed), the compass measured before ``start`` (host time),
+    though they arrived after it: a busy host (or a USB adapter's latency timer) delivers lines late,
+    in bursts, and at time scale 20 a 50-ms delay is a second of table time. The clock's estimate is
+    never earlier than the truth, so a line measured after ``start`` is never left out."""
+    if t is None or not len(t):
+        return 0
+    early = t < start
+    return len(t) if early.all() else int(np.argmin(early))
 
 
 def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float,

@@ -634,6 +634,7 @@ class Dictionary:
                 untestable[blk.dependence] = cols
                 continue
             self.fixed[blk] = (cols[0], whiten_all(cols[0], noise, ctx.segment), cols[1])
+        self._weight_total = sum(_weight(b) for b in [*self.fixed, *self.windowed])
         self.untestable = [{"effect": "discovered", "reason": f"blocks {'in the' if 'stage' in dep else 'against'} {dep}: {why}"}
                            for dep, why in untestable.items()]
 
@@ -645,8 +646,7 @@ class Dictionary:
     def cost(self, blk: Block) -> float:
         """The Bonferroni factor of ``blk``'s p: the dictionary's total prior weight over its own
         (:data:`PRIOR_WEIGHT`; the number of tests when every weight is 1)."""
-        total = sum(_weight(b) for b in [*self.fixed, *self.windowed])
-        return total / _weight(blk)
+        return self._weight_total / _weight(blk)
 
     def round(self, Q: np.ndarray, y: np.ndarray, null: np.ndarray | None, alpha: float,
               refine: int = 3) -> list[Found]:
@@ -656,14 +656,9 @@ class Dictionary:
         ctx, noise = self.ctx, self.noise
         cands: list[Found] = []
         tests = {blk: Test(blk.name, _complement(Xw, Q)) for blk, (X, Xw, lab) in self.fixed.items()}
-        _score(list(tests.values()), y, null)
         for blk, t in tests.items():
+            _score([t], y, null, extra=self.cost(blk) - 1.0)  # each block pays its own Bonferroni factor
             if t.df > 0:
-                # _score counted the fixed tests alone: each block pays its own factor instead
-                m = sum(1 for u in tests.values() if u.df > 0)
-                lp1 = np.log(t.p_value) if t.p_value > 1e-300 else t.log_p - np.log(m)  # far tail: from log_p
-                t.log_p = float(min(0.0, lp1 + np.log(self.cost(blk))))
-                t.p_adjusted = float(min(1.0, t.p_value * self.cost(blk)))
                 X, Xw, lab = self.fixed[blk]
                 cands.append(Found(blk, X, Xw, lab, t))
         searched = []

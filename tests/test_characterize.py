@@ -152,6 +152,21 @@ def test_sample_clock_removes_arrival_jitter_and_late_bursts():
     assert np.ptp(sample_clock(true + latency, seq, 20.0)[:200] - true[:200]) < 1e-3
 
 
+def test_sample_clock_places_a_late_burst_still_arriving_on_a_short_history():
+    """A run's first seconds: 100 lines on time, then a held burst read before it has all arrived,
+    so even its last line looks 0.2 s old. The device's pace is still the nominal one, and the
+    burst's lines are placed at the times they were measured, not at their arrival."""
+    rate = 400.0  # 20 Hz at time scale 20
+    n = np.arange(160)
+    true = 2.0 + n / rate
+    arrival = true + 0.001 + np.random.default_rng(3).exponential(0.0005, n.size)
+    arrival[100:] = true[-1] + 0.2
+    assert np.max(np.abs(sample_clock(arrival, n, rate) - true)) < 0.002
+    # a device that really runs at half the rate is not put on the nominal clock
+    slow = 2.0 + 2 * n / rate + 0.001 + np.random.default_rng(4).exponential(0.0005, n.size)
+    assert np.array_equal(sample_clock(slow, n, rate), slow)
+
+
 def test_sample_clock_keeps_time_running_forward_across_steps():
     """Each step is timed on its own, from the least latency it saw. A short step whose samples all
     came late (a busy host) is followed by one that saw the link's true latency: the second step's

@@ -257,10 +257,8 @@ def test_lines_measured_while_the_table_moved_but_delivered_late_are_not_a_poses
     def control(engine: Engine, st: SimStation) -> None:
         def on_event(e: Event, inner=engine.on_event) -> None:
             inner(e)
-            # from the fourth pose on: the compass's history then holds steady streaming to anchor its clock
-            # (in the run's first seconds the simulator's startup leaves the history's pace 30 % off the
-            # nominal rate and the clock falls back on arrival times; see the note)
-            if isinstance(e, StepStarted) and isinstance(e.step, Move) and engine._samples >= 3 * 60 and len(delayed) < 4:
+            # from the second pose on, when the compass's history is still short
+            if isinstance(e, StepStarted) and isinstance(e.step, Move) and engine._samples >= 60 and len(delayed) < 4:
                 delayed.append(engine._samples)  # hold everything from the move's start until well after it
                 st.compasses[0].delay_output(0.35)
         engine.on_event = on_event

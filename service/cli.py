@@ -17,6 +17,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from drivers import keep_drivers_responsive
 from physics.calibration import Calibration, staged_truth_errors, truth_summary
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, fit as fit_recording
@@ -48,6 +49,12 @@ app = typer.Typer(help="Electronic-compass calibration station.", no_args_is_hel
                   pretty_exceptions_show_locals=False, cls=_Group)
 console = Console()
 err_console = Console(stderr=True)  # errors never mix with a command's stdout (e.g. `sim`'s JSON line)
+
+
+@app.callback()
+def _every_command() -> None:
+    """Electronic-compass calibration station."""
+    keep_drivers_responsive()
 
 
 class UnitKind(str, Enum):

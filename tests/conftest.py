@@ -19,10 +19,15 @@ from typing import Any
 import numpy as np
 import pytest
 
+from drivers import keep_drivers_responsive
 from physics.recording import Recording
 from physics.simulate import World
 from procedures.calibrate import PROCEDURES
 from procedures.steps import Acquire, Move, Outcome, Scan, Step, drive
+
+# the tests host simulated stations in their own process, beside the service and its fits, as
+# `compasscal demo` does: the drivers' timeouts need the short switch interval the CLI sets
+keep_drivers_responsive()
 
 #: The machine's test database. Under pytest-xdist each worker gets a database of its own
 #: (test_gw0, test_gw1, ...: created on first use), because a test empties the one it uses.

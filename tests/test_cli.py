@@ -159,3 +159,18 @@ def test_keys_are_listed_and_revoked_from_the_command_line(tmp_path: Path, monke
         assert lookup(session, keys[1]) is None and lookup(session, keys[0]) is not None
         [log] = session.scalars(select(AuditLog).where(AuditLog.action == "key.revoke")).all()
         assert log.target == "key 2" and log.owner.startswith("cli:")
+
+
+def test_every_command_keeps_the_drivers_responsive():
+    """The drivers answer on sub-second timeouts from threads that share the interpreter with fits: every
+    command sets the short thread switch interval (benchmarks/drivers.py measures why)."""
+    import sys
+
+    from drivers import SWITCH_INTERVAL_S
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(0.005)
+    try:
+        assert runner.invoke(app, ["keys", "--help"]).exit_code == 0
+        assert sys.getswitchinterval() == SWITCH_INTERVAL_S
+    finally:
+        sys.setswitchinterval(before)

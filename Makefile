@@ -9,7 +9,7 @@ PORT ?= 8000
 DB ?=
 DB_ENV := $(if $(strip $(DB)),COMPASSCAL_DATABASE_URL='$(if $(findstring ://,$(DB)),$(DB),sqlite:///$(abspath $(DB)))')
 
-.PHONY: run demo test test-parallel bench clean
+.PHONY: run demo test test-sequential bench clean
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -27,17 +27,16 @@ run: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(VENV)/bin/compasscal demo -o $(OUT)/demo
 
-# One test at a time: what CI runs. On two processes with a third job on the machine, a simulated
-# station in a test's process can still miss the turntable driver's 2 x 0.4 s Modbus timeout now and
-# then (its server thread starved of the CPU), which fails that run as an unreachable axis should.
+# What CI runs: three processes (pytest-xdist; each has its own PostgreSQL database: many tests wait on
+# a simulated station's clock, so a third process uses the time a second leaves idle on two cores),
+# then the tests marked serial (they stop PostgreSQL) on their own.
 test: $(VENV)/.installed
-	$(PY) -m pytest -q
-
-# Faster on an idle machine: two processes (pytest-xdist; each has its own PostgreSQL database), then
-# the tests marked serial (they stop PostgreSQL) on their own.
-test-parallel: $(VENV)/.installed
-	$(PY) -m pytest -q -n 2 -m "not serial"
+	$(PY) -m pytest -q -n 3 -m "not serial"
 	$(PY) -m pytest -q -m serial
+
+# One test at a time (for a failure's full output in order, or a machine short of memory).
+test-sequential: $(VENV)/.installed
+	$(PY) -m pytest -q
 
 bench: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py

@@ -201,6 +201,29 @@ def test_too_short_a_recording_is_refused_with_the_reason() -> None:
         analyze(rec)
 
 
+def test_hysteresis_signs_follow_the_concealed_effect_through_unsampled_moves() -> None:
+    """The analyser's hysteresis regressor is the concealed effect's sign state: on a path sampled a
+    tenth of a degree apart both agree sample by sample; sampled only at the holds (the moves between
+    them unsampled, up to 100 deg) the analyser follows each move along its encoder angles, so the
+    signs at the holds are still the effect's."""
+    from physics.discrepancy.registry import hysteresis_signs
+    from physics.table import platform_attitude
+
+    rng = np.random.default_rng(5)
+    holds = np.cumsum(rng.uniform(-100, 100, (40, 3)), axis=0) * [1.0, 0.5, 0.5]
+    fine = np.concatenate([a + np.linspace(0, 1, 1000, endpoint=False)[:, None] * (b - a) for a, b in zip(holds, holds[1:])])
+    fine = np.vstack([fine, holds[-1]])
+    v = np.array([0.35, -0.2, -0.91])
+    v /= np.linalg.norm(v)
+    h = np.einsum("nji,j->ni", platform_attitude(fine[:, 0], fine[:, 1], fine[:, 2]), v)
+    effect = fx.Hysteresis([1.0, 1.0, 1.0])
+    truth = np.rint([effect.body_field(0.0, 0, None, None, hb) - hb for hb in h])  # the sign state, +-1 or 0
+    assert np.array_equal(hysteresis_signs(fine, v), truth)
+    at_holds = np.arange(0, len(fine), 1000)
+    assert np.array_equal(hysteresis_signs(fine[at_holds], v), truth[at_holds])
+    assert {-1.0, 1.0} <= set(np.unique(truth[at_holds]))  # reversals happen between the holds
+
+
 def test_the_registry_has_one_entry_per_catalogue_effect_and_builds_its_columns() -> None:
     """physics/discrepancy/registry.py: every catalogue id has an entry and every entry a catalogue id; on a
     recording, each effect (and each stage variant) gets columns (N, 3, len(labels)), or an empty block

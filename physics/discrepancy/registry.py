@@ -140,21 +140,25 @@ def hysteresis_signs(ang: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Sign of the last change larger than HYSTERESIS_STEP of each body-field component (N, 3), as the
     concealed effect defines it. Between consecutive samples the table is followed along a straight
     line in encoder angles (that is how it moves), so a reversal during an unsampled move counts."""
-    signs = np.zeros((len(ang), 3))
     h = np.einsum("nji,j->ni", platform_attitude(ang[:, 0], ang[:, 1], ang[:, 2]), v)
-    anchor, sign = h[0].copy(), np.zeros(3)
-    for i in range(len(h)):
-        path = h[i:i + 1]
-        step = ang[i] - ang[i - 1] if i > 0 else np.zeros(3)
-        if np.max(np.abs(step)) > 1.0:
-            steps = int(min(90, np.ceil(np.max(np.abs(step)))))
-            a = ang[i - 1] + np.linspace(0, 1, steps + 1)[1:, None] * step
-            path = np.einsum("nji,j->ni", platform_attitude(a[:, 0], a[:, 1], a[:, 2]), v)
-        for p in path:
-            d = p - anchor
-            moved = np.abs(d) > fx.HYSTERESIS_STEP
-            sign = np.where(moved, np.sign(d), sign)
-            anchor = np.where(moved, p, anchor)
+    # the path of each step over 1 deg, up to 90 points a degree apart, ending at the sample after it
+    jump = np.flatnonzero(np.max(np.abs(np.diff(ang, axis=0)), axis=1) > 1.0) + 1
+    step = ang[jump] - ang[jump - 1]
+    count = np.minimum(90, np.ceil(np.max(np.abs(step), axis=1))).astype(int)
+    frac = np.concatenate([np.linspace(0, 1, c + 1)[1:] for c in count]) if len(jump) else np.zeros(0)
+    a = np.repeat(ang[jump - 1], count, axis=0) + frac[:, None] * np.repeat(step, count, axis=0)
+    along = np.einsum("nji,j->ni", platform_attitude(a[:, 0], a[:, 1], a[:, 2]), v).tolist()
+    ends = np.cumsum(count).tolist()
+    paths = {int(i): along[e - c:e] for i, c, e in zip(jump, count.tolist(), ends)}
+    # the play operator on plain floats (sequential by nature; numpy per sample costs 10x more)
+    signs = np.empty_like(h)
+    anchor, sign = h[0].tolist(), [0.0] * 3
+    for i, row in enumerate(h.tolist()):
+        for p in paths.get(i, (row,)):
+            for j in range(3):
+                d = p[j] - anchor[j]
+                if abs(d) > fx.HYSTERESIS_STEP:
+                    sign[j], anchor[j] = (1.0 if d > 0 else -1.0), p[j]
         signs[i] = sign
     return signs
 

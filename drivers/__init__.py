@@ -24,8 +24,9 @@ class DriverError(Exception):
 #: is 5 ms). The drivers answer on sub-second timeouts (a Modbus request 0.4 s) from threads and event
 #: loops that share the interpreter with fits and analyses: each hand-over of the GIL from a
 #: CPU-bound thread costs up to one interval, and a Modbus round trip takes a few dozen of them.
-#: Measured with two CPU-bound threads beside a simulated table: status reads of three axes took
-#: 185 ms median, 650 ms worst at 5 ms; 27 ms and 75 ms at 1 ms.
+#: Measured with two CPU-bound threads beside a simulated table (benchmarks/drivers.py): status
+#: reads of three axes took about 200 ms median and 420-650 ms at worst at 5 ms; 27 ms and 71-75 ms
+#: at 1 ms.
 SWITCH_INTERVAL_S = 0.001
 
 

@@ -502,17 +502,16 @@ class Engine:
         return self._keep(step.step, kept, angles, times)
 
     def _keep(self, label: str, got: dict[Any, list[Sample]], angles: Any,
-              times: dict[Any, np.ndarray] | None = None) -> dict[int, Recording]:
+              times: dict[Any, np.ndarray]) -> dict[int, Recording]:
         """Send samples to the sink (before anything else can go wrong) and return them as recordings.
         ``angles``: the held (psi, theta, phi), or per slot an (n, 3) array; ``times``: per slot host
-        times of the samples (default: their arrival times on the compass's sample clock)."""
+        times of the samples on the compass's sample clock (`_sample_times`)."""
         out: dict[int, Recording] = {}
         for slot, samples in got.items():
             if not samples:
                 continue
             a = angles[slot] if isinstance(angles, dict) else np.tile(np.asarray(angles, dtype=float), (len(samples), 1))
-            th = times[slot] if times is not None else self._sample_times(slot, samples)
-            rec = self._recording(int(slot), samples, label, a, th)
+            rec = self._recording(int(slot), samples, label, a, times[slot])
             self.sink.add(int(slot), rec)
             self._flag_bad(int(slot), rec, label)
             out[int(slot)] = rec

@@ -173,12 +173,14 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     # test alone knows the frequency: on a null it said 1e-4 to 4e-4 where the search's p was 0.03), and a
     # line the twin does not confirm is left out: on nulls with slow noise the periodogram's local level
     # ran low, and a line it called 3e-4 was 0.55 in the twin.
-    p_twin = min(1.0, final[LINE].p_value * line["independent"] * n_round1) if LINE in terms and LINE in final else 1.0
-    if LINE in terms and LINE in final and final[LINE].df > 0 and p_twin >= alpha * CATALOGUE_SHARE:
-        del terms[LINE]
-        selected = [s for s in selected if s != LINE]
-        notes.append(f"a line at {mains_hz:.4f} Hz in the spectrum is not confirmed by the twin's test at that "
-                     f"frequency (p {p_twin:.2g} after the search): left out")
+    p_twin = 1.0
+    if LINE in terms and LINE in final:
+        p_twin = min(1.0, final[LINE].p_value * line["independent"] * n_round1)
+        if final[LINE].df > 0 and p_twin >= alpha * CATALOGUE_SHARE:
+            del terms[LINE]
+            selected = [s for s in selected if s != LINE]
+            notes.append(f"a line at {mains_hz:.4f} Hz in the spectrum is not confirmed by the twin's test at that "
+                         f"frequency (p {p_twin:.2g} after the search): left out")
     fold = _folds(ctx)
     pred_before = _heldout(ctx, y_raw, nom0, [J00], fold, noise.floor)
     rms = lambda r: np.sqrt(np.mean(r * r, axis=0))  # noqa: E731

@@ -9,7 +9,7 @@ PORT ?= 8000
 DB ?=
 DB_ENV := $(if $(strip $(DB)),COMPASSCAL_DATABASE_URL='$(if $(findstring ://,$(DB)),$(DB),sqlite:///$(abspath $(DB)))')
 
-.PHONY: run demo test test-parallel bench clean
+.PHONY: run demo test bench clean
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -27,16 +27,10 @@ run: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(VENV)/bin/compasscal demo -o $(OUT)/demo
 
-# One test at a time: what CI runs. On three processes (below) a fresh clone's run failed once: a
-# simulated axis, served by a thread of the test's own process, did not answer the station's first
-# Modbus read within 0.4 s while the machine's two cores ran five CPU-bound processes.
+# What CI runs: three processes (pytest-xdist; each has its own PostgreSQL database; many tests wait
+# on a simulated station's clock, so a third process uses the time a second leaves idle on two cores),
+# then the tests marked serial (they stop PostgreSQL) alone. One at a time: .venv/bin/python -m pytest
 test: $(VENV)/.installed
-	$(PY) -m pytest -q
-
-# Faster (8 min idle, 10 min with one core busy): three processes (pytest-xdist; each has its own
-# PostgreSQL database; many tests wait on a simulated station's clock, so a third process uses the
-# time a second leaves idle on two cores), then the tests marked serial (they stop PostgreSQL) alone.
-test-parallel: $(VENV)/.installed
 	$(PY) -m pytest -q -n 3 -m "not serial"
 	$(PY) -m pytest -q -m serial
 

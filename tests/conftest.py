@@ -88,7 +88,7 @@ def _no_full_collection_mid_test() -> None:
     over it runs during the test. One process hosts hundreds of tests' leftovers (~480 000 objects);
     a collection over them stopped every thread for 0.3-0.8 s (measured under three processes on two
     cores), the simulated devices and the drivers alike, and the drivers' Modbus timeout is 0.4 s. A
-    collection after the freeze walks only what the test itself made (the product freezes its imports
+    collection after the freeze walks only what the test itself made (the command line freezes its imports
     at startup, ``drivers.keep_drivers_responsive``)."""
     gc.collect()
     gc.freeze()

@@ -501,3 +501,25 @@ def test_a_spectral_line_the_twin_does_not_confirm_is_left_out() -> None:
     a = analyze(rec, alpha=0.05, null_sims=100, rng=np.random.default_rng(ana))
     assert not [f for f in a.result["findings"] if f["effect"] == "mains_interference"], a.result["findings"]
     assert any("not confirmed by the twin" in n for n in a.result["notes"]), a.result["notes"]
+
+def test_between_the_two_stages_the_evidence_decides_however_close():
+    """Nothing makes a magnet on the outer stage likelier than on the middle one: between explanations
+    of the same size in the two stage frames the better-supported is named, even within the margin that
+    counts as the same evidence (a fixed order named the outer stage for a middle-stage window whose
+    statistic was 105.4 against 104.8); a commoner frame (the lab) still wins within that margin."""
+    from physics.discrepancy.lrt import Test
+
+    def found(frame: str, statistic: float) -> dv.Found:
+        test = Test(f"discovered:{frame}/offset/segments", np.zeros((10, 3)), statistic=statistic,
+                    p_adjusted=1e-12, log_p=float(np.log(1e-12)), search=3.0)
+        return dv.Found(dv.Block(frame, "offset", "segments"), np.zeros((3, 3, 3)), np.zeros((10, 3)), [], test)
+
+    outer, middle = found("outer", 104.8), found("middle", 105.4)
+    for chosen in (outer, middle):
+        pick, alike = dv._likeliest(chosen, [outer, middle], alpha=0.01)
+        assert pick is middle and alike == ["offset in the outer frame"]
+    pick, _ = dv._likeliest(outer, [found("outer", 106.0), middle], alpha=0.01)
+    assert pick.block.frame == "outer"
+    lab = found("lab", 104.5)
+    pick, alike = dv._likeliest(middle, [outer, middle, lab], alpha=0.01)
+    assert pick is lab and set(alike) == {"offset in the outer frame", "offset in the middle frame"}

@@ -735,9 +735,9 @@ def rows_of(cands: list[Found], round_: str, chosen: Found | None) -> list[dict[
 
 
 #: When the recording cannot tell frames apart (e.g. no roll inside a window: the middle stage moves with
-#: the unit), the likelier one, in this order: something on the unit is commoner than on the room, and
-#: that commoner than on a stage.
-FRAME_PREFERENCE = ("sensor", "platform", "lab", "outer", "middle")
+#: the unit), the likelier one, by this rank: something on the unit is commoner than on the room, and
+#: that commoner than on a stage; the two stages share a rank (the evidence decides between them).
+FRAME_PREFERENCE = {"sensor": 0, "platform": 1, "lab": 2, "outer": 3, "middle": 3}
 #: Statistics closer than this (log-likelihood 1) count as the same evidence.
 SAME_EVIDENCE = 2.0
 
@@ -788,9 +788,11 @@ def _likeliest(chosen: Found, cands: list[Found], alpha: float) -> tuple[Found, 
     top = max(score.values())
     margin = SLOW_SAME_EVIDENCE if b0.dependence in slow else SAME_EVIDENCE
     alike = [c for c in group if score[id(c)] >= top - margin]
-    pick = min(alike, key=lambda c: (FRAME_PREFERENCE.index(c.block.frame), FORMS.index(c.block.form),
+    # frames of equal rank (the two stages: nothing makes a magnet on one likelier than on the other)
+    # are told apart by the evidence, however close
+    pick = min(alike, key=lambda c: (FRAME_PREFERENCE[c.block.frame], FORMS.index(c.block.form),
                                      SLOW_PREFERENCE[c.block.form].index(c.block.dependence)
-                                     if c.block.dependence in slow else 0))
+                                     if c.block.dependence in slow else 0, -score[id(c)]))
     return pick, [_describe(c.block) for c in alike if c.block != pick.block]
 
 

@@ -125,12 +125,13 @@ def visit(plan: list[Pose | Scan], settle_s: float, data: Collected) -> Procedur
     return Outcome()
 
 
-def _per_slot(data: Collected, work: Any) -> Outcome:
-    """Run ``work(recording) -> dict`` for each slot; a unit whose data cannot be used gets its error."""
+def _per_slot(data: Collected, work: Any, done: dict[int, dict[str, Any]] | None = None) -> Outcome:
+    """Run ``work(recording) -> dict`` for each slot (the slots in ``done`` have their result already); a
+    unit whose data cannot be used gets its error."""
     out = Outcome()
     for slot, rec in data.recordings().items():
         try:
-            out.results[slot] = work(rec)
+            out.results[slot] = done[slot] if done and slot in done else work(rec)
         except (RecordingError, InsufficientData, ValueError) as e:
             out.results[slot] = {"error": str(e)}
     return out
@@ -186,6 +187,7 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
     positions; maxmin's field-aligned turns)."""
     data = Collected()
     precision: dict[int, dict[str, Any]] = {}
+    fitted: dict[int, Calibration] = {}  # the adaptive extension's last fits, on all the data
     if p.method == "twelve-position":
         yield from visit(twelve_position_poses(p), p.settle_s, data)
     elif p.method == "maxmin":
@@ -196,12 +198,12 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
         if p.adaptive:
             spent = _plan_seconds(poses, p)
             here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
-            precision = yield from extend_to_target(p, data, spent, here)
+            precision, fitted = yield from extend_to_target(p, data, spent, here)
 
     def work(rec: Recording) -> dict[str, Any]:
         cal = fit(rec, p.method, bootstrap=0)
         return {"calibration": cal, "quality": cal.quality}
-    out = _per_slot(data, work)
+    out = _per_slot(data, work, {s: {"calibration": c, "quality": c.quality} for s, c in fitted.items()})
     for slot, pr in precision.items():
         if "calibration" in out.results.get(slot, {}):
             out.results[slot]["calibration"].quality["precision"] = pr
@@ -233,12 +235,14 @@ def adaptive_reserve(p: CalibrateParams) -> float:
     return max(p.budget_s - _plan_seconds(calibration_poses(p), p), 0.0) if p.adaptive else 0.0
 
 
-def _unit_precisions(data: Collected) -> dict[int, UnitPrecision]:
-    """Each slot's precision model from a joint fit of its data so far (a slot whose fit fails is left out)."""
+def _unit_precisions(data: Collected) -> dict[int, tuple[UnitPrecision, Calibration]]:
+    """Each slot's joint fit of its data so far and the precision model from it (a slot whose fit fails
+    is left out)."""
     out = {}
     for slot, rec in data.recordings().items():
         try:
-            out[slot] = unit_precision(rec, fit(rec, "joint", bootstrap=0))
+            cal = fit(rec, "joint", bootstrap=0)
+            out[slot] = (unit_precision(rec, cal), cal)
         except (RecordingError, InsufficientData, ValueError, np.linalg.LinAlgError):
             continue
     return out
@@ -295,11 +299,13 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
                      here: tuple[float, float, float]) -> ProcedureGen:
     """Add poses until every unit's predicted heading error (95 % quantile of its largest error level and at
     +-60 deg, from its joint fit's covariance: physics.precision) meets the targets, or the table-time budget
-    would be exceeded. Returns per slot what was predicted, whether the targets were met and why it stopped."""
+    would be exceeded. Returns per slot what was predicted, whether the targets were met and why it stopped;
+    and the last round's joint fits, made on all the data (the calibration's own fit, not made again)."""
     targets = {"level": p.target_level_deg, "tilted": p.target_tilted_deg}
     added = 0
     while True:
-        units = _unit_precisions(data)
+        fits = _unit_precisions(data)
+        units = {s: u for s, (u, _) in fits.items()}
         predicted = {s: u.quantile() for s, u in units.items()}
         pending = {s: units[s] for s in units if any(predicted[s][k] > t for k, t in targets.items())}
         if not pending:
@@ -326,7 +332,7 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
                   "target_level_deg": targets["level"], "target_tilted_deg": targets["tilted"], "met": met,
                   "stopped": "reached" if met else "budget", "added_poses": added,
                   "table_s": spent_s, "why": why}
-    return out
+    return out, {s: cal for s, (_, cal) in fits.items()}
 
 
 # --- building blocks and checks -----------------------------------------------------------------

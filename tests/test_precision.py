@@ -89,6 +89,22 @@ def test_adaptive_stops_at_the_plan_for_a_good_unit_and_extends_for_a_weak_one()
     assert "precision" not in base.results[0]["calibration"].quality  # not adaptive: as before
 
 
+def test_the_adaptive_calibration_is_the_last_rounds_fit_not_a_second_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The extension's last round fits every unit on all the data to predict its error; that fit is the
+    unit's calibration (one fit of the whole recording per unit, not two of the same data)."""
+    import procedures.calibrate as pc
+
+    calls: list[int] = []
+    real = pc.fit
+    monkeypatch.setattr(pc, "fit", lambda rec, *a, **k: calls.append(len(rec)) or real(rec, *a, **k))
+    proc = PROCEDURES["calibrate"]
+    out, _ = simulate_run(proc.run(proc.validate({"adaptive": True})), reference_unit(3.0, 4.0),
+                          World(55.0, 23.0), np.random.default_rng(1))
+    cal = out.results[0]["calibration"]
+    assert cal.quality["precision"]["added_poses"] == 0 and calls == [18 * 60]
+    assert cal.quality["samples"] == 18 * 60 and cal.method == "joint"
+
+
 def test_adaptive_needs_the_joint_fit() -> None:
     with pytest.raises(ValidationError, match="adaptive: needs method 'joint'"):
         PROCEDURES["calibrate"].validate({"adaptive": True, "method": "ellipsoid"})

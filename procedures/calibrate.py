@@ -200,10 +200,9 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
             here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
             precision, fitted = yield from extend_to_target(p, data, spent, here)
 
-    def work(rec: Recording) -> dict[str, Any]:
-        cal = fit(rec, p.method, bootstrap=0)
+    def result(cal: Calibration) -> dict[str, Any]:
         return {"calibration": cal, "quality": cal.quality}
-    out = _per_slot(data, work, {s: {"calibration": c, "quality": c.quality} for s, c in fitted.items()})
+    out = _per_slot(data, lambda rec: result(fit(rec, p.method, bootstrap=0)), {s: result(c) for s, c in fitted.items()})
     for slot, pr in precision.items():
         if "calibration" in out.results.get(slot, {}):
             out.results[slot]["calibration"].quality["precision"] = pr

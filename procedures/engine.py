@@ -211,7 +211,8 @@ class Engine:
         nominal = [w for s, w in zip(plan, step_seconds(plan, self._motion())) if isinstance(s, TIMED_STEPS)]
         reserve = self.procedure.reserve(self.params) if self.procedure.reserve else 0.0
         total = max(sum(nominal) + reserve, 1e-9)
-        left_nominal, done, here = total, 0, (0.0, 0.0, 0.0)
+        # the last commanded pose (for a tail step's nominal seconds); self._held is what the encoders said
+        left_nominal, done, commanded = total, 0, (0.0, 0.0, 0.0)
         self._t0 = time.monotonic()
         self._set_state(RunState.running)
         outcome: Outcome | None = None
@@ -241,11 +242,11 @@ class Engine:
                     elapsed = self._table_used = self.table_time()
                     # a data-dependent tail beyond the plan spends the reserve by its steps' nominal seconds
                     # (not by the clock: the fits that choose its poses take table time at a time scale)
-                    spent = nominal[done] if done < len(nominal) else step_seconds([step], self._motion(), here)[0]
+                    spent = nominal[done] if done < len(nominal) else step_seconds([step], self._motion(), commanded)[0]
                     left_nominal -= min(spent, left_nominal)
                     done += 1
                     if isinstance(step, Move):
-                        here = (step.psi, step.theta, step.phi)
+                        commanded = (step.psi, step.theta, step.phi)
                     frac = min(1.0, max(0.0, 1.0 - left_nominal / total))
                     # the plan's remaining table time at the pace so far (table s per planned s), that
                     # pace trusted as the plan gets done: early on it mostly measures the homing (a

@@ -253,45 +253,74 @@ HOLDS = (1, 4)
 
 
 def choose_poses(units: dict[int, UnitPrecision], targets: dict[str, float], p: CalibrateParams,
-                 here: tuple[float, float, float], left_s: float) -> tuple[list[Pose], float]:
+                 here: tuple[float, float, float], left_s: float,
+                 added: dict[int, list] | None = None) -> tuple[list[Pose], float, dict[int, list]]:
     """Poses (up to :data:`ROUND_S` of table time, within ``left_s``) that lower the units' predicted heading
     errors fastest: each in turn the candidate (pose and hold length) with the largest fall per table second
-    of the sum over units of their worst 1-sigma error over target, counting the poses already chosen.
-    Returns them and their seconds."""
+    of the sum over units of their worst 1-sigma error over target, counting the poses already chosen (and
+    ``added``, the information of poses chosen before but not yet in the fit). Returns them, their seconds
+    and the information added with them (per slot: magnetometer, accelerometer)."""
     cands = np.array(ADAPTIVE_POSES)
     per = {s: (u.mag.per_sample(cands), u.acc.per_sample(cands) if u.acc else None) for s, u in units.items()}
-    added = {s: [np.zeros((14, 14)), np.zeros((14, 14)) if u.acc else None] for s, u in units.items()}
+    if added is None:
+        added = {s: [np.zeros((14, 14)), np.zeros((14, 14)) if u.acc else None] for s, u in units.items()}
+    # every candidate at once: pose c held n samples, for each (c, n) of the grid below
+    grid_c = np.repeat(np.arange(len(ADAPTIVE_POSES)), len(HOLDS))
+    grid_n = np.tile(np.array(HOLDS) * p.samples, len(ADAPTIVE_POSES)).astype(float)
 
-    def with_pose(extra: dict[int, list], c: int, n: int) -> dict[int, list]:
-        return {s: [a[0] + n * per[s][0][c], None if a[1] is None else a[1] + n * per[s][1][c]] for s, a in extra.items()}
-
-    def objective(extra: dict[int, list]) -> float:
-        return sum(max(sig[k] / t for k, t in targets.items())
-                   for sig in (u.sigma_max(extra[s][0], extra[s][1]) for s, u in units.items()))
+    def objective(extra: dict[int, list]) -> np.ndarray:
+        """Sum over units of their worst 1-sigma error over target (batched over the leading axis of extra)."""
+        total = 0.0
+        for s, u in units.items():
+            sig = u.sigma_max(extra[s][0], extra[s][1])
+            total = total + np.max([sig[k] / t for k, t in targets.items()], axis=0)
+        return np.asarray(total)
 
     chosen: list[Pose] = []
     spent = 0.0
-    now = objective(added)
+    now = float(objective(added))
     while spent < ROUND_S:
-        best, best_rate = None, 0.0
-        for c, pose in enumerate(ADAPTIVE_POSES):
-            for hold in HOLDS:
-                n = hold * p.samples
-                cost = _plan_seconds([Pose("adaptive", *pose, samples=n)], p, here)
-                if spent + cost > left_s:
-                    continue
-                rate = (now - objective(with_pose(added, c, n))) / cost
-                if rate > best_rate:
-                    best, best_rate = (c, n, cost), rate
-        if best is None:
+        cost = np.array([_plan_seconds([Pose("adaptive", *ADAPTIVE_POSES[c], samples=int(n))], p, here)
+                         for c, n in zip(grid_c, grid_n)])
+        trial = {s: [a[0] + grid_n[:, None, None] * per[s][0][grid_c],
+                     None if a[1] is None else a[1] + grid_n[:, None, None] * per[s][1][grid_c]]
+                 for s, a in added.items()}
+        after = objective(trial)
+        rate = np.where(spent + cost <= left_s, (now - after) / cost, -np.inf)
+        i = int(np.argmax(rate))
+        if not rate[i] > 0.0:
             break
-        c, n, cost = best
-        added = with_pose(added, c, n)
-        now = objective(added)
+        c, n = int(grid_c[i]), int(grid_n[i])
+        # the chosen candidate's information and objective are the trial's (not computed again)
+        added = {s: [t[0][i], None if t[1] is None else t[1][i]] for s, t in trial.items()}
+        now = float(after[i])
         chosen.append(Pose("adaptive", *ADAPTIVE_POSES[c], samples=n))
-        spent += cost
+        spent += float(cost[i])
         here = ADAPTIVE_POSES[c]
-    return chosen, spent
+    return chosen, spent, added
+
+
+#: How far beyond the budget :func:`time_to_target` looks.
+LOOKAHEAD_S = 900.0
+
+
+def time_to_target(u: UnitPrecision, targets: dict[str, float], p: CalibrateParams,
+                   here: tuple[float, float, float]) -> float | None:
+    """Table seconds of further poses, chosen round by round as the extension chooses them, after which
+    ``u``'s predicted errors (95 % quantiles, on the information those poses would add to its fit) meet
+    the targets; None when :data:`LOOKAHEAD_S` would not do. For a unit the budget left short: the
+    budget it needed."""
+    spent, added = 0.0, None
+    while spent < LOOKAHEAD_S:
+        poses, seconds, added = choose_poses({0: u}, targets, p, here, LOOKAHEAD_S - spent, added)
+        if not poses:
+            return None
+        spent += seconds
+        here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
+        q = u.quantile(extra_mag=added[0][0], extra_acc=added[0][1])
+        if all(q[k] <= t for k, t in targets.items()):
+            return spent
+    return None
 
 
 def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
@@ -309,7 +338,7 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
         pending = {s: units[s] for s in units if any(predicted[s][k] > t for k, t in targets.items())}
         if not pending:
             break
-        poses, seconds = choose_poses(pending, targets, p, here, p.budget_s - spent_s)
+        poses, seconds, _ = choose_poses(pending, targets, p, here, p.budget_s - spent_s)
         if not poses:  # the budget cannot take another pose
             break
         yield from visit(poses, p.settle_s, data)
@@ -319,18 +348,24 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
     out = {}
     for s, q in predicted.items():
         met = all(q[k] <= t for k, t in targets.items())
+        more = None  # for a unit short of the targets: the further table time it needs (None: beyond the look-ahead)
         if met:
             why = (f"predicted heading error (95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
                    f"within the targets {targets['level']:g} and {targets['tilted']:g} deg"
                    + (f" after {added} added poses" if added else " with the plan alone"))
         else:
+            more = time_to_target(units[s], targets, p, here)
+            need = (f"about {more:.0f} s more table time (a budget of {spent_s + more:.0f} s) would reach them"
+                    if more is not None else
+                    f"even {LOOKAHEAD_S / 60:.0f} min more table time would not: a unit with less noise per field, "
+                    f"or a compass that averages more per sample, would")
             why = (f"predicted heading error (95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
                    f"above the targets {targets['level']:g} / {targets['tilted']:g} deg when the {p.budget_s:g}-s table-time "
-                   f"budget ended ({added} poses added); a longer budget, or a unit with less noise per field, would reach them")
+                   f"budget ended ({added} poses added); {need}")
         out[s] = {"predicted_level_deg": q["level"], "predicted_tilted_deg": q["tilted"], "confidence": CONFIDENCE,
                   "target_level_deg": targets["level"], "target_tilted_deg": targets["tilted"], "met": met,
                   "stopped": "reached" if met else "budget", "added_poses": added,
-                  "table_s": spent_s, "why": why}
+                  "table_s": spent_s, "more_table_s": more, "why": why}
     return out, {s: cal for s, (_, cal) in fits.items()}
 
 

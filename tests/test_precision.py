@@ -89,6 +89,25 @@ def test_adaptive_stops_at_the_plan_for_a_good_unit_and_extends_for_a_weak_one()
     assert "precision" not in base.results[0]["calibration"].quality  # not adaptive: as before
 
 
+def test_a_unit_the_budget_left_short_is_told_the_budget_it_needs() -> None:
+    """A unit (2200 LSB per field) that a 112-s budget leaves above the targets: the result says how much
+    more table time the extension predicts it needs (choosing poses as it would, on the information they
+    would add), and a run given that budget does reach the targets (at 95 % confidence, predicted)."""
+    proc = PROCEDURES["calibrate"]
+    unit, world = _units(1, 7)[0]
+    unit.mag.k[:] = 2200.0
+    short = proc.validate({"adaptive": True, "budget_s": 112.0})
+    out, _ = simulate_run(proc.run(short), unit, world, np.random.default_rng(2))
+    pr = out.results[0]["calibration"].quality["precision"]
+    assert not pr["met"] and pr["more_table_s"] is not None and pr["more_table_s"] > 20.0, pr
+    needed = pr["table_s"] + pr["more_table_s"]
+    assert f"a budget of {needed:.0f} s) would reach them" in pr["why"]
+    out, _ = simulate_run(proc.run(proc.validate({"adaptive": True, "budget_s": needed})), unit, world,
+                          np.random.default_rng(2))
+    pr = out.results[0]["calibration"].quality["precision"]
+    assert pr["met"] and pr["stopped"] == "reached" and pr["table_s"] <= needed + 1e-6, pr
+
+
 def test_the_adaptive_calibration_is_the_last_rounds_fit_not_a_second_one(monkeypatch: pytest.MonkeyPatch) -> None:
     """The extension's last round fits every unit on all the data to predict its error; that fit is the
     unit's calibration (one fit of the whole recording per unit, not two of the same data)."""

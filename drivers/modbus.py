@@ -123,7 +123,8 @@ def exception_text(code: int) -> str:
 
 @dataclass(frozen=True)
 class BusURL:
-    """A parsed bus address."""
+    """A parsed bus address. Any URL may end in ``?timeout=<s>``: the answer time allowed per request
+    (e.g. a slow RS-485 gateway), instead of the driver's own (0.3-0.5 s)."""
 
     kind: str  # "tcp", "rtu+tcp" or "serial"
     host: str = ""
@@ -132,6 +133,7 @@ class BusURL:
     baud: int = 115200
     parity: str = "N"
     stopbits: int = 1
+    timeout: float | None = None
 
     @classmethod
     def parse(cls, url: str) -> BusURL:
@@ -140,24 +142,45 @@ class BusURL:
             return cls(kind="serial", device=url)
         parts = urlsplit(url)
         scheme = parts.scheme.lower()
+        q = {k: v[-1] for k, v in parse_qs(parts.query, keep_blank_values=True).items()}
         if scheme in ("tcp", "modbus+tcp", "rtu+tcp", "rtu-over-tcp"):
+            _known_keys(url, q, ("timeout",))
             if not parts.hostname:
                 raise ValueError(f"no host in Modbus URL {url!r}")
             kind = "rtu+tcp" if scheme.startswith("rtu") else "tcp"
-            return cls(kind=kind, host=parts.hostname, port=parts.port or 502)
+            return cls(kind=kind, host=parts.hostname, port=parts.port or 502, timeout=_timeout(url, q))
         if scheme in ("serial", "rtu"):
-            q = parse_qs(parts.query)
+            _known_keys(url, q, ("baud", "parity", "stopbits", "timeout"))
             device = parts.path or parts.netloc
             if not device:
                 raise ValueError(f"no device in Modbus URL {url!r}")
             return cls(
                 kind="serial",
                 device=device,
-                baud=int(q.get("baud", ["115200"])[0]),
-                parity=q.get("parity", ["N"])[0].upper(),
-                stopbits=int(q.get("stopbits", ["1"])[0]),
+                baud=int(q.get("baud", "115200")),
+                parity=q.get("parity", "N").upper(),
+                stopbits=int(q.get("stopbits", "1")),
+                timeout=_timeout(url, q),
             )
         raise ValueError(f"unsupported Modbus URL scheme {scheme!r} in {url!r}")
+
+
+def _known_keys(url: str, query: dict[str, str], known: tuple[str, ...]) -> None:
+    unknown = sorted(set(query) - set(known))
+    if unknown:
+        raise ValueError(f"unknown option {', '.join(unknown)} in Modbus URL {url!r} (known: {', '.join(known)})")
+
+
+def _timeout(url: str, query: dict[str, str]) -> float | None:
+    if "timeout" not in query:
+        return None
+    try:
+        t = float(query["timeout"])
+    except ValueError:
+        t = float("nan")
+    if not 0.01 <= t <= 10:  # also refuses nan
+        raise ValueError(f"timeout in Modbus URL {url!r}: expected seconds between 0.01 and 10, got {query['timeout']!r}")
+    return t
 
 
 class ModbusBus:
@@ -171,18 +194,18 @@ class ModbusBus:
     def __init__(self, url: str, timeout: float = DEFAULT_TIMEOUT) -> None:
         self.url = url
         self.addr = BusURL.parse(url)
-        self.timeout = timeout
+        self.timeout = timeout if self.addr.timeout is None else self.addr.timeout  # the URL's own wins
         a = self.addr
         # reconnect_delay=0: no background reconnect task; execute() reconnects on demand.
         if a.kind == "serial":
             self._client: AsyncModbusSerialClient | AsyncModbusTcpClient = AsyncModbusSerialClient(
                 a.device, framer=FramerType.RTU, baudrate=a.baud, parity=a.parity,
-                stopbits=a.stopbits, timeout=timeout, retries=0, reconnect_delay=0,
+                stopbits=a.stopbits, timeout=self.timeout, retries=0, reconnect_delay=0,
             )
         else:
             framer = FramerType.RTU if a.kind == "rtu+tcp" else FramerType.SOCKET
             self._client = AsyncModbusTcpClient(
-                a.host, port=a.port, framer=framer, timeout=timeout, retries=0, reconnect_delay=0,
+                a.host, port=a.port, framer=framer, timeout=self.timeout, retries=0, reconnect_delay=0,
             )
         # Do not let silent units close the shared connection (see the module docstring).
         self._client.set_max_no_responses(1 << 30)

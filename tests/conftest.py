@@ -202,6 +202,10 @@ def sim_station(cfg: Any) -> Iterator[dict[str, Any]]:
     started.wait(30)
     if "error" in info:
         raise info["error"]
+    # The simulated controllers answer from a thread of this process, which shares two cores with the
+    # service, its fits and two other pytest processes: allow them the answer time of a slow gateway
+    # (1 s instead of 0.3 s), as a station would on such a line (a silent axis still fails the run).
+    info["modbus"] += "?timeout=1"
     info["loop"] = loop
     try:
         yield info

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from drivers.modbus import ModbusBus
+from drivers.modbus import BusURL, ModbusBus
 from drivers.protocol import Command, Reg, Status
 from drivers.sim.clock import SimClock
 from drivers.sim.turntable import AxisSim, TableSim
@@ -270,6 +270,32 @@ def test_no_reply_is_unreachable_quickly() -> None:
             srv.check()
 
     run(body())
+
+
+def test_a_url_allows_a_slow_gateway_its_own_answer_time() -> None:
+    """``?timeout=`` on the bus URL wins over the driver's default: the same silent axis is reported
+    after the URL's answer time (two attempts), and a mistyped option is refused by name."""
+    script = [("0001 0000 0006 01 03 0012 0002", None), ("0002 0000 0006 01 03 0012 0002", None)]
+
+    async def body() -> None:
+        async with ScriptServer(script) as srv:
+            ax = Axis("z", 1, ModbusBus(f"tcp://127.0.0.1:{srv.port}?timeout=0.6", timeout=0.2))
+            assert ax.bus.timeout == 0.6
+            await ax.bus.connect()
+            t = time.monotonic()
+            with pytest.raises(AxisUnreachable):
+                await ax.position()
+            assert 1.2 <= time.monotonic() - t < 2.5  # two attempts of 0.6 s, not of 0.2 s
+            ax.bus.close()
+            srv.check()
+
+    run(body())
+    assert BusURL.parse("serial:///dev/ttyUSB0?baud=9600&timeout=0.5").timeout == 0.5
+    assert BusURL.parse("tcp://10.0.0.5:502").timeout is None
+    with pytest.raises(ValueError, match="unknown option timout"):
+        BusURL.parse("tcp://10.0.0.5:502?timout=1")
+    with pytest.raises(ValueError, match="timeout in Modbus URL .*got 'soon'"):
+        BusURL.parse("tcp://10.0.0.5:502?timeout=soon")
 
 
 def test_low_word_first_position() -> None:

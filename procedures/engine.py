@@ -22,6 +22,7 @@ import asyncio
 import math
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -58,6 +59,9 @@ HISTORY_SCAN = 4096
 
 #: Wall seconds an identification of the fixture's compasses may take.
 IDENTIFY_TIMEOUT_S = 10.0
+#: Threads that run the procedures' own work between steps (one per station a worker drives at once;
+#: their own pool, so they never queue behind the database writes of the default executor).
+PROCEDURE_THREADS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="procedure")
 
 
 async def identify_units(fixture: Any) -> dict[int, tuple[str, str, str]]:
@@ -217,17 +221,22 @@ class Engine:
         self._set_state(RunState.running)
         outcome: Outcome | None = None
         gen = self.procedure.run(self.params)
+        computing: asyncio.Future[tuple[bool, Any]] | None = None
         reply: Any = None
         replaying, passed = self.replay is not None and self.replay.checkpoints > 0, 0
         try:
             await self._prepare()
             while True:
                 self._check_abort()
-                try:
-                    step = gen.send(reply)
-                except StopIteration as stop:
-                    outcome = stop.value
+                # the procedure's own work between steps (its fits; a characterize run's analysis takes
+                # seconds) runs off this loop, which meanwhile serves the table's polls, the operator's
+                # commands, the worker's heartbeat and any other station the worker drives
+                computing = asyncio.get_running_loop().run_in_executor(PROCEDURE_THREADS, _advance, gen, reply)
+                finished, value = await asyncio.shield(computing)
+                if finished:
+                    outcome = value
                     break
+                step = value
                 if replaying and not self._live_in_replay(step):
                     reply = self._replayed(step)
                     if isinstance(step, Checkpoint):
@@ -274,7 +283,10 @@ class Engine:
             if isinstance(e, (asyncio.CancelledError, KeyboardInterrupt)):
                 raise
         finally:
-            gen.close()
+            if computing is None or computing.done():
+                gen.close()
+            else:  # cancelled while the procedure computes: close it once its thread is done with it
+                computing.add_done_callback(lambda _: gen.close())
         return RunResult(self.state, self.reason, outcome, self._samples, self._table_used)
 
     def _motion(self) -> Motion:
@@ -693,6 +705,15 @@ def _measured_before(t: np.ndarray | None, start: float) -> int:
         return 0
     early = t < start
     return len(t) if early.all() else int(np.argmin(early))
+
+
+def _advance(gen: Any, reply: Any) -> tuple[bool, Any]:
+    """Resume a procedure with ``reply``: (False, its next step) or (True, its outcome). (A thread's
+    StopIteration cannot cross into an asyncio future, hence the pair.)"""
+    try:
+        return False, gen.send(reply)
+    except StopIteration as stop:
+        return True, stop.value
 
 
 def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float,

@@ -206,6 +206,49 @@ def test_prompts_wait_for_the_operator():
     assert result.state is RunState.completed and result.outcome.results[0] == {"answer": "mounted", "n": 5}
 
 
+def test_the_procedures_own_work_does_not_stall_the_engines_loop():
+    """A procedure that computes between steps (its fits; a characterize run's analysis takes seconds)
+    does so off the engine's loop: the loop that polls the table, takes the operator's commands and
+    beats the worker's heartbeat keeps its pace meanwhile, and the outcome still comes back."""
+    busy_s = 1.5
+
+    def busy(params) -> object:
+        yield Move(10.0)
+        data = yield Acquire(5, "check")
+        if data:  # not while the plan is laid out on empty replies
+            t = time.monotonic()
+            while time.monotonic() - t < busy_s:  # CPU-bound, holding the interpreter as a fit does
+                sum(range(1000))
+        yield Move(20.0)
+        return Outcome({0: {"n": len(data[0])}})
+    proc = Procedure("busy", "1", PROCEDURES["rotate_z"].params, busy)
+    cfg = reference_config(seed=6, time_scale=20)
+
+    async def main():
+        gaps: list[float] = []
+
+        async def tick() -> None:
+            last = time.monotonic()
+            while True:
+                await asyncio.sleep(0.01)
+                now = time.monotonic()
+                gaps.append(now - last)
+                last = now
+        async with SimStation(cfg, control_port=None) as st:
+            d = st.describe()
+            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=20) as station:
+                ticker = asyncio.create_task(tick())
+                t0 = time.monotonic()
+                result = await Engine(station, proc, proc.validate({}), RecordingSink(None, {})).run()
+                wall = time.monotonic() - t0
+                ticker.cancel()
+                return result, gaps, wall
+    result, gaps, wall = asyncio.run(asyncio.wait_for(main(), 30))
+    assert result.state is RunState.completed and result.outcome.results[0] == {"n": 5}, result.reason
+    assert wall >= busy_s  # the work was done during the run
+    assert max(gaps) < busy_s / 3, max(gaps)  # on the loop it would stall it for busy_s at once
+
+
 def test_a_run_on_a_table_already_in_fault_fails_before_moving():
     cfg = reference_config(seed=7, time_scale=20)
     cfg.table.homed = cfg.table.enabled = True

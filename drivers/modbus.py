@@ -154,14 +154,11 @@ class BusURL:
             device = parts.path or parts.netloc
             if not device:
                 raise ValueError(f"no device in Modbus URL {url!r}")
-            return cls(
-                kind="serial",
-                device=device,
-                baud=int(q.get("baud", "115200")),
-                parity=q.get("parity", "N").upper(),
-                stopbits=int(q.get("stopbits", "1")),
-                timeout=_timeout(url, q),
-            )
+            parity = q.get("parity", "N").upper()
+            if parity not in ("N", "E", "O"):
+                raise ValueError(f"parity in Modbus URL {url!r}: expected N, E or O, got {q['parity']!r}")
+            return cls(kind="serial", device=device, baud=_whole(url, q, "baud", "115200", (1200, 4_000_000)),
+                       parity=parity, stopbits=_whole(url, q, "stopbits", "1", (1, 2)), timeout=_timeout(url, q))
         raise ValueError(f"unsupported Modbus URL scheme {scheme!r} in {url!r}")
 
 
@@ -169,6 +166,13 @@ def _known_keys(url: str, query: dict[str, str], known: tuple[str, ...]) -> None
     unknown = sorted(set(query) - set(known))
     if unknown:
         raise ValueError(f"unknown option {', '.join(unknown)} in Modbus URL {url!r} (known: {', '.join(known)})")
+
+
+def _whole(url: str, query: dict[str, str], key: str, default: str, bounds: tuple[int, int]) -> int:
+    text = query.get(key, default)
+    if not text.isdigit() or not bounds[0] <= int(text) <= bounds[1]:
+        raise ValueError(f"{key} in Modbus URL {url!r}: expected a whole number from {bounds[0]} to {bounds[1]}, got {text!r}")
+    return int(text)
 
 
 def _timeout(url: str, query: dict[str, str]) -> float | None:

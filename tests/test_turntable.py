@@ -296,6 +296,10 @@ def test_a_url_allows_a_slow_gateway_its_own_answer_time() -> None:
         BusURL.parse("tcp://10.0.0.5:502?timout=1")
     with pytest.raises(ValueError, match="timeout in Modbus URL .*got 'soon'"):
         BusURL.parse("tcp://10.0.0.5:502?timeout=soon")
+    with pytest.raises(ValueError, match="baud in Modbus URL .*got '9600x'"):
+        BusURL.parse("serial:///dev/ttyUSB0?baud=9600x")
+    with pytest.raises(ValueError, match="parity in Modbus URL .*expected N, E or O"):
+        BusURL.parse("serial:///dev/ttyUSB0?parity=X")
 
 
 def test_low_word_first_position() -> None:

@@ -232,7 +232,8 @@ class Engine:
                 # seconds) runs off this loop, which meanwhile serves the table's polls, the operator's
                 # commands, the worker's heartbeat and any other station the worker drives
                 computing = asyncio.get_running_loop().run_in_executor(PROCEDURE_THREADS, _advance, gen, reply)
-                finished, value = await asyncio.shield(computing)
+                await self._unless_aborted(computing)
+                finished, value = computing.result()
                 if finished:
                     outcome = value
                     break
@@ -588,6 +589,17 @@ class Engine:
             mag=[s.mag for s in samples], acc=[s.acc for s in samples], temp_c=[s.temp_c for s in samples],
             meta={"serial": self.serials.get(slot, ""), "slot": str(slot)},
         )
+
+    async def _unless_aborted(self, work: asyncio.Future[Any]) -> None:
+        """Wait for ``work``; an abort meanwhile raises at once (the work, which cannot be interrupted,
+        ends on its own and its result is dropped)."""
+        aborted = asyncio.create_task(self._aborted.wait())
+        try:
+            await asyncio.wait([work, aborted], return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            aborted.cancel()
+        if not work.done():
+            self._check_abort()
 
     def _check_abort(self) -> None:
         if self._abort is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
 import time
 from pathlib import Path
 
@@ -247,6 +248,43 @@ def test_the_procedures_own_work_does_not_stall_the_engines_loop():
     assert result.state is RunState.completed and result.outcome.results[0] == {"n": 5}, result.reason
     assert wall >= busy_s  # the work was done during the run
     assert max(gaps) < busy_s / 3, max(gaps)  # on the loop it would stall it for busy_s at once
+
+
+def test_an_abort_while_the_procedure_computes_ends_the_run_at_once():
+    """The operator's abort does not wait for a fit or an analysis to finish: the run is aborted, its
+    samples kept, while the computation ends on its own in its thread."""
+    computing, stop = threading.Event(), threading.Event()
+
+    def slow(params) -> object:
+        yield Move(10.0)
+        data = yield Acquire(5, "check")
+        if data:  # not while the plan is laid out
+            computing.set()
+            stop.wait(10.0)  # a long analysis
+        yield Move(20.0)
+        return Outcome({0: {"n": len(data[0])}})
+    proc = Procedure("slow", "1", PROCEDURES["rotate_z"].params, slow)
+    cfg = reference_config(seed=6, time_scale=20)
+
+    async def main():
+        async with SimStation(cfg, control_port=None) as st:
+            d = st.describe()
+            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=20) as station:
+                eng = Engine(station, proc, proc.validate({}), RecordingSink(None, {}))
+                task = asyncio.create_task(eng.run())
+                while not computing.is_set():
+                    await asyncio.sleep(0.01)
+                eng.abort()
+                t = time.monotonic()
+                result = await task
+                return result, time.monotonic() - t, st.table.true_angles()[0]
+    try:
+        result, took, z = asyncio.run(asyncio.wait_for(main(), 30))
+    finally:
+        stop.set()
+    assert result.state is RunState.aborted and result.samples == 5, (result.state, result.reason)
+    assert took < 2.0, took  # not the 10 s the computation would take
+    assert abs(z - 10.0) < 0.01  # the move after the computation never started
 
 
 def test_a_run_on_a_table_already_in_fault_fails_before_moving():

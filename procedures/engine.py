@@ -59,7 +59,7 @@ HISTORY_SCAN = 4096
 
 #: Wall seconds an identification of the fixture's compasses may take.
 IDENTIFY_TIMEOUT_S = 10.0
-#: Threads that run the procedures' own work between steps (one per station a worker drives at once;
+#: Threads that run the procedures' own work between steps (one per run a process drives at once;
 #: their own pool, so they never queue behind the database writes of the default executor).
 PROCEDURE_THREADS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="procedure")
 
@@ -229,8 +229,8 @@ class Engine:
             while True:
                 self._check_abort()
                 # the procedure's own work between steps (its fits; a characterize run's analysis takes
-                # seconds) runs off this loop, which meanwhile serves the table's polls, the operator's
-                # commands, the worker's heartbeat and any other station the worker drives
+                # a minute) runs off this loop, which meanwhile polls the table and takes the operator's
+                # commands (an abort ends the run at once)
                 computing = asyncio.get_running_loop().run_in_executor(PROCEDURE_THREADS, _advance, gen, reply)
                 await self._unless_aborted(computing)
                 finished, value = computing.result()

@@ -23,7 +23,7 @@ from physics.precision import CONFIDENCE, TARGET_LEVEL_DEG, TARGET_TILTED_DEG, U
 from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_cost, plan_timeline
 from physics.table import Motion
-from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, ProcedureGen, Prompt, Scan, Settle
+from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Procedure, ProcedureGen, Prompt, Scan, Settle
 
 NAME = "calibrate"
 VERSION = "2"
@@ -202,6 +202,7 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
 
     def result(cal: Calibration) -> dict[str, Any]:
         return {"calibration": cal, "quality": cal.quality}
+    yield Compute("calibration fit")
     out = _per_slot(data, lambda rec: result(fit(rec, p.method, bootstrap=0)), {s: result(c) for s, c in fitted.items()})
     for slot, pr in precision.items():
         if "calibration" in out.results.get(slot, {}):
@@ -634,9 +635,10 @@ def characterize(p: CharacterizeParams) -> ProcedureGen:
         except (RecordingError, InsufficientData, ValueError) as e:
             res["calibration"] = None
             res["notes"].append(f"no calibration: {e}")
+        progress = yield Compute(f"discrepancy analysis of slot {slot}")
         try:
             from physics.discrepancy import analyze  # written alongside; the plan runs without it
-            res["analysis"] = analyze(rec).to_json()
+            res["analysis"] = analyze(rec, progress=progress).to_json()
         except ImportError as e:
             res["analysis"] = None
             res["notes"].append(f"no analysis: the discrepancy analyser is not available ({e})")

@@ -38,10 +38,10 @@ from physics.fit import screen_rows
 from physics.recording import Recording, concat, format_recording
 from physics.table import Motion
 from procedures.calibrate import PROCEDURES
-from procedures.events import (Event, Progress, PromptAsked, Result, Resumed, SamplesStored, StateChanged, StepRetried,
-                               StepStarted, StepWarning)
+from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, PromptAsked, Result, Resumed, SamplesStored,
+                               StateChanged, StepRetried, StepStarted, StepWarning)
 from procedures.states import RunState
-from procedures.steps import (TIMED_STEPS, Acquire, Checkpoint, Identify, Move, Outcome, Procedure, Prompt, Scan, Settle, Step,
+from procedures.steps import (TIMED_STEPS, Acquire, Checkpoint, Compute, Identify, Move, Outcome, Procedure, Prompt, Scan, Settle, Step,
                               step_seconds)
 
 #: Table axis turned by each Scan axis.
@@ -310,6 +310,8 @@ class Engine:
             await table.home_all(vel_dps=self.station.speed_dps, acc_dps2=self.station.accel_dps2)
 
     async def _do(self, step: Step) -> Any:
+        if isinstance(step, Compute):  # the table holds where it is
+            return self._computing(step)
         if isinstance(step, Move):
             self._held = await self._retry(lambda: self.station.table.move_to(
                 step.psi, step.theta, step.phi, speed_dps=self.station.speed_dps, accel_dps2=self.station.accel_dps2), MoveTimeout)
@@ -589,6 +591,29 @@ class Engine:
             mag=[s.mag for s in samples], acc=[s.acc for s in samples], temp_c=[s.temp_c for s in samples],
             meta={"serial": self.serials.get(slot, ""), "slot": str(slot)},
         )
+
+    def _computing(self, step: Compute) -> Callable[[str, float], None]:
+        """The ``progress(stage, fraction)`` a Compute step's computation reports through, from its
+        thread: a :class:`Computing` event on this loop, at most every :data:`COMPUTING_EVERY_S` within
+        a stage, and none once the run has ended (an abort does not wait for the computation)."""
+        loop = asyncio.get_running_loop()
+        last = [0.0, ""]
+
+        def emit(event: Computing) -> None:
+            if self.state in (RunState.running, RunState.paused) and self._abort is None:
+                self.on_event(event)
+
+        def progress(stage: str, fraction: float) -> None:
+            now = time.monotonic()
+            if stage == last[1] and now - last[0] < COMPUTING_EVERY_S:
+                return
+            last[:] = [now, stage]
+            event = Computing(Compute(step.label, stage, round(100.0 * min(max(fraction, 0.0), 1.0), 1)), self.table_time())
+            try:
+                loop.call_soon_threadsafe(emit, event)
+            except RuntimeError:  # the run's loop is gone: nobody is following any more
+                pass
+        return progress
 
     async def _unless_aborted(self, work: asyncio.Future[Any]) -> None:
         """Wait for ``work``; an abort meanwhile raises at once (the work, which cannot be interrupted,

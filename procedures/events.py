@@ -47,6 +47,24 @@ class StepStarted:
 
 
 @dataclass(frozen=True)
+class Computing:
+    """How far the procedure's computation (its :class:`~procedures.steps.Compute` step) has got: the
+    step again with its ``stage`` and ``percent`` (at most :data:`COMPUTING_EVERY_S` apart)."""
+
+    kind: ClassVar[str] = "step"
+    step: Step
+    t: float
+
+    def data(self) -> dict[str, Any]:
+        """The event's JSON body, as a step's."""
+        return {"step": describe_step(self.step), "t": self.t}
+
+
+#: Seconds between two :class:`Computing` events of one stage.
+COMPUTING_EVERY_S = 0.5
+
+
+@dataclass(frozen=True)
 class StepRetried:
     """The step in progress timed out and is tried again (``attempt`` 1 for the first retry)."""
 
@@ -164,7 +182,7 @@ class Result:
 
 
 #: Any event of a run.
-Event: TypeAlias = (StateChanged | StepStarted | StepRetried | StepWarning | Resumed | Progress | SamplesStored
+Event: TypeAlias = (StateChanged | StepStarted | Computing | StepRetried | StepWarning | Resumed | Progress | SamplesStored
                     | PromptAsked | PromptAnswered | Result)
 
 

@@ -73,7 +73,18 @@ class Checkpoint:
     label: str
 
 
-Step = Union[Move, Settle, Acquire, Scan, Prompt, Identify, Checkpoint]
+@dataclass(frozen=True)
+class Compute:
+    """Say what the procedure computes next (a fit, an analysis), so that the operator sees it while it
+    runs. Reply: a ``progress(stage, fraction)`` function to report how far it has got, or None (an engine
+    that does not follow it)."""
+
+    label: str
+    stage: str = ""
+    percent: float | None = None  # how far, as the engine last reported it
+
+
+Step = Union[Move, Settle, Acquire, Scan, Prompt, Identify, Checkpoint, Compute]
 #: Steps that take table time (progress counts them).
 TIMED_STEPS = (Move, Settle, Acquire, Scan)
 Reply = Union[dict[int, Recording], dict[int, tuple[str, str, str]], str, None]

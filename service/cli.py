@@ -479,7 +479,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
     from drivers.station import open_station
     from procedures.engine import run_procedure
     from procedures import events
-    from procedures.steps import Acquire
+    from procedures.steps import Acquire, Compute
     from service.plots import calibration_figure
 
     out.mkdir(parents=True, exist_ok=True)
@@ -493,6 +493,8 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                            info=f"table {e.table_s:.0f} s, {e.samples} samples, ~{_wall_left(e, time_scale):.0f} s left")
             elif isinstance(e, events.StepStarted) and isinstance(e.step, Acquire):
                 bar.update(task, description=f"calibrate: {e.step.step}")
+            elif isinstance(e, events.StepStarted) and isinstance(e.step, Compute):
+                bar.update(task, description=f"calibrate: computing the {e.step.label}")
             elif isinstance(e, events.StepWarning):  # e.g. bad samples flagged: said as it happens
                 bar.console.print(f"[yellow]warning:[/] {escape(e.warning)}")
 

@@ -310,6 +310,10 @@ def describe_step(d: dict[str, Any]) -> str:
         return f"acquire {step.get('step') or ''} ({step.get('samples')} samples)"
     if kind == "settle":
         return f"settle {step.get('seconds')} s"
+    if kind == "compute":
+        pct = step.get("percent")
+        how = f": {step.get('stage') or ''} {pct:.0f} %" if isinstance(pct, (int, float)) else ""
+        return f"computing the {step.get('label') or ''}{how}"
     return {"prompt": "waiting for the operator", "checkpoint": "checkpoint",
             "identify": "identifying the units"}.get(str(kind), str(kind or ""))
 

@@ -20,9 +20,9 @@ from physics.sensor import random_unit
 from physics.simulate import truth_from_json
 from procedures.calibrate import PROCEDURES
 from procedures.engine import Engine, RecordingSink, RunState, run_procedure
-from procedures.events import (Event, Progress, PromptAnswered, PromptAsked, Result, SamplesStored, StateChanged, StepRetried,
+from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, PromptAnswered, PromptAsked, Result, SamplesStored, StateChanged, StepRetried,
                                StepStarted, StepWarning)
-from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, Prompt
+from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Procedure, Prompt
 
 
 def two_units(time_scale: float = 20.0) -> StationConfig:
@@ -216,10 +216,12 @@ def test_the_procedures_own_work_does_not_stall_the_engines_loop():
     def busy(params) -> object:
         yield Move(10.0)
         data = yield Acquire(5, "check")
+        report = yield Compute("busy work")
         if data:  # not while the plan is laid out on empty replies
             t = time.monotonic()
             while time.monotonic() - t < busy_s:  # CPU-bound, holding the interpreter as a fit does
                 sum(range(1000))
+                report("spinning", (time.monotonic() - t) / busy_s)
         yield Move(20.0)
         return Outcome({0: {"n": len(data[0])}})
     proc = Procedure("busy", "1", PROCEDURES["rotate_z"].params, busy)
@@ -240,14 +242,20 @@ def test_the_procedures_own_work_does_not_stall_the_engines_loop():
             async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=20) as station:
                 ticker = asyncio.create_task(tick())
                 t0 = time.monotonic()
-                result = await Engine(station, proc, proc.validate({}), RecordingSink(None, {})).run()
+                result = await Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append).run()
                 wall = time.monotonic() - t0
                 ticker.cancel()
                 return result, gaps, wall
+    events: list[Event] = []
     result, gaps, wall = asyncio.run(asyncio.wait_for(main(), 30))
     assert result.state is RunState.completed and result.outcome.results[0] == {"n": 5}, result.reason
     assert wall >= busy_s  # the work was done during the run
     assert max(gaps) < busy_s / 3, max(gaps)  # on the loop it would stall it for busy_s at once
+    # the operator sees what is computed and how far it has got, twice a second (not once per report)
+    assert [e.step for e in events if isinstance(e, StepStarted) and isinstance(e.step, Compute)] == [Compute("busy work")]
+    told = [e.data()["step"] for e in events if isinstance(e, Computing)]
+    assert told and all(d["kind"] == "compute" and d["label"] == "busy work" and d["stage"] == "spinning" for d in told)
+    assert [d["percent"] for d in told] == sorted(d["percent"] for d in told) and len(told) <= busy_s / COMPUTING_EVERY_S + 1
 
 
 def test_an_abort_while_the_procedure_computes_ends_the_run_at_once():

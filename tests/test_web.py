@@ -251,7 +251,8 @@ def test_calibration_end_to_end(browser: Any, tmp_path: Path, request: pytest.Fi
         progress = page.locator("#progress").inner_text().strip()
         assert progress.endswith("100.0 %"), progress
         assert page.locator("#state").inner_text().strip() == "completed"
-        assert re.match(r"(acquire|move|settle)", page.locator("#step").inner_text().strip()), "no last step shown"
+        # the last step: the fit after the table's steps
+        assert page.locator("#step").inner_text().strip() == "computing the calibration fit", "no last step shown"
         seen = json.loads(page.evaluate("sessionStorage.getItem('progress-seen') || '[]'"))
         values = [float(m.group(1)) for t in seen if (m := re.search(r"([\d.]+) %$", t))]
         assert len(set(values)) >= 3, f"#progress hardly moved while the run ran: {seen}"
@@ -626,3 +627,15 @@ def test_example_script_reports_wall_time_left(tmp_path: Path, request: pytest.F
         for p in progress:
             assert p["left_s"] == round(p["left_s"], 1) >= 0, p
             assert abs(p["left_wall_s"] - p["left_s"] / 40) <= 0.051, p
+
+
+def test_the_run_page_says_what_the_procedure_computes():
+    """A Compute step, and its progress, in the run page's status line (web.py and run.js say the same)."""
+    from service.web import describe_step
+
+    step = {"kind": "compute", "label": "discrepancy analysis of slot 0", "stage": "", "percent": None}
+    assert describe_step({"step": step}) == "computing the discrepancy analysis of slot 0"
+    assert describe_step({"step": {**step, "stage": "null simulations", "percent": 42.4}}) == \
+        "computing the discrepancy analysis of slot 0: null simulations 42 %"
+    js = (Path(__file__).resolve().parent.parent / "service" / "static" / "run.js").read_text()
+    assert 'case "compute": return `computing the ${s.label || ""}`' in js

@@ -81,6 +81,7 @@
       case "move": return `move to ψ ${fmt(s.psi)}°, θ ${fmt(s.theta)}°, φ ${fmt(s.phi)}°`;
       case "acquire": return `acquire ${s.step || ""} (${s.samples} samples)`;
       case "settle": return `settle ${s.seconds} s`;
+      case "compute": return `computing the ${s.label || ""}` + (typeof s.percent === "number" ? `: ${s.stage || ""} ${s.percent.toFixed(0)} %` : "");
       case "prompt": return "waiting for the operator";
       case "checkpoint": return "checkpoint";
       case "identify": return "identifying the units";

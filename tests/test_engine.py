@@ -7,10 +7,13 @@ import asyncio
 import json
 import threading
 import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from pathlib import Path
 
 import numpy as np
 
+from drivers import Station
 from drivers.sim.config import StationConfig, parse_config, reference_config
 from drivers.sim.station import SimStation
 from drivers.station import open_station
@@ -23,6 +26,15 @@ from procedures.engine import Engine, RecordingSink, RunState, run_procedure
 from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, PromptAnswered, PromptAsked, Result, SamplesStored, StateChanged, StepRetried,
                                StepStarted, StepWarning)
 from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Procedure, Prompt
+
+
+@asynccontextmanager
+async def on_sim(cfg: StationConfig) -> AsyncIterator[tuple[SimStation, Station]]:
+    """A fresh simulated station, and the drivers' station connected to it."""
+    async with SimStation(cfg, control_port=None) as st:
+        d = st.describe()
+        async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=cfg.world.time_scale) as station:
+            yield st, station
 
 
 def two_units(time_scale: float = 20.0) -> StationConfig:
@@ -40,15 +52,13 @@ def run(cfg: StationConfig, name: str, params: dict | None = None, out: Path | N
     events: list[Event] = []
 
     async def main():
-        async with SimStation(cfg, control_port=None) as st:
-            d = st.describe()
-            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=cfg.world.time_scale) as station:
-                t0 = time.monotonic()
-                result, serials, sink = await run_procedure(
-                    station, name, params, out_dir=out, on_event=events.append,
-                    engine_hook=(lambda e: control(e, st)) if control else (lambda e: None))
-                wall = time.monotonic() - t0
-                status = await station.table.status_all()
+        async with on_sim(cfg) as (st, station):
+            t0 = time.monotonic()
+            result, serials, sink = await run_procedure(
+                station, name, params, out_dir=out, on_event=events.append,
+                engine_hook=(lambda e: control(e, st)) if control else (lambda e: None))
+            wall = time.monotonic() - t0
+            status = await station.table.status_all()
             return result, serials, sink, st, events, wall, status
     return asyncio.run(asyncio.wait_for(main(), 120))
 
@@ -192,17 +202,15 @@ def test_prompts_wait_for_the_operator():
     cfg = reference_config(seed=6, time_scale=20)
 
     async def main():
-        async with SimStation(cfg, control_port=None) as st:
-            d = st.describe()
-            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=20) as station:
-                events: list[Event] = []
-                eng = Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append)
-                task = asyncio.create_task(eng.run())
-                while not any(isinstance(e, PromptAsked) for e in events):
-                    await asyncio.sleep(0.01)
-                assert not eng.answer("other", "x")
-                assert eng.answer("mount", "mounted")
-                return await task
+        async with on_sim(cfg) as (st, station):
+            events: list[Event] = []
+            eng = Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append)
+            task = asyncio.create_task(eng.run())
+            while not any(isinstance(e, PromptAsked) for e in events):
+                await asyncio.sleep(0.01)
+            assert not eng.answer("other", "x")
+            assert eng.answer("mount", "mounted")
+            return await task
     result = asyncio.run(asyncio.wait_for(main(), 30))
     assert result.state is RunState.completed and result.outcome.results[0] == {"answer": "mounted", "n": 5}
 
@@ -237,15 +245,13 @@ def test_the_procedures_own_work_does_not_stall_the_engines_loop():
                 now = time.monotonic()
                 gaps.append(now - last)
                 last = now
-        async with SimStation(cfg, control_port=None) as st:
-            d = st.describe()
-            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=20) as station:
-                ticker = asyncio.create_task(tick())
-                t0 = time.monotonic()
-                result = await Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append).run()
-                wall = time.monotonic() - t0
-                ticker.cancel()
-                return result, gaps, wall
+        async with on_sim(cfg) as (st, station):
+            ticker = asyncio.create_task(tick())
+            t0 = time.monotonic()
+            result = await Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append).run()
+            wall = time.monotonic() - t0
+            ticker.cancel()
+            return result, gaps, wall
     events: list[Event] = []
     result, gaps, wall = asyncio.run(asyncio.wait_for(main(), 30))
     assert result.state is RunState.completed and result.outcome.results[0] == {"n": 5}, result.reason
@@ -275,17 +281,15 @@ def test_an_abort_while_the_procedure_computes_ends_the_run_at_once():
     cfg = reference_config(seed=6, time_scale=20)
 
     async def main():
-        async with SimStation(cfg, control_port=None) as st:
-            d = st.describe()
-            async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=20) as station:
-                eng = Engine(station, proc, proc.validate({}), RecordingSink(None, {}))
-                task = asyncio.create_task(eng.run())
-                while not computing.is_set():
-                    await asyncio.sleep(0.01)
-                eng.abort()
-                t = time.monotonic()
-                result = await task
-                return result, time.monotonic() - t, st.table.true_angles()[0]
+        async with on_sim(cfg) as (st, station):
+            eng = Engine(station, proc, proc.validate({}), RecordingSink(None, {}))
+            task = asyncio.create_task(eng.run())
+            while not computing.is_set():
+                await asyncio.sleep(0.01)
+            eng.abort()
+            t = time.monotonic()
+            result = await task
+            return result, time.monotonic() - t, st.table.true_angles()[0]
     try:
         result, took, z = asyncio.run(asyncio.wait_for(main(), 30))
     finally:

@@ -188,24 +188,23 @@ def _lags(L: int) -> np.ndarray:
     return np.abs(np.subtract.outer(np.arange(L), np.arange(L)))
 
 
+def _restricted(phi: np.ndarray, share: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each (phi, share): the restricted-likelihood matrix P = R^-1 - R^-1 1 1^T R^-1 / (1^T R^-1 1)
+    of the unit-variance correlation R = share T(phi) + (1 - share) I of a chunk of L, and
+    log|R| + log(1^T R^-1 1). Shapes (G, L, L) and (G,)."""
+    R = share[:, None, None] * phi[:, None, None] ** _lags(L) + (1.0 - share)[:, None, None] * np.eye(L)
+    Ri = np.linalg.inv(R)
+    a = Ri.sum(axis=2)  # R^-1 1
+    s = a.sum(axis=1)  # 1^T R^-1 1
+    return Ri - a[:, :, None] * a[:, None, :] / s[:, None, None], np.linalg.slogdet(R)[1] + np.log(s)
+
+
 @lru_cache(maxsize=4)
 def _reml_grid(L: int) -> tuple[np.ndarray, np.ndarray]:
-    """For every grid point (phi, share): the restricted-likelihood matrix P = R^-1 - R^-1 1 1^T R^-1 /
-    (1^T R^-1 1) of the unit-variance correlation R = share T(phi) + (1 - share) I of a chunk of L, and
-    log|R| + log(1^T R^-1 1). Shapes (G, L*L) and (G,), G = len(REML_PHI) * len(REML_SHARE)."""
-    one = np.ones(L)
-    P, const = [], []
-    lag = _lags(L)
-    for ph in REML_PHI:
-        T = ph ** lag
-        for share in REML_SHARE:
-            R = share * T + (1.0 - share) * np.eye(L)
-            Ri = np.linalg.inv(R)
-            a = Ri @ one
-            s = float(one @ a)
-            P.append((Ri - np.outer(a, a) / s).ravel())
-            const.append(np.linalg.slogdet(R)[1] + np.log(s))
-    return np.array(P), np.array(const)
+    """:func:`_restricted` at every grid point (phi major, then share), P flattened: shapes (G, L*L)
+    and (G,), G = len(REML_PHI) * len(REML_SHARE)."""
+    P, const = _restricted(np.repeat(REML_PHI, len(REML_SHARE)), np.tile(REML_SHARE, len(REML_PHI)), L)
+    return P.reshape(len(P), L * L), const
 
 
 def _chunks(r: np.ndarray, hold: np.ndarray) -> np.ndarray | None:
@@ -273,10 +272,7 @@ def reml_noise(r: np.ndarray, hold: np.ndarray) -> NoiseModel | None:
     phi = np.where(ar, 1.0 - np.exp(-u), 0.0)
     share = np.where(ar, np.interp(share_i, np.arange(len(REML_SHARE)), REML_SHARE), 0.0)
     # the scale in closed form at the refined point: sum x^T P x over the kept chunks / (their count (L - 1))
-    R = share[:, None, None] * phi[:, None, None] ** _lags(L) + (1.0 - share)[:, None, None] * np.eye(L)
-    Ri = np.linalg.inv(R)
-    a = Ri.sum(axis=2)
-    Pn = Ri - a[:, :, None] * a[:, None, :] / a.sum(axis=1)[:, None, None]
+    Pn = _restricted(phi, share, L)[0]
     c = np.maximum(np.einsum("nij,nij->n", Pn, S.reshape(n, L, L)) / m, 1e-300)  # noise-free data: not 0
     sig, white = np.sqrt(share * c), np.sqrt((1.0 - share) * c)
     return NoiseModel(sig.reshape(shape), phi.reshape(shape), white.reshape(shape))

@@ -92,7 +92,10 @@ class RunResult:
     reason: str | None
     outcome: Outcome | None
     samples: int
-    table_seconds: float  # until the table's last step ended (the fit afterwards is not table time)
+    # the table's working seconds: its moves, settles, acquisitions and scans, summed; not the fits,
+    # prompts and pauses between them (under a time scale those would count time-scale times their
+    # wall seconds: an adaptive run's refits at scale 20 once added 120 s to a 150-s plan)
+    table_seconds: float
 
 
 class Aborted(Exception):
@@ -171,7 +174,7 @@ class Engine:
         self._samples = 0
         self._clock: dict[Any, tuple[float, int]] = {}  # per slot: the last kept sample's (host time, seq)
         self._streaming = False
-        self._table_used = 0.0  # table seconds until the last move, settle or acquisition ended
+        self._table_used = 0.0  # table seconds of the moves, settles, acquisitions and scans so far
         self._replayed_until = 0.0  # table time of the last sample a replay took over
         self._kept: dict[int, list[Recording]] = {}  # per slot: every recording kept, in order (the fit's rows)
         self._flagged: dict[int, set[int]] = {}  # per slot: rows already flagged as bad
@@ -246,12 +249,15 @@ class Engine:
                             replaying = False
                             self._go_live(step.label)
                 else:
-                    self.on_event(StepStarted(step, self.table_time()))
+                    began = self.table_time()
+                    self.on_event(StepStarted(step, began))
                     reply = await self._do(step)
+                    if isinstance(step, TIMED_STEPS):
+                        self._table_used += self.table_time() - began
                 if isinstance(step, TIMED_STEPS):
-                    elapsed = self._table_used = self.table_time()
-                    # a data-dependent tail beyond the plan spends the reserve by its steps' nominal seconds
-                    # (not by the clock: the fits that choose its poses take table time at a time scale)
+                    elapsed = self._table_used
+                    # a data-dependent tail beyond the plan spends the reserve by its steps' nominal seconds,
+                    # as the procedure spends its budget (so the two agree on what is left)
                     spent = nominal[done] if done < len(nominal) else step_seconds([step], self._motion(), commanded)[0]
                     left_nominal -= min(spent, left_nominal)
                     done += 1
@@ -382,6 +388,7 @@ class Engine:
         assert self.replay is not None
         t = self._replayed_until + 1.0
         self._t0 = time.monotonic() - t / self.station.time_scale
+        self._table_used = t  # the interrupted run's table time, which the live steps add to
         self.on_event(Resumed(self.replay.run_id, label, self._samples, t))
 
     async def _stream(self) -> None:

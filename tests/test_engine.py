@@ -73,7 +73,12 @@ def test_calibrate_two_units_at_time_scale_20(tmp_path: Path):
         rec = parse_recording(sink.path(slot).read_text())
         assert rec.serial == serial and rec.meta["procedure"] == "calibrate"
         assert len(rec) == 18 * 60 and set(rec.step) == {"rotate_z", "sweep_y", "sweep_x"}
-        assert np.all(np.diff(rec.t) >= 0) and rec.t[-1] <= result.table_seconds + 1e-6
+        # the table's working seconds: at least the holds' sampling (the steps between samples of one pose),
+        # at most the recording's span (plus the end of the last hold after its last sample); the host's gaps
+        # between steps are not table time, and under load they may be many seconds at time scale 20
+        dt = np.diff(rec.t)
+        held = dt[dt < 5 * np.median(dt)].sum()
+        assert np.all(dt >= 0) and 0.4 * rec.t[-1] < held <= result.table_seconds <= rec.t[-1] + 1.0, (held, rec.t[-1], result.table_seconds)
         unit, world = truth_from_json(st.truth()[slot])
         assert "calibration" in result.outcome.results[slot], result.outcome.results[slot]
         cal = result.outcome.results[slot]["calibration"]
@@ -262,6 +267,9 @@ def test_the_procedures_own_work_does_not_stall_the_engines_loop():
     told = [e.data()["step"] for e in events if isinstance(e, Computing)]
     assert told and all(d["kind"] == "compute" and d["label"] == "busy work" and d["stage"] == "spinning" for d in told)
     assert [d["percent"] for d in told] == sorted(d["percent"] for d in told) and len(told) <= busy_s / COMPUTING_EVERY_S + 1
+    # the computation is not table time: at time scale 20 its 1.5 s would have counted 30 s (two short
+    # moves and a 5-sample hold take a few seconds)
+    assert result.table_seconds < 10.0, result.table_seconds
 
 
 def test_an_abort_while_the_procedure_computes_ends_the_run_at_once():

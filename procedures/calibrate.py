@@ -8,7 +8,7 @@ second of table time, and none does I/O: the engine, or a fake one in a test, ru
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Literal, Mapping
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -59,10 +59,11 @@ class CalibrateParams(_Params):
     sweep_psi_deg: float = 315.0
     method: str = "joint"
     adaptive: bool = Field(False, description="after the plan, add the poses that lower the predicted heading error "
-                           "fastest until every unit meets the targets at 95 % confidence or budget_s ends (joint method)")
+                           "fastest until every unit meets both targets together at 95 % confidence or budget_s ends (joint method)")
     target_level_deg: float = Field(TARGET_LEVEL_DEG, gt=0, le=10, description="adaptive: level heading error target, deg")
     target_tilted_deg: float = Field(TARGET_TILTED_DEG, gt=0, le=10, description="adaptive: heading error target at pitch and roll up to 60 deg")
-    budget_s: float = Field(180.0, gt=0, le=3600, description="adaptive: table seconds the whole calibration may take")
+    budget_s: float = Field(180.0, gt=0, le=3600, description="adaptive: table seconds the whole calibration may take "
+                            "(the plan's and the added poses' nominal seconds)")
 
     @field_validator("method")
     @classmethod
@@ -308,7 +309,7 @@ LOOKAHEAD_S = 900.0
 def time_to_target(u: UnitPrecision, targets: dict[str, float], p: CalibrateParams,
                    here: tuple[float, float, float]) -> float | None:
     """Table seconds of further poses, chosen round by round as the extension chooses them, after which
-    ``u``'s predicted errors (95 % quantiles, on the information those poses would add to its fit) meet
+    ``u``'s predicted errors (bounds at 95 % confidence, on the information those poses would add to its fit) meet
     the targets; None when :data:`LOOKAHEAD_S` would not do. For a unit the budget left short: the
     budget it needed."""
     spent, added = 0.0, None
@@ -326,16 +327,20 @@ def time_to_target(u: UnitPrecision, targets: dict[str, float], p: CalibratePara
 
 def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
                      here: tuple[float, float, float]) -> ProcedureGen:
-    """Add poses until every unit's predicted heading error (95 % quantile of its largest error level and at
-    +-60 deg, from its joint fit's covariance: physics.precision) meets the targets, or the table-time budget
+    """Add poses until every unit's predicted heading error (bounds on its largest error level and at +-60 deg
+    that hold together at 95 % confidence, from its joint fit's covariance: physics.precision) meets the targets, or the table-time budget
     would be exceeded. Returns per slot what was predicted, whether the targets were met and why it stopped;
     and the last round's joint fits, made on all the data (the calibration's own fit, not made again)."""
     targets = {"level": p.target_level_deg, "tilted": p.target_tilted_deg}
     added = 0
+    rounds: dict[int, list[dict[str, float]]] = {}  # per slot: the prediction after each round, for the plot
     while True:
+        yield Compute("fit and predicted heading error of each unit")
         fits = _unit_precisions(data)
         units = {s: u for s, (u, _) in fits.items()}
         predicted = {s: u.quantile() for s, u in units.items()}
+        for s, q in predicted.items():
+            rounds.setdefault(s, []).append({"table_s": spent_s, "level_deg": q["level"], "tilted_deg": q["tilted"]})
         pending = {s: units[s] for s in units if any(predicted[s][k] > t for k, t in targets.items())}
         if not pending:
             break
@@ -351,23 +356,35 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
         met = all(q[k] <= t for k, t in targets.items())
         more = None  # for a unit short of the targets: the further table time it needs (None: beyond the look-ahead)
         if met:
-            why = (f"predicted heading error (95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
+            why = (f"predicted heading error (bounds holding together at 95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
                    f"within the targets {targets['level']:g} and {targets['tilted']:g} deg"
-                   + (f" after {added} added poses" if added else " with the plan alone"))
+                   + (f" after {_poses(added)} added" if added else " with the plan alone"))
         else:
             more = time_to_target(units[s], targets, p, here)
             need = (f"about {more:.0f} s more table time (a budget of {spent_s + more:.0f} s) would reach them"
                     if more is not None else
                     f"even {LOOKAHEAD_S / 60:.0f} min more table time would not: a unit with less noise per field, "
                     f"or a compass that averages more per sample, would")
-            why = (f"predicted heading error (95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
+            why = (f"predicted heading error (bounds holding together at 95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
                    f"above the targets {targets['level']:g} / {targets['tilted']:g} deg when the {p.budget_s:g}-s table-time "
-                   f"budget ended ({added} poses added); {need}")
+                   f"budget ended ({_poses(added)} added); {need}")
         out[s] = {"predicted_level_deg": q["level"], "predicted_tilted_deg": q["tilted"], "confidence": CONFIDENCE,
                   "target_level_deg": targets["level"], "target_tilted_deg": targets["tilted"], "met": met,
                   "stopped": "reached" if met else "budget", "added_poses": added,
-                  "table_s": spent_s, "more_table_s": more, "why": why}
+                  "table_s": spent_s, "more_table_s": more, "budget_s": p.budget_s, "rounds": rounds[s], "why": why}
     return out, {s: cal for s, (_, cal) in fits.items()}
+
+
+def needed_budget_s(precision: Mapping[str, Any]) -> float | None:
+    """The budget a unit the extension left short would have needed (its table time plus the look-ahead's
+    ``more_table_s``); None when it met the targets or when even the look-ahead would not do."""
+    more = precision.get("more_table_s")
+    return None if precision.get("met") or more is None else float(precision["table_s"] + more)
+
+
+def _poses(n: int) -> str:
+    """'1 pose', '3 poses'."""
+    return f"{n} pose" + ("" if n == 1 else "s")
 
 
 # --- building blocks and checks -----------------------------------------------------------------
@@ -630,6 +647,7 @@ def characterize(p: CharacterizeParams) -> ProcedureGen:
     out = Outcome()
     for slot, rec in data.recordings().items():
         res: dict[str, Any] = {"samples": len(rec), "notes": []}
+        yield Compute(f"calibration fit of slot {slot}")
         try:
             res["calibration"] = fit(_holds(rec), "joint", bootstrap=0).to_json()
         except (RecordingError, InsufficientData, ValueError) as e:

@@ -25,7 +25,7 @@ from physics.recording import Recording, RecordingError, format_recording
 from physics.sensor import random_unit, reference_unit
 from physics.simulate import World, plan_cost, simulate_recording, truth_from_json, truth_json
 from physics.table import TableGeometry
-from procedures.calibrate import CalibrateParams, calibration_poses
+from procedures.calibrate import CalibrateParams, calibration_poses, needed_budget_s
 
 def _no_flag_types(params: list[Any]) -> list[Any]:
     """Help shows no value placeholder after a flag: it takes no value (typer prints ``<bool>``)."""
@@ -534,7 +534,13 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
         if "precision" in cal.quality:
             pr = cal.quality["precision"]
             colour = "green" if pr["met"] else "yellow"
-            console.print(f"[{colour}]adaptive: {escape(pr['why'])}; {pr['table_s']:.0f} s of table time[/]")
+            # the sentence itself is among the calibration's notes printed above; here what to do next
+            # the budget counts the poses' nominal seconds, which the measured table time above exceeds a little
+            spent = f"{pr['table_s']:.0f} s of the {pr['budget_s']:g}-s budget (nominal), poses added: {pr['added_poses']}"
+            need = needed_budget_s(pr)
+            said = (f"targets met after {spent}" if pr["met"] else f"targets not met: the budget ended after {spent}"
+                    + (f"; run again with --budget {need:.0f} to reach them" if need is not None else ""))
+            console.print(f"[{colour}]adaptive: {said}[/]")
         if check is not None and check.outcome is not None and slot in check.outcome.results:
             ev = check.outcome.results[slot]
             console.print(f"evaluate on the table: heading error max {ev['level_max_deg']:.4f} deg level, "

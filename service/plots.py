@@ -64,11 +64,13 @@ from typing import Any, Mapping, Sequence  # noqa: E402
 
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.ticker import FuncFormatter  # noqa: E402
 
 from physics.fit import evaluate, pose_means  # noqa: E402
 from physics.frames import SPECIFIC_FORCE_L, to_body  # noqa: E402
 from physics.heading import reference_heading, wrap180  # noqa: E402
 from physics.table import TableGeometry, platform_attitude  # noqa: E402
+from procedures.calibrate import LOOKAHEAD_S, needed_budget_s  # noqa: E402
 
 STAGE_COLORS = {"raw": "#d62728", "bias": "#ff7f0e", "sensitivity": "#2ca02c", "full": "#1f77b4"}
 #: (marginal, fail) of an acceptance limit, by the limit's name (service.store.figures keys).
@@ -222,6 +224,39 @@ def tilted_figure(cal: Calibration, rec: Recording | None = None, limits: Limits
     """The tilted heading-error figure of a calibration (see :func:`draw_tilted`)."""
     fig = Figure(figsize=(9, 3.6))
     draw_tilted(fig.subplots(), cal, rec, limits)
+    fig.tight_layout()
+    return fig
+
+
+def precision_figure(precision: Mapping[str, Any]) -> Figure | None:
+    """An adaptive calibration's predicted heading error (the bounds that hold together at 95 %) after
+    each round of added poses against table time, with the targets and the budget; for a unit the
+    budget left short, the budget that would have reached the targets. None without rounds (a
+    calibration made before they were kept)."""
+    rounds = precision.get("rounds") or []
+    if not rounds:
+        return None
+    fig = Figure(figsize=(9, 3.4))
+    ax = fig.subplots()
+    t = [r["table_s"] for r in rounds]
+    for key, name, color in (("level", "level", "#1f77b4"), ("tilted", "pitch and roll up to +-60 deg", "#d62728")):
+        ax.plot(t, [r[f"{key}_deg"] for r in rounds], "o-", color=color, ms=4, lw=1.2, label=f"predicted, {name}")
+        ax.axhline(precision[f"target_{key}_deg"], color=color, ls="--", lw=0.9, label=f"target, {key}")
+    budget = precision.get("budget_s")
+    if budget:
+        ax.axvline(budget, color="0.4", ls=":", lw=1.0, label=f"budget {budget:g} s")
+    need = needed_budget_s(precision)
+    if need is not None:
+        ax.axvline(need, color="0.2", ls="-.", lw=1.0, label=f"would reach the targets: {need:.0f} s")
+    elif not precision.get("met"):  # said in the legend: a text in the axes would cross the curves
+        ax.plot([], [], " ", label=f"would reach the targets:\nnot within {LOOKAHEAD_S / 60:.0f} more min")
+    ax.set(title="Predicted heading error (95 % confidence) as the adaptive plan added poses",
+           xlabel="table time (s)", ylabel="heading error (deg)", yscale="log")
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))  # 0.05, not 5 x 10^-2
+    # between the decades only 2, 3 and 5 are labelled (all eight overlap when the axis spans a decade or more)
+    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:.0e}"[0] in "235" else ""))
+    ax.grid(True, which="both", lw=0.4, alpha=0.6)
+    _legend_outside(ax)
     fig.tight_layout()
     return fig
 

@@ -33,6 +33,7 @@ from sqlalchemy import select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from physics.calibration import json_safe
+from procedures.calibrate import LOOKAHEAD_S, needed_budget_s
 from procedures.states import ACTIVE, FINAL, RunState, check_transition
 from service.db import Batch, Calibration, Run, RunCommand, RunEvent, Station, utcnow
 from service.identity import CHOICES, DEFAULT_POLICY, POLICIES, is_serial_prompt, normalise
@@ -254,12 +255,27 @@ def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
         c = cals.get(r.id)
         units.append({"serial": serial, "run_id": r.id, "status": j["status"], "reason": j["reason"],
                       "verdict": c.verdict if c else None, "calibration_id": c.id if c else None,
-                      "calibration_status": c.status if c else None, "prompts": j["prompts"]})
+                      "calibration_status": c.status if c else None, "prompts": j["prompts"],
+                      "table_seconds": j["table_seconds"], "target": target_said(c.data) if c else None})
         if j["prompts"]:
             prompt = {"run_id": r.id, **j["prompts"][0]}
     return {"id": batch.id, "station": station.name if station else None, "status": batch.status,
             "operator": batch.operator, "serials": batch.serials, "created_at": batch.created_at,
             "finished_at": batch.finished_at, "summary": batch.summary or {}, "units": units, "prompt": prompt}
+
+
+def target_said(calibration: dict[str, Any]) -> str | None:
+    """An adaptive calibration's outcome against its targets in a few words (None when not adaptive):
+    "met", or "not met: a 236-s budget would reach them" (the budget the unit needed, as predicted)."""
+    pr = (calibration.get("quality") or {}).get("precision")
+    if not pr:
+        return None
+    if pr.get("met"):
+        return "met"
+    need = needed_budget_s(pr)
+    if need is None:
+        return f"not met: needs more than {LOOKAHEAD_S / 60:.0f} min more table time"
+    return f"not met: a {need:.0f}-s budget would reach them"
 
 
 # ------------------------------------------------------------------------------------ requests

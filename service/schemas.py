@@ -442,6 +442,9 @@ class BatchUnit(BaseModel):
     calibration_id: int | None = None
     calibration_status: str | None = None
     prompts: list[PromptOut] = []
+    table_seconds: float | None = Field(None, description="table time of the unit's run so far (s)")
+    target: str | None = Field(None, description="an adaptive calibration's outcome against its targets: "
+                               "'met', or 'not met: ...' with the budget that would reach them")
 
 
 class BatchPrompt(PromptOut):

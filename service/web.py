@@ -217,6 +217,10 @@ def unit_view(row: Calibration, rec: Recording | None, limits: list[Limit], curv
                                        f"Staged heading error of {row.device.serial} over a level turn")
         view["tilted_svg"] = plots.svg(plots.tilted_figure(cal, rec, pairs), "tilted-curve",
                                        f"Heading error of {row.device.serial} at pitch and roll up to 60 deg")
+        fig = plots.precision_figure((cal.quality or {}).get("precision") or {})
+        if fig is not None:
+            view["precision_svg"] = plots.svg(fig, "precision-curve",
+                                              f"Predicted heading error of {row.device.serial} as poses were added")
     return view
 
 

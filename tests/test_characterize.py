@@ -28,7 +28,7 @@ from physics.table import Motion
 from procedures.calibrate import PROCEDURES, CharacterizeParams, characterize_plan, plan_seconds
 from procedures.engine import Engine, RecordingSink, RunState, encoder_track, run_procedure, sample_clock
 from procedures.events import Event, Progress, StateChanged, StepStarted
-from procedures.steps import Acquire, Checkpoint, Move, Outcome, Procedure, Scan, drive, step_seconds
+from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Procedure, Scan, drive, step_seconds
 from conftest import FakeEngine
 
 ROOT = Path(__file__).parent.parent
@@ -110,6 +110,9 @@ def test_characterize_on_a_fake_engine_scans_approaches_fits_and_analyses():
     kinds = [type(s).__name__ for s in eng.steps[:4]]
     assert kinds == ["Move", "Settle", "Acquire", "Checkpoint"]
     assert eng.steps[0].psi == 0.0
+    # the work after the table is said before it is done: the fit of the holds, then the analysis
+    assert [s.label for s in eng.steps if isinstance(s, Compute)] == ["calibration fit of slot 0", "discrepancy analysis of slot 0"]
+    assert not isinstance(eng.steps[-3], Compute) and isinstance(eng.steps[-1], Compute)
     res = out.results[0]
     assert res["calibration"]["format"] == "compasscal-calibration/1", res["notes"]
     assert res["samples"] > 0

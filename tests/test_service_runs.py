@@ -273,6 +273,7 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
             assert run["batch_id"] == bid and run["procedure"] == "batch_calibrate" and run["serials"] == {"0": u["serial"]}
             assert run["result"]["units"]["0"]["identified_serial"] == u["serial"]  # identified once mounted
             assert u["verdict"] == b["summary"][u["serial"]] and u["calibration_status"] == "current"
+            assert u["table_seconds"] == run["table_seconds"] > 0 and u["target"] is None  # not adaptive
             cur = api.get(f"/devices/{u['serial']}/calibrations/current", role="viewer").json()
             assert cur["run_id"] == u["run_id"]
         assert api.get("/stations/lab-1", role="viewer").json()["batch_id"] is None
@@ -337,6 +338,12 @@ def test_an_interrupted_calibration_resumes_from_its_last_checkpoint(api: Api):
         assert len(old) >= n and set(map(str, old.step[:n])) <= set(map(str, passed))
         assert np.array_equal(new.mag[:n], old.mag[:n]) and np.array_equal(new.t[:n], old.t[:n])
         assert np.all(np.diff(new.t) >= 0) and new.t[n] > new.t[n - 1]  # table time goes on after the replay
+        # and the run's table time counts the replayed part, as the recording does: the live steps add to
+        # it (not the clock: under load the pauses between steps, which the recording's t counts, are not
+        # table time, so the total may be well below t[-1], never above it)
+        live = [d["table_s"] for kind, d in events[events.index(("step", resumed)) + 1:] if kind == "progress"]
+        assert live and live[0] >= resumed["t"] > new.t[n - 1] and live == sorted(live), (resumed, live[:3])
+        assert live[-1] <= done["table_seconds"] <= new.t[-1] + 2.0, (done["table_seconds"], new.t[n - 1], new.t[-1])
         assert new.meta.get("resumed_from") == str(first)
         # a completed run is not resumed
         r = api.post("/runs", role="operator", json={"station": "lab-1", "resume": done["id"]})
@@ -476,6 +483,12 @@ def test_an_adaptive_calibration_over_the_api_says_whether_the_unit_reached_its_
         assert pr["met"] is False and pr["stopped"] == "budget" and pr["added_poses"] > 0 and pr["table_s"] <= 90
         assert pr["predicted_level_deg"] > 0.001 and pr["why"] in cal["notes"]
         # progress counts the budget's reserve: the added poses are not reported as done, and it ends at 100
-        progress = [d["percent"] for kind, d in read_events(api, done["id"]) if kind == "progress"]
+        events = read_events(api, done["id"])
+        progress = [d["percent"] for kind, d in events if kind == "progress"]
         assert progress == sorted(progress) and progress[-1] == 100.0
         assert sum(1 for x in progress if x < 100.0) > 3 * 18, str(progress)  # move, settle, acquire per planned pose, and more
+        # each round's refit is said as the work it is (a second or more with the table still), then the fit
+        said = [d["step"]["label"] for kind, d in events if kind == "step" and d.get("step", {}).get("kind") == "compute"
+                and d["step"]["percent"] is None]  # (a retried step's event has no "step")
+        assert said[0] == "fit and predicted heading error of each unit" and said[-1] == "calibration fit", said
+        assert said.count("fit and predicted heading error of each unit") >= 2, said  # after the plan, after added poses

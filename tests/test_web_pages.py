@@ -148,6 +148,7 @@ def test_run_page_shows_each_units_tables_curves_and_verdict(api):
     table1 = r.text.split("class=\"table1", 1)[1].split("</caption>", 1)[1].split("</table>", 1)[0]
     assert table1.count("<tr>") == 4 and table1.count("±") == 9  # header + x_m, y_m, z_m with 1-sigma
     assert page.find("svg", cls="staged-curve") and page.find("svg", cls="tilted-curve")
+    assert not page.find("svg", cls="precision-curve")  # not an adaptive calibration
     assert not re.search(r'(src|href)="(https?:)?//', r.text)  # nothing loaded from elsewhere
     assert page.find("div", cls="verdict") and re.search(r'class="verdict-word">(PASS|MARGINAL|FAIL)<', r.text)
     assert page.find("a", cls="certificate", href=f"/ui/calibrations/{cal_id}/certificate")
@@ -226,21 +227,67 @@ def test_device_history_certificate_and_pdf(api):
     assert api.get("/ui/calibrations/99999/certificate", role="viewer").status_code == 404
 
 
-def test_batch_page_lists_units(api):
-    r = api.put("/stations/bench-2", json={"modbus": "tcp://127.0.0.1:1", "compasses": ["tcp://127.0.0.1:2"]})
+def new_batch(api: Any, session: Any, station: str, summary: dict[str, str]) -> Batch:
+    """A completed batch of the units in ``summary`` on a new station (its runs are the caller's)."""
+    r = api.put(f"/stations/{station}", json={"modbus": "tcp://127.0.0.1:1", "compasses": ["tcp://127.0.0.1:2"]})
     assert r.status_code == 200
+    st = session.scalar(select(Station).where(Station.name == station))
+    batch = Batch(station_id=st.id, serials=list(summary), status="completed", operator="operator-user", summary=summary)
+    session.add(batch)
+    session.flush()
+    return batch
+
+
+def test_batch_page_lists_units(api):
     with api.client.app.state.sessions() as session:
-        st = session.scalar(select(Station).where(Station.name == "bench-2"))
-        batch = Batch(station_id=st.id, serials=["U1", "U2"], status="completed", operator="operator-user",
-                      summary={"U1": "PASS", "U2": "failed: no unit"})
-        session.add(batch)
+        batch_id = new_batch(api, session, "bench-2", {"U1": "PASS", "U2": "failed: no unit"}).id
         session.commit()
-        batch_id = batch.id
     r = api.get(f"/ui/batches/{batch_id}", role="viewer")
     page = Elements(r.text)
     assert page.find("table", id="units") and page.find("tr", data_serial="U1") and page.find("tr", data_serial="U2")
     assert "PASS" in r.text and "failed: no unit" in r.text
     assert api.get("/ui/batches/99999", role="viewer").status_code == 404
+
+
+def test_batch_page_shows_each_units_table_time_and_adaptive_target(api):
+    """An adaptive batch: each unit's row gives its table time and its outcome against the targets, the
+    budget a short unit needed included; GET /batches/{id} carries the same."""
+    from service.runtime import target_said
+
+    rounds = [{"table_s": 108.2, "level_deg": 0.031, "tilted_deg": 0.06}, {"table_s": 180.0, "level_deg": 0.024, "tilted_deg": 0.05}]
+    precision = {"A1": {"met": True, "table_s": 131.5, "more_table_s": None},
+                 "A2": {"met": False, "table_s": 180.0, "more_table_s": 56.2, "budget_s": 180.0, "rounds": rounds,
+                        "target_level_deg": 0.02, "target_tilted_deg": 0.05}}
+    with api.client.app.state.sessions() as session:
+        batch = new_batch(api, session, "bench-3", {"A1": "PASS", "A2": "PASS"})
+        for serial, pr in precision.items():
+            rec = recording(serial)
+            run = Run(procedure="batch_calibrate", procedure_version="2", parameters={"adaptive": True}, status="completed",
+                      operator="operator-user", serials={"0": serial}, software_version="test", batch_id=batch.id,
+                      table_seconds=pr["table_s"], station_snapshot={"name": "bench-3"})
+            session.add(run)
+            session.flush()
+            cal = fit(rec, "joint").to_json()
+            cal["quality"]["precision"] = pr
+            store_calibration(session, run, 0, serial, cal)
+        session.commit()
+        batch_id = batch.id
+    units = {u["serial"]: u for u in api.get(f"/batches/{batch_id}", role="viewer").json()["units"]}
+    assert units["A1"]["table_seconds"] == 131.5 and units["A1"]["target"] == "met"
+    assert units["A2"]["target"] == "not met: a 236-s budget would reach them"
+    page = api.get(f"/ui/batches/{batch_id}", role="viewer").text
+    for serial, time_s, target in (("A1", "132 s", "met"), ("A2", "180 s", "not met: a 236-s budget would reach them")):
+        row = page[page.index(f'<tr data-serial="{serial}">'):]
+        row = row[:row.index("</tr>")]
+        assert f'<td class="table-s">{time_s}</td>' in row and f'<td class="target">{target}</td>' in row, row
+    # the run page of the short unit plots its predicted error by round, with the budget it needed
+    short = api.get(f"/ui/runs/{units['A2']['run_id']}", role="viewer").text
+    assert Elements(short).find("svg", cls="precision-curve") and "would reach the targets: 236 s" in short
+    assert not Elements(api.get(f"/ui/runs/{units['A1']['run_id']}", role="viewer").text).find("svg", cls="precision-curve")
+    # a calibration that is not adaptive says nothing of targets; one beyond the look-ahead says so
+    assert target_said({"quality": {}}) is None
+    assert target_said({"quality": {"precision": {"met": False, "table_s": 180.0, "more_table_s": None}}}) == \
+        "not met: needs more than 15 min more table time"
 
 
 # ------------------------------------------------------------------ issue 15: pages and documents

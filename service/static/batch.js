@@ -39,6 +39,10 @@
         verdict.textContent = v;
         verdict.className = `verdict verdict-${(u.verdict || "").toLowerCase()}`;
       }
+      const tableS = tr.querySelector("td.table-s");
+      if (tableS) tableS.textContent = u.table_seconds ? `${Math.round(u.table_seconds)} s` : "";
+      const target = tr.querySelector("td.target");
+      if (target) target.textContent = u.target || "";
       const cert = tr.querySelector("td.cert");
       if (cert) {
         cert.replaceChildren();

@@ -78,7 +78,7 @@ def test_calibrate_two_units_at_time_scale_20(tmp_path: Path):
         # between steps are not table time, and under load they may be many seconds at time scale 20
         dt = np.diff(rec.t)
         held = dt[dt < 5 * np.median(dt)].sum()
-        assert np.all(dt >= 0) and 0.4 * rec.t[-1] < held <= result.table_seconds <= rec.t[-1] + 1.0, (held, rec.t[-1], result.table_seconds)
+        assert np.all(dt >= 0) and 0.95 * 18 * 59 * np.median(dt) < held <= result.table_seconds <= rec.t[-1] + 1.0, (held, rec.t[-1], result.table_seconds)
         unit, world = truth_from_json(st.truth()[slot])
         assert "calibration" in result.outcome.results[slot], result.outcome.results[slot]
         cal = result.outcome.results[slot]["calibration"]

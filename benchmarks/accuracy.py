@@ -11,6 +11,11 @@ Peak-picking is also given a fine 5-deg recording, since on coarse sweeps it can
 and error-separation methods, against the clean fit of the same units. Target: worst level heading
 error within 1.5x of the clean fit's at 1 %, within 3x at 5 %, and no refusal.
 
+The adaptive summary (issue 14, part 3) ends with the information ceiling of the same units: the
+probability that each meets both targets after the best spread of the budget's samples over many
+attitudes with no table time for moves (physics.precision.best_design), from scratch and after the
+plan; no plan of that budget can expect much more.
+
     python benchmarks/accuracy.py [--units 50] [--seed 1] [--budget 180] [--robust]
 """
 
@@ -25,9 +30,10 @@ import numpy as np
 from physics.calibration import truth_summary
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, fit
+from physics.precision import best_design, unit_precision
 from physics.sensor import Unit, random_unit, reference_unit
 from physics.simulate import Pose, World, plan_cost, simulate_recording
-from physics.table import TableGeometry
+from physics.table import Motion, TableGeometry
 from procedures.calibrate import PROCEDURES, CalibrateParams, adaptive_reserve, calibration_poses
 from procedures.steps import simulate_run
 
@@ -40,6 +46,11 @@ ROBUST_METHODS = ("joint", "error-separation")
 RECORDINGS = {"default": CalibrateParams(), "fine 5 deg": CalibrateParams(z_step_deg=5.0, tilt_step_deg=5.0, samples=10)}
 #: Comparison methods that bring their own plan (procedures.calibrate): run as the procedure runs them.
 OWN_PLAN = ("twelve-position", "maxmin")
+#: Attitudes the information ceiling may spread its samples over: every 30 deg of heading, level and tilted
+#: about one axis by +-30, 60, 90, 120 deg or turned over (216 in all).
+DESIGN_TILTS = [(0.0, 0.0), (180.0, 0.0)] + [(s * a, 0.0) for a in (30.0, 60.0, 90.0, 120.0) for s in (1, -1)] \
+    + [(0.0, s * a) for a in (30.0, 60.0, 90.0, 120.0) for s in (1, -1)]
+DESIGN_ATTITUDES = np.array([(float(psi), th, ph) for psi in range(0, 360, 30) for th, ph in DESIGN_TILTS])
 
 
 def runs() -> list[tuple[str, str]]:
@@ -96,8 +107,26 @@ def score(units: list[tuple[Unit, World]], seed: int,
                                    pred_met=float(pr["met"]),
                                    more_s=np.nan if pr["met"] else (np.inf if more is None else more))
             figures["fit_s"] = time.perf_counter() - t0
+            if (method, rec_name) == ("joint", "default") and not isinstance(cal, str) and np.isfinite(figures["level_max"]):
+                figures.update(information_ceiling(recs[rec_name], cal, budget_s))
             for k, v in figures.items():
                 out[(method, rec_name)].setdefault(k, []).append(v)
+    return out
+
+
+def information_ceiling(rec: object, cal: object, budget_s: float) -> dict[str, float]:
+    """A unit's probability of meeting both targets (as predicted from its fit on the default plan's
+    recording) after the best spread of ``budget_s`` of samples over :data:`DESIGN_ATTITUDES` with no time
+    for moves (``p_any``), and after the plan then the best spread of the budget's remaining seconds (``p_plan``)."""
+    up = unit_precision(rec, cal)  # type: ignore[arg-type]
+    targets = {"level": TARGET_LEVEL, "tilted": TARGET_TILTED}
+    rate = Motion().sample_rate_hz
+    plan_s = budget_s - adaptive_reserve(CalibrateParams(adaptive=True, budget_s=budget_s))
+    out = {}
+    for name, u, seconds in (("p_any", up.before_any_data(), budget_s), ("p_plan", up, budget_s - plan_s)):
+        w = best_design(u, DESIGN_ATTITUDES, seconds * rate, targets)
+        extra = [None if s is None else np.einsum("c,cij->ij", w, s.per_sample(DESIGN_ATTITUDES)) for s in (u.mag, u.acc)]
+        out[name] = u.meet_probability(targets, extra_mag=extra[0], extra_acc=extra[1])
     return out
 
 
@@ -221,11 +250,13 @@ def main() -> None:
     print(f"  reference unit: level {ok_ref['level_max'][0]:.4f}, +-60 {ok_ref['tilted_max'][0]:.4f}, table {cost.total_s:.1f} s")
     within = np.mean((np.array(ours["level_max"]) <= TARGET_LEVEL) & (np.array(ours["tilted_max"]) <= TARGET_TILTED))
     print(f"  random units meeting both: {100 * within:.0f} %; the paper measured 0.22 deg level and 0.4 deg at +-60 deg")
-    print(adaptive_summary(r_ref[("joint", "adaptive")], r_rand[("joint", "adaptive")], args.budget))
+    print(adaptive_summary(r_ref[("joint", "adaptive")], r_rand[("joint", "adaptive")], args.budget, ours))
 
 
-def adaptive_summary(ref: dict[str, list[float]], rand: dict[str, list[float]], budget_s: float = ADAPTIVE_BUDGET_S) -> str:
-    """Issue 14, part 3: the adaptive plan against its targets, and how honest its prediction was."""
+def adaptive_summary(ref: dict[str, list[float]], rand: dict[str, list[float]], budget_s: float = ADAPTIVE_BUDGET_S,
+                     plain: dict[str, list[float]] | None = None) -> str:
+    """Issue 14, part 3: the adaptive plan against its targets, how honest its prediction was, and (from
+    ``plain``, the same units' joint fits on the default plan) the information ceiling."""
     lev, til = np.array(rand["level_max"]), np.array(rand["tilted_max"])
     meet = np.mean((lev <= TARGET_LEVEL) & (til <= TARGET_TILTED))
     covered = np.mean((lev <= np.array(rand["pred_level"])) & (til <= np.array(rand["pred_tilted"])))
@@ -242,6 +273,13 @@ def adaptive_summary(ref: dict[str, list[float]], rand: dict[str, list[float]], 
              _short_of_budget(np.array(rand["more_s"]), t),
              f"  reference unit: {ref['table_s'][0]:.0f} s (target <= {TARGET_TABLE_S:.0f} s: "
              f"{'met' if ref['table_s'][0] <= TARGET_TABLE_S else 'missed'}), level {ref['level_max'][0]:.4f}, +-60 {ref['tilted_max'][0]:.4f}"]
+    if plain is not None and "p_any" in plain:
+        p_any, p_plan = np.array(plain["p_any"]), np.array(plain["p_plan"])
+        lines.append(f"  information ceiling of these units (each unit's probability of meeting both, predicted from its fit "
+                     f"on the default plan, after the best spread of samples over {len(DESIGN_ATTITUDES)} attitudes, no time for moves):")
+        lines.append(f"    any {budget_s:.0f}-s design: expected {100 * p_any.mean():.1f} % of units meet both "
+                     f"({int(np.sum(p_any < 0.95))} of {len(p_any)} units below 95 % probability); the plan then the best "
+                     f"{budget_s - plan_s:.0f} s: {100 * p_plan.mean():.1f} %; measured above: {100 * meet:.0f} %")
     return "\n".join(lines)
 
 

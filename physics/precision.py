@@ -13,7 +13,11 @@ meets both with 95 % probability, not each with 95 % (both with about 90 %).
 
 Each pose of a plan adds ``n J_pose^T J_pose`` to the information (n samples at one attitude); the
 information after a candidate pose is known before the pose is made, so a procedure can choose the
-pose that lowers the worst predicted error the most per second of table time. Pure functions, no I/O.
+pose that lowers the worst predicted error the most per second of table time. The same information
+prices a design before any pose is made: :func:`best_design` spreads a number of samples over candidate
+attitudes to minimise the predicted error, with no time for moves (what no plan of that many samples
+could beat by much), and :meth:`UnitPrecision.meet_probability` says how likely the unit then meets the
+targets. Pure functions, no I/O.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from scipy.optimize import minimize
 
 from physics import errorsep as es
 from physics.calibration import Calibration, attitude_grid, level_turn, truth_errors
@@ -115,9 +120,29 @@ class UnitPrecision:
         probability ``confidence`` (with ``extra`` information, as :meth:`sigma_max`: what poses not yet made
         would add). Each bound is its error's quantile at one common level, chosen so that in ``confidence``
         of the draws no target's error passes its bound; with one target, the plain quantile."""
+        E = self._largest_errors(draws, extra_mag, extra_acc)
+        # a draw stays within bounds at level u when each target's error ranks at or below u in its own draws
+        rank = (np.argsort(np.argsort(E, axis=1), axis=1) + 1) / draws
+        level = float(np.quantile(rank.max(axis=0), confidence))
+        return {name: float(np.quantile(E[i], level)) for i, name in enumerate(self.gradients)}
+
+    def meet_probability(self, targets: dict[str, float], draws: int = DRAWS, extra_mag: np.ndarray | None = None,
+                         extra_acc: np.ndarray | None = None) -> float:
+        """The probability that the largest |heading error| of every target is within it (deg), all together:
+        the share of the parameter draws that meet them (with ``extra`` information, as :meth:`quantile`)."""
+        E = self._largest_errors(draws, extra_mag, extra_acc)
+        return float(np.mean(np.all(E <= np.array([targets[name] for name in self.gradients])[:, None], axis=0)))
+
+    def before_any_data(self) -> UnitPrecision:
+        """The same unit and targets with no information gathered yet (to price a design from scratch)."""
+        return replace(self, mag=replace(self.mag, info=np.zeros_like(self.mag.info)),
+                       acc=None if self.acc is None else replace(self.acc, info=np.zeros_like(self.acc.info)))
+
+    def _largest_errors(self, draws: int, extra_mag: np.ndarray | None, extra_acc: np.ndarray | None) -> np.ndarray:
+        """Largest |heading error| over each target's attitudes, (targets, draws), for draws of the parameters'
+        errors from the covariance (fixed seed, so that predictions compare without noise)."""
         rng = np.random.default_rng(0)
-        Lm = _factor(self.mag.covariance(extra_mag))
-        zm = Lm @ rng.standard_normal((12, draws))
+        zm = _factor(self.mag.covariance(extra_mag)) @ rng.standard_normal((12, draws))
         za = None
         if self.acc is not None:
             za = _factor(self.acc.covariance(extra_acc)) @ rng.standard_normal((12, draws))
@@ -127,11 +152,7 @@ class UnitPrecision:
             if Ga is not None and za is not None:
                 e = e + Ga @ za
             worst.append(np.max(np.abs(e), axis=0))
-        E = np.array(worst)  # (targets, draws)
-        # a draw stays within bounds at level u when each target's error ranks at or below u in its own draws
-        rank = (np.argsort(np.argsort(E, axis=1), axis=1) + 1) / draws
-        level = float(np.quantile(rank.max(axis=0), confidence))
-        return {name: float(np.quantile(E[i], level)) for i, name in enumerate(self.gradients)}
+        return np.array(worst)
 
 
 def _factor(C: np.ndarray) -> np.ndarray:
@@ -183,13 +204,47 @@ def unit_precision(rec: Recording, cal: Calibration) -> UnitPrecision:
     return UnitPrecision(mag, acc, grads)
 
 
-def worst_ratio(units: list[UnitPrecision], targets: dict[str, float],
-                extra: list[tuple[np.ndarray, np.ndarray | None]] | None = None) -> float:
-    """The largest predicted 1-sigma error over target, over units and targets, with extra information."""
-    worst = 0.0
-    for i, u in enumerate(units):
-        em, ea = extra[i] if extra else (None, None)
-        s = u.sigma_max(em, ea)
-        worst = max(worst, max(s[name] / t for name, t in targets.items()))
-    return worst
+#: Sharpness of the smooth maximum in :func:`best_design` (over the errors' variances relative to the largest).
+_SMOOTH_MAX = 30.0
 
+
+def best_design(u: UnitPrecision, angles: np.ndarray, samples: float, targets: dict[str, float]) -> np.ndarray:
+    """Samples to take at each of ``angles`` (K, 3 encoder angles), ``samples`` in all, that minimise ``u``'s
+    largest predicted 1-sigma heading error over its target (every attitude of every target) on top of the
+    information ``u`` has gathered: a continuous optimal design, with no table time for moves. A smooth
+    maximum of the variances is minimised (L-BFGS on softmax weights, analytic gradient), so the design is
+    near-optimal for the probability of meeting the targets, not exactly optimal for it."""
+    info_m = u.mag.per_sample(angles)
+    info_a = u.acc.per_sample(angles) if u.acc is not None else None
+    pad = lambda G: np.pad(G, ((0, 0), (0, 2)))  # noqa: E731  (the field direction's two parameters: no gradient)
+    grads = [(pad(Gm), None if Ga is None or info_a is None else pad(Ga), targets[name])
+             for name, (Gm, Ga) in u.gradients.items()]
+    ridge = 1e-9 * np.eye(14)  # a design on few attitudes leaves F singular
+
+    def weights(a: np.ndarray) -> np.ndarray:
+        w = np.exp(a - a.max())
+        return samples * w / w.sum()
+
+    def objective(a: np.ndarray) -> tuple[float, np.ndarray]:
+        w = weights(a)
+        Cm = np.linalg.inv(u.mag.info + np.einsum("c,cij->ij", w, info_m) + ridge)
+        Ca = None if info_a is None or u.acc is None else np.linalg.inv(u.acc.info + np.einsum("c,cij->ij", w, info_a) + ridge)
+        var, dvar = [], []  # per attitude: variance over target^2, and its derivative in each weight
+        for Gm, Ga, t in grads:
+            U = Gm @ Cm
+            v, dv = np.sum(U * Gm, axis=1), -np.einsum("ak,ckl,al->ac", U, info_m, U)
+            if Ga is not None and Ca is not None and info_a is not None:
+                U = Ga @ Ca
+                v, dv = v + np.sum(U * Ga, axis=1), dv - np.einsum("ak,ckl,al->ac", U, info_a, U)
+            var.append(v / t ** 2)
+            dvar.append(dv / t ** 2)
+        v, dv = np.concatenate(var), np.concatenate(dvar)
+        top = v.max()
+        e = np.exp(_SMOOTH_MAX * (v / top - 1.0))
+        smooth = top * (1.0 + np.log(e.sum()) / _SMOOTH_MAX)
+        dw = (e / e.sum()) @ dv
+        da = w * dw - w * (w @ dw) / samples  # through the softmax
+        return float(np.log(smooth)), da / smooth
+
+    best = minimize(objective, np.zeros(len(angles)), jac=True, method="L-BFGS-B", options={"maxiter": 300})
+    return weights(best.x)

@@ -11,11 +11,11 @@ from pydantic import ValidationError
 
 from physics.calibration import truth_summary
 from physics.fit import fit
-from physics.precision import _factor, unit_precision
+from physics.precision import TARGET_LEVEL_DEG, TARGET_TILTED_DEG, _factor, best_design, unit_precision
 from physics.sensor import random_unit, reference_unit
 from physics.simulate import World, simulate_recording
 from physics.table import TableGeometry
-from procedures.calibrate import PROCEDURES, CalibrateParams, calibration_poses
+from procedures.calibrate import ADAPTIVE_POSES, PROCEDURES, CalibrateParams, calibration_poses
 from procedures.steps import simulate_run
 
 
@@ -78,6 +78,40 @@ def test_the_bounds_of_both_targets_hold_together_at_the_stated_confidence() -> 
     level_only = np.quantile(np.max(np.abs(up.gradients["level"][0] @ zm + up.gradients["level"][1] @ za), axis=0), 0.95)
     up.gradients = {"level": up.gradients["level"]}
     assert up.quantile()["level"] == pytest.approx(level_only, rel=0.05)
+
+
+def test_the_best_design_beats_the_plan_on_as_many_samples_and_scales_with_them() -> None:
+    """A design from scratch of the plan's sample count over the plan's attitudes and the extension's
+    predicts a smaller worst error over target than the plan's own equal holds (the optimiser finds at least
+    that); four times the samples halve its 1-sigma errors; and the probability of meeting targets set at
+    the unit's own 95 % bounds is 95 %."""
+    unit, world = _units(1, 4)[0]
+    poses = calibration_poses(CalibrateParams())
+    rec = simulate_recording(unit, poses, world, rng=np.random.default_rng(5))
+    up = unit_precision(rec, _fit(rec))
+    targets = {"level": TARGET_LEVEL_DEG, "tilted": TARGET_TILTED_DEG}
+    angles = np.array([(p.psi_t, p.theta_t, p.phi_t) for p in poses] + list(ADAPTIVE_POSES))
+    n = float(sum(p.samples for p in poses))
+    fresh = up.before_any_data()
+    assert np.all(fresh.mag.info == 0) and fresh.acc is not None and np.all(fresh.acc.info == 0)
+
+    def worst(u, w):  # noqa: ANN001, ANN202
+        s = u.sigma_max(np.einsum("c,cij->ij", w, u.mag.per_sample(angles)), np.einsum("c,cij->ij", w, u.acc.per_sample(angles)))
+        return max(s[k] / t for k, t in targets.items()), s
+
+    w = best_design(fresh, angles, n, targets)
+    assert w.shape == (len(angles),) and np.all(w >= 0) and w.sum() == pytest.approx(n)
+    plan_w = np.r_[np.array([p.samples for p in poses], float), np.zeros(len(ADAPTIVE_POSES))]
+    best, s1 = worst(fresh, w)
+    plan, _ = worst(fresh, plan_w)
+    assert best < 0.95 * plan, (best, plan)
+    # the plan's information as the fit measured it agrees with the design's count of the same holds
+    assert max(up.sigma_max()[k] / t for k, t in targets.items()) == pytest.approx(plan, rel=0.1)
+    _, s4 = worst(fresh, best_design(fresh, angles, 4 * n, targets))
+    assert all(0.45 < s4[k] / s1[k] < 0.55 for k in targets), (s1, s4)
+    # meeting probability and bounds from the same draws agree
+    assert 0.95 <= up.meet_probability(up.quantile()) <= 0.955
+    assert up.meet_probability({"level": 1e-6, "tilted": 1e-6}) == 0.0 and up.meet_probability({"level": 10, "tilted": 10}) == 1.0
 
 
 def test_adaptive_stops_at_the_plan_for_a_good_unit_and_extends_for_a_weak_one() -> None:

@@ -500,6 +500,27 @@ def test_a_lab_window_is_not_taken_by_a_stage_gain_in_the_same_window() -> None:
     assert abs(a - ta) < 2.0 and abs(b - tb) < 2.0
 
 
+def test_a_rare_cause_is_not_named_for_having_fewer_parameters() -> None:
+    """An open-world case (seed 17, case 12: a lab offset from 52 s to 145 s at lambda 53) in whose found
+    window the outer stage stands still, so a lab and an outer-stage offset tie (statistic 65, 3 df). An
+    outer-stage rotation (2 df, statistic 57) left them nothing significant to add and was named, though a
+    stage that turns for a while is a rare cause and 12 behind in evidence. The lab offset is named now,
+    the outer-stage offset said to be indistinguishable from it."""
+    from proof.generator import ordinary_plan
+    from proof.runner import make_task_case, proof_tasks
+
+    task = proof_tasks(0, 17, ordinary_plan(), nulls=0, open_n=10)[12]
+    assert task.kind == "segment_offset_lab"
+    gen, ana = np.random.SeedSequence(task.seed).spawn(2)
+    case = make_task_case(task, np.random.default_rng(gen))
+    r = analyze(case.rec, rng=np.random.default_rng(ana)).result
+    first = r["findings"][0]
+    assert (first["effect"], first["model"]["frame"], first["model"]["form"]) == ("discovered", "lab", "offset"), first
+    assert "offset in the outer frame" in first["confusable_with"], first["confusable_with"]
+    rotation = [t for t in r["tests"] if t["variant"] == "discovered:outer/rotation/segments" and t["round"] == "1 (dictionary)"]
+    assert rotation and rotation[0]["p_adjusted"] < 0.003  # the rotation is significant: still a candidate
+
+
 def test_whitening_restarts_at_each_segment_and_the_window_statistic_matches_the_tall_svd() -> None:
     """whiten_all filters the whole series at once and takes each segment's carry-over back out; it must
     equal the Kalman innovations computed sample by sample, restarted at each segment (the nulls' time

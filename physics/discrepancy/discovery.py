@@ -799,8 +799,13 @@ def _likeliest(chosen: Found, cands: list[Found], alpha: float) -> tuple[Found, 
 def _simplest(best: Found, cands: list[Found], Q: np.ndarray, y: np.ndarray, null: np.ndarray | None,
               alpha: float, cost: float) -> Found:
     """``best``, unless a significant candidate with fewer parameters leaves it nothing significant to
-    add; then the simplest such one (the sparsest adequate block)."""
-    simpler = sorted((c for c in cands if 0 < c.test.df < best.test.df and c.test.log_p < np.log(alpha)),
+    add; then the simplest such one (the sparsest adequate block). A rarer cause than ``best``'s
+    (:data:`RARER`) counts as simpler only where its evidence, less its rarity, is as good: fewer
+    parameters do not make a stage's rotation likelier than an offset in the room that the data prefer
+    (a lab offset at lambda 53 was once named an outer-stage rotation, 12 behind it in evidence)."""
+    floor = best.test.evidence - _rarer(best.block) - SAME_EVIDENCE
+    simpler = sorted((c for c in cands if 0 < c.test.df < best.test.df and c.test.log_p < np.log(alpha)
+                      and (_rarer(c.block) <= _rarer(best.block) or c.test.evidence - _rarer(c.block) >= floor)),
                      key=lambda c: (c.test.df, c.test.log_p))
     for c in simpler:
         Qs = _orth(np.column_stack([Q, c.Xw]))

@@ -480,19 +480,25 @@ def test_a_pair_of_windows_in_pure_noise_is_not_a_discovery() -> None:
     assert r["verdict"] == "consistent", [(f["effect"], f.get("model")) for f in r["findings"]]
 
 
+def _proof_case(seed: int, index: int, kind: str):  # noqa: ANN202
+    """Case ``index`` of the open-world proof's draw ``seed`` (10 per kind, ordinary plan), and the
+    analysis of its recording as the proof runs it."""
+    from proof.generator import ordinary_plan
+    from proof.runner import make_task_case, proof_tasks
+
+    task = proof_tasks(0, seed, ordinary_plan(), nulls=0, open_n=10)[index]
+    assert task.kind == kind
+    gen, ana = np.random.SeedSequence(task.seed).spawn(2)
+    case = make_task_case(task, np.random.default_rng(gen))
+    return case, analyze(case.rec, rng=np.random.default_rng(ana)).result
+
+
 def test_a_lab_window_is_not_taken_by_a_stage_gain_in_the_same_window() -> None:
     """An open-world case (seed 5, case 11: a lab offset from 96 s to 182 s at lambda 286) on which a
     stage gain in the same window won: the best three blocks had their edges refined from the 5-s grid
     to the samples (313), the lab offset kept its grid window (281). A block within reach of the best
     refined statistic is refined too, and the lab offset wins on its merits."""
-    from proof.generator import ordinary_plan
-    from proof.runner import make_task_case, proof_tasks
-
-    task = proof_tasks(0, 5, ordinary_plan(), nulls=0, open_n=10)[11]
-    assert task.kind == "segment_offset_lab"
-    gen, ana = np.random.SeedSequence(task.seed).spawn(2)
-    case = make_task_case(task, np.random.default_rng(gen))
-    r = analyze(case.rec, rng=np.random.default_rng(ana)).result
+    case, r = _proof_case(5, 11, "segment_offset_lab")
     first = r["findings"][0]
     assert (first["effect"], first["model"]["frame"], first["model"]["form"]) == ("discovered", "lab", "offset"), first
     (a, b), = first["model"]["segments"]
@@ -506,14 +512,7 @@ def test_a_rare_cause_is_not_named_for_having_fewer_parameters() -> None:
     outer-stage rotation (2 df, statistic 57) left them nothing significant to add and was named, though a
     stage that turns for a while is a rare cause and 12 behind in evidence. The lab offset is named now,
     the outer-stage offset said to be indistinguishable from it."""
-    from proof.generator import ordinary_plan
-    from proof.runner import make_task_case, proof_tasks
-
-    task = proof_tasks(0, 17, ordinary_plan(), nulls=0, open_n=10)[12]
-    assert task.kind == "segment_offset_lab"
-    gen, ana = np.random.SeedSequence(task.seed).spawn(2)
-    case = make_task_case(task, np.random.default_rng(gen))
-    r = analyze(case.rec, rng=np.random.default_rng(ana)).result
+    _, r = _proof_case(17, 12, "segment_offset_lab")
     first = r["findings"][0]
     assert (first["effect"], first["model"]["frame"], first["model"]["form"]) == ("discovered", "lab", "offset"), first
     assert "offset in the outer frame" in first["confusable_with"], first["confusable_with"]

@@ -121,13 +121,16 @@ def information_ceiling(rec: object, cal: object, budget_s: float) -> dict[str, 
     up = unit_precision(rec, cal)  # type: ignore[arg-type]
     targets = {"level": TARGET_LEVEL, "tilted": TARGET_TILTED}
     rate = Motion().sample_rate_hz
-    plan_s = budget_s - adaptive_reserve(CalibrateParams(adaptive=True, budget_s=budget_s))
     out = {}
-    for name, u, seconds in (("p_any", up.before_any_data(), budget_s), ("p_plan", up, budget_s - plan_s)):
-        w = best_design(u, DESIGN_ATTITUDES, seconds * rate, targets)
-        extra = [None if s is None else np.einsum("c,cij->ij", w, s.per_sample(DESIGN_ATTITUDES)) for s in (u.mag, u.acc)]
-        out[name] = u.meet_probability(targets, extra_mag=extra[0], extra_acc=extra[1])
+    for name, u, seconds in (("p_any", up.before_any_data(), budget_s), ("p_plan", up, budget_s - _plan_s(budget_s))):
+        d = best_design(u, DESIGN_ATTITUDES, seconds * rate, targets)
+        out[name] = u.meet_probability(targets, extra_mag=d.extra_mag, extra_acc=d.extra_acc)
     return out
+
+
+def _plan_s(budget_s: float) -> float:
+    """The adaptive calibration's plan in nominal seconds, as its extension counts them."""
+    return budget_s - adaptive_reserve(CalibrateParams(adaptive=True, budget_s=budget_s))
 
 
 def table(title: str, results: dict[tuple[str, str], dict[str, list[float]]], many: bool) -> str:
@@ -261,8 +264,8 @@ def adaptive_summary(ref: dict[str, list[float]], rand: dict[str, list[float]], 
     meet = np.mean((lev <= TARGET_LEVEL) & (til <= TARGET_TILTED))
     covered = np.mean((lev <= np.array(rand["pred_level"])) & (til <= np.array(rand["pred_tilted"])))
     t = np.array(rand["table_s"])
-    # the plan's own seconds, as the extension counts them (not the shortest unit's: every unit may have had poses added)
-    plan_s = budget_s - adaptive_reserve(CalibrateParams(adaptive=True, budget_s=budget_s))
+    # the plan's own seconds (not the shortest unit's: every unit may have had poses added)
+    plan_s = _plan_s(budget_s)
     lines = [f"adaptive (joint, plan extended until the predicted error meets the targets at 95 % confidence, budget {budget_s:.0f} s):",
              f"  random units meeting both targets: {100 * meet:.0f} % (target >= 95 %: {'met' if meet >= 0.95 else 'missed'}); "
              f"predicted to meet them at 95 %: {100 * np.mean(rand['pred_met']):.0f} %",

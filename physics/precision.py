@@ -23,7 +23,7 @@ targets. Pure functions, no I/O.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.optimize import minimize
@@ -208,12 +208,22 @@ def unit_precision(rec: Recording, cal: Calibration) -> UnitPrecision:
 _SMOOTH_MAX = 30.0
 
 
-def best_design(u: UnitPrecision, angles: np.ndarray, samples: float, targets: dict[str, float]) -> np.ndarray:
+class Design(NamedTuple):
+    """Samples per candidate attitude, and the information they add (as ``extra_mag``/``extra_acc`` of
+    :meth:`UnitPrecision.quantile`)."""
+
+    samples: np.ndarray
+    extra_mag: np.ndarray
+    extra_acc: np.ndarray | None
+
+
+def best_design(u: UnitPrecision, angles: np.ndarray, samples: float, targets: dict[str, float]) -> Design:
     """Samples to take at each of ``angles`` (K, 3 encoder angles), ``samples`` in all, that minimise ``u``'s
     largest predicted 1-sigma heading error over its target (every attitude of every target) on top of the
-    information ``u`` has gathered: a continuous optimal design, with no table time for moves. A smooth
-    maximum of the variances is minimised (L-BFGS on softmax weights, analytic gradient), so the design is
-    near-optimal for the probability of meeting the targets, not exactly optimal for it."""
+    information ``u`` has gathered, and the information they add: a continuous optimal design, with no
+    table time for moves. A smooth maximum of the variances is minimised (L-BFGS on softmax weights,
+    analytic gradient), so the design is near-optimal for the probability of meeting the targets, not
+    exactly optimal for it."""
     info_m = u.mag.per_sample(angles)
     info_a = u.acc.per_sample(angles) if u.acc is not None else None
     pad = lambda G: np.pad(G, ((0, 0), (0, 2)))  # noqa: E731  (the field direction's two parameters: no gradient)
@@ -247,4 +257,5 @@ def best_design(u: UnitPrecision, angles: np.ndarray, samples: float, targets: d
         return float(np.log(smooth)), da / smooth
 
     best = minimize(objective, np.zeros(len(angles)), jac=True, method="L-BFGS-B", options={"maxiter": 300})
-    return weights(best.x)
+    w = weights(best.x)
+    return Design(w, np.einsum("c,cij->ij", w, info_m), None if info_a is None else np.einsum("c,cij->ij", w, info_a))

@@ -354,24 +354,25 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
     out = {}
     for s, q in predicted.items():
         met = all(q[k] <= t for k, t in targets.items())
-        more = None  # for a unit short of the targets: the further table time it needs (None: beyond the look-ahead)
+        # for a unit short of the targets: the further table time it needs (None: beyond the look-ahead)
+        more = None if met else time_to_target(units[s], targets, p, here)
+        res = {"predicted_level_deg": q["level"], "predicted_tilted_deg": q["tilted"], "confidence": CONFIDENCE,
+               "target_level_deg": targets["level"], "target_tilted_deg": targets["tilted"], "met": met,
+               "stopped": "reached" if met else "budget", "added_poses": added,
+               "table_s": spent_s, "more_table_s": more, "budget_s": p.budget_s, "rounds": rounds[s]}
+        predicted_said = (f"predicted heading error (bounds holding together at 95 % confidence) {q['level']:.4f} deg level, "
+                          f"{q['tilted']:.4f} deg at +-60 deg: ")
         if met:
-            why = (f"predicted heading error (bounds holding together at 95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
-                   f"within the targets {targets['level']:g} and {targets['tilted']:g} deg"
+            why = (predicted_said + f"within the targets {targets['level']:g} and {targets['tilted']:g} deg"
                    + (f" after {_poses(added)} added" if added else " with the plan alone"))
         else:
-            more = time_to_target(units[s], targets, p, here)
-            need = (f"about {more:.0f} s more table time (a budget of {spent_s + more:.0f} s) would reach them"
+            need = (f"about {more:.0f} s more table time (a budget of {needed_budget_s(res):.0f} s) would reach them"
                     if more is not None else
                     f"even {LOOKAHEAD_S / 60:.0f} min more table time would not: a unit with less noise per field, "
                     f"or a compass that averages more per sample, would")
-            why = (f"predicted heading error (bounds holding together at 95 % confidence) {q['level']:.4f} deg level, {q['tilted']:.4f} deg at +-60 deg: "
-                   f"above the targets {targets['level']:g} / {targets['tilted']:g} deg when the {p.budget_s:g}-s table-time "
-                   f"budget ended ({_poses(added)} added); {need}")
-        out[s] = {"predicted_level_deg": q["level"], "predicted_tilted_deg": q["tilted"], "confidence": CONFIDENCE,
-                  "target_level_deg": targets["level"], "target_tilted_deg": targets["tilted"], "met": met,
-                  "stopped": "reached" if met else "budget", "added_poses": added,
-                  "table_s": spent_s, "more_table_s": more, "budget_s": p.budget_s, "rounds": rounds[s], "why": why}
+            why = (predicted_said + f"above the targets {targets['level']:g} / {targets['tilted']:g} deg when the {p.budget_s:g}-s "
+                   f"table-time budget ended ({_poses(added)} added); {need}")
+        out[s] = {**res, "why": why}
     return out, {s: cal for s, (_, cal) in fits.items()}
 
 

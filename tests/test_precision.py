@@ -95,19 +95,23 @@ def test_the_best_design_beats_the_plan_on_as_many_samples_and_scales_with_them(
     fresh = up.before_any_data()
     assert np.all(fresh.mag.info == 0) and fresh.acc is not None and np.all(fresh.acc.info == 0)
 
-    def worst(u, w):  # noqa: ANN001, ANN202
-        s = u.sigma_max(np.einsum("c,cij->ij", w, u.mag.per_sample(angles)), np.einsum("c,cij->ij", w, u.acc.per_sample(angles)))
+    def worst(extra_mag, extra_acc):  # noqa: ANN001, ANN202
+        s = fresh.sigma_max(extra_mag, extra_acc)
         return max(s[k] / t for k, t in targets.items()), s
 
-    w = best_design(fresh, angles, n, targets)
+    d = best_design(fresh, angles, n, targets)
+    w = d.samples
     assert w.shape == (len(angles),) and np.all(w >= 0) and w.sum() == pytest.approx(n)
+    # the information returned is that of the samples returned
+    assert np.allclose(d.extra_mag, np.einsum("c,cij->ij", w, fresh.mag.per_sample(angles)))
+    assert np.allclose(d.extra_acc, np.einsum("c,cij->ij", w, fresh.acc.per_sample(angles)))
     plan_w = np.r_[np.array([p.samples for p in poses], float), np.zeros(len(ADAPTIVE_POSES))]
-    best, s1 = worst(fresh, w)
-    plan, _ = worst(fresh, plan_w)
+    best, s1 = worst(d.extra_mag, d.extra_acc)
+    plan, _ = worst(np.einsum("c,cij->ij", plan_w, fresh.mag.per_sample(angles)), np.einsum("c,cij->ij", plan_w, fresh.acc.per_sample(angles)))
     assert best < 0.95 * plan, (best, plan)
     # the plan's information as the fit measured it agrees with the design's count of the same holds
     assert max(up.sigma_max()[k] / t for k, t in targets.items()) == pytest.approx(plan, rel=0.1)
-    _, s4 = worst(fresh, best_design(fresh, angles, 4 * n, targets))
+    _, s4 = worst(*best_design(fresh, angles, 4 * n, targets)[1:])
     assert all(0.45 < s4[k] / s1[k] < 0.55 for k in targets), (s1, s4)
     # meeting probability and bounds from the same draws agree
     assert 0.95 <= up.meet_probability(up.quantile()) <= 0.955

@@ -264,6 +264,7 @@ class WindowSearch:
     m_eff: float
     log_p: float  # corrected for the search (not yet for the dictionary)
     others: tuple[tuple[int, int], ...] = ()  # more windows with the same parameters (bins), if they won
+    scale: float = 1.0  # the nulls' mean statistic per degree of freedom (a Bartlett factor) the p's used
 
 
 def _bins(ctx: Context, n_bins: int) -> np.ndarray:
@@ -298,10 +299,19 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
     W = whiten_all(masked, noise, ctx.segment)  # (3N, G p)
     diag0 = np.array([W[:, k * p:(k + 1) * p].T @ W[:, k * p:(k + 1) * p] for k in range(n_bins)])
     Wp = W - Q @ (Q.T @ W)
-    G = (Wp.T @ Wp).reshape(n_bins, p, n_bins, p)
+    cn = None if null is None or len(null) < 20 else (null @ Wp).reshape(len(null), n_bins, p)
+    return search_bins((Wp.T @ Wp).reshape(n_bins, p, n_bins, p), diag0, (Wp.T @ y).reshape(n_bins, p), cn)
+
+
+def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray | None) -> WindowSearch | None:
+    """The window search of :func:`search_windows` on a time grid's sums, whatever the model: ``G``
+    (bins, p, bins, p), the Gram matrix of the bin-masked columns, whitened and with the current model
+    projected out; ``diag0`` (bins, p, p) each bin's own Gram matrix before the projection (the scale of what
+    a window keeps); ``c`` (bins, p) the projected columns against the whitened residual, and ``cn`` (K, bins,
+    p) the same against K simulated nulls (None: no calibration, every window counted)."""
+    n_bins, p = c.shape
     S = np.zeros((n_bins + 1, p, n_bins + 1, p))
     S[1:, :, 1:, :] = np.cumsum(np.cumsum(G, axis=0), axis=2)
-    c = (Wp.T @ y).reshape(n_bins, p)
     C = np.vstack([np.zeros((1, p)), np.cumsum(c, axis=0)])
     D0 = np.concatenate([np.zeros((1, p, p)), np.cumsum(diag0, axis=0)])
     a_idx, b_idx = np.triu_indices(n_bins + 1, k=MIN_BINS)
@@ -319,9 +329,8 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
         return None
     stat = _window_stats(C[b_idx] - C[a_idx], w, V, keep)
     c_scale, m_eff, p_ref = 1.0, float(ok.sum()), 0.5
-    if null is not None and len(null) >= 20:
-        cn = (null @ Wp).reshape(len(null), n_bins, p)
-        Cn = np.concatenate([np.zeros((len(null), 1, p)), np.cumsum(cn, axis=1)], axis=1)
+    if cn is not None:
+        Cn = np.concatenate([np.zeros((len(cn), 1, p)), np.cumsum(cn, axis=1)], axis=1)
         sn = _window_stats(Cn[:, b_idx] - Cn[:, a_idx], w, V, keep)[:, ok]  # (K, windows)
         c_scale = max(float(np.mean(sn / df[ok])), 0.5)
         lp = stats.chi2.logsf(sn / c_scale, df[ok][None, :])
@@ -332,7 +341,7 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
     lps[far] = [chi2_logsf(s / c_scale, d) for s, d in zip(stat[far], df[far])]
     i = int(np.argmin(lps))
     single = WindowSearch(int(a_idx[i]), int(b_idx[i]), float(stat[i]), int(df[i]), float(lps[i]), m_eff,
-                          _search_log_p(float(lps[i]), m_eff, stat[i] / c_scale, int(df[i]), p_ref, 2))
+                          _search_log_p(float(lps[i]), m_eff, stat[i] / c_scale, int(df[i]), p_ref, 2), scale=c_scale)
     # Two windows with the same parameters: something that came and went twice (a relay, a motor, a
     # tool put back). The pair is searched given the best single one (a second window beside it, or a
     # gap inside it), on the data and on each null alike, and the best of the searches (one, two or
@@ -344,12 +353,12 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
     (j1, j2), stat2, df2 = pair
     lp2 = chi2_logsf(stat2 / c_scale, df2)
     m_eff2, p_ref2 = m_eff * m_eff, p_ref
-    if null is not None and len(null) >= 20:
+    if cn is not None:
         CWn = Cn[:, b_idx] - Cn[:, a_idx]
-        lp_all = np.full((len(null), len(stat)), np.inf)
+        lp_all = np.full((len(cn), len(stat)), np.inf)
         lp_all[:, ok] = lp
         first = np.argmin(lp_all, axis=1)
-        min_p2 = np.ones(min(len(null), PAIR_NULLS))
+        min_p2 = np.ones(min(len(cn), PAIR_NULLS))
         for k in range(len(min_p2)):  # the same search on each null (a subsample: it is per null)
             got = windows.best_pair(int(first[k]), CWn[k])
             if got is not None:
@@ -364,7 +373,7 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
     if log_p2 >= single.log_p:
         return WindowSearch(**{**single.__dict__, "log_p": min(single.log_p + float(np.log(3.0)), 0.0)})
     best = WindowSearch(int(a_idx[j1]), int(b_idx[j1]), float(stat2), int(df2), lp2, m_eff2, log_p2,
-                        ((int(a_idx[j2]), int(b_idx[j2])),))
+                        ((int(a_idx[j2]), int(b_idx[j2])),), c_scale)
     # A third visit (a relay that switched three times): a window beside the pair, or a gap in one of its
     # windows, with the same parameters. Its search multiplies the pair's by the single window's (the
     # third window is one more window searched), extrapolated over six edges.
@@ -375,7 +384,7 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
         log_p3 = _search_log_p(lp3, m_eff2 * m_eff, stat3 / c_scale, df3, p_ref2, 6)
         if log_p3 < log_p2:
             best = WindowSearch(int(a_idx[ks[0]]), int(b_idx[ks[0]]), float(stat3), int(df3), lp3, m_eff2 * m_eff,
-                                log_p3, tuple((int(a_idx[k]), int(b_idx[k])) for k in ks[1:]))
+                                log_p3, tuple((int(a_idx[k]), int(b_idx[k])) for k in ks[1:]), c_scale)
     return WindowSearch(**{**best.__dict__, "log_p": min(best.log_p + float(np.log(3.0)), 0.0)})
 
 

@@ -65,6 +65,9 @@ from scipy import stats
 from scipy.special import eval_legendre
 
 from physics.calibration import json_safe
+from physics.discrepancy.discovery import (FRAME_TEXT, INTERMITTENT, KEEP_SHARE, N_BINS, Block, _cause, _experiment,
+                                           _window_stats, search_bins, ut_per_count)
+from physics.discrepancy.lrt import _orth
 from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
                                           needs_table_angles, raw_distortions)
 from physics.discrepancy.schema import Analysis
@@ -565,13 +568,19 @@ def _features(nom: _Nominal, d: _Data, temp_varies: bool) -> dict[str, _Design]:
         bd = dip_columns(rows)  # effects the dip tests (a field drift's turn, a lag against the gyro's rates)
         # the raw distortions move the dip too (by d(dip)/dm . delta_m): nuisance columns for the dip tests
         # once the magnitude has named the effect ("<block>@dip", never tested on their own)
-        g = f @ dip.R
-        wv = g - np.sum(g * h, axis=1, keepdims=True) * h
-        ddip = -((wv @ sh.E) @ sh.P.T) / rows.cos_dip[:, None]  # d(dip)/d(raw counts), (n, 3)
+        ddip = _dip_gradient(nom, rows)
         for name, basis in raw.items():
             bd[name + "@dip"] = kb * np.einsum("nj,njq->nq", ddip, basis)
         out["dip"] = _Design(yd, Jd, bd)
     return out
+
+
+def _dip_gradient(nom: _Nominal, rows: FreeRows) -> np.ndarray:
+    """d(dip)/d(raw counts) of each row, (n, 3)."""
+    sh, h = nom.shape, rows.h
+    g = rows.f @ nom.dip.R
+    wv = g - np.sum(g * h, axis=1, keepdims=True) * h
+    return -((wv @ sh.E) @ sh.P.T) / rows.cos_dip[:, None]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -842,6 +851,262 @@ def _noise_floor(d: _Data, resid_lsb: np.ndarray, notes: list[str]) -> dict[str,
 
 
 # --------------------------------------------------------------------------------------------------
+# Discovery beyond the catalogue: an offset present for a while (issue 12)
+# --------------------------------------------------------------------------------------------------
+
+#: Frames in which the attitude-free model searches for an offset present for a while: fixed to the unit
+#: (a magnetised object attached to it: the magnitude sees it through the field's direction in the sensor
+#: frame, 3 parameters) or to the room (a steel object nearby, or the unit carried to where the field
+#: differs: the magnitude sees the part along the field, the dip the part across it in the vertical
+#: plane, a step each; the horizontal part across the field turns only the heading, which needs a
+#: heading reference). A stage's frame needs table angles.
+WINDOW_FRAMES = ("sensor", "lab")
+#: At most this many windows join one recording's model.
+MAX_WINDOWS = 3
+#: A window's two frames count as alike when their evidence (statistic less twice the parameters) in it
+#: differs by less than this.
+ALIKE_EVIDENCE = 2.0
+
+
+def _offset_columns(nom: _Nominal, d: _Data, frame: str) -> dict[str, np.ndarray]:
+    """Columns of an offset fixed in ``frame`` on each response (LSB-equivalent per parameter), constant in
+    time: per count on each sensor axis (sensor), per field unit along the field and radian of dip (lab)."""
+    kb, n = nom.kbar, len(d)
+    sensor = frame == "sensor"
+    out = {"magnitude": kb * nom.shape.grad(d.mag) if sensor else np.full((n, 1), kb)}
+    if nom.dip is not None and d.acc is not None:
+        out["dip"] = kb * _dip_gradient(nom, _rows(nom, d, False)) if sensor else np.full((n, 1), kb)
+    return out
+
+
+def _add_window(designs: dict[str, _Design], cols: dict[str, np.ndarray], name: str, mask: np.ndarray) -> None:
+    """A windowed offset as a block of the magnitude and a nuisance block of the dip ("<name>@dip")."""
+    for resp, X in cols.items():
+        if resp in designs:
+            designs[resp].blocks[name if resp == "magnitude" else name + "@dip"] = X * mask[:, None]
+
+
+def _inside(t: np.ndarray, segments: list[list[float]]) -> np.ndarray:
+    """Which samples fall in any of the windows [start, end)."""
+    m = np.zeros(len(t), bool)
+    for a, b in segments:
+        m |= (t >= a) & (t < b)
+    return m
+
+
+def _window_sums(reg: dict[str, _Regression], given: list[str], cols: dict[str, np.ndarray], frame: str) -> "_Sums":
+    """:class:`_Sums` of one frame's offset over the responses there are, with the magnitude's model ``given``
+    and the dip's nuisance share of it. A lab offset's two visible parts are separate parameters (the step
+    along the field on the magnitude, across it on the dip); a sensor offset's three counts act on both."""
+    parts = []
+    for k, resp in enumerate(r for r in ("magnitude", "dip") if r in cols and r in reg):
+        r = reg[resp]
+        model = given if resp == "magnitude" else [b + "@dip" for b in given if b + "@dip" in r.slices]
+        X = cols[resp]
+        if frame == "lab" and "dip" in cols and "dip" in reg:  # [along, across]: each response sees one
+            X = np.column_stack([X[:, 0] * (k == 0), X[:, 0] * (k == 1)])
+        parts.append((r, model, X, r.gls(model)["rho"]))
+    return _Sums(parts)
+
+
+@dataclass
+class _Window:
+    """The best windows of one frame's offset (one set of parameters), their p corrected for the search."""
+
+    frame: str
+    segments: list[list[float]]  # [start, end) in the recording's t
+    statistic: float  # at the refined edges, scaled by the nulls' mean (a Bartlett factor)
+    df: int
+    log_p: float  # of the grid's best, corrected for the search (not yet for the tests run)
+    m_eff: float
+    scale: float
+
+
+class _Sums:
+    """One frame's offset against the residual of each response (the magnitude, and the dip when there is
+    one), AR(1)-whitened, the current model projected out and scaled to unit noise: per sample what a
+    window's statistic is made of, as prefix sums. ``parts``: (regression, blocks in its model, columns
+    (n, p) with the offset's p parameters shared by all responses, AR(1) coefficient)."""
+
+    def __init__(self, parts: list[tuple[_Regression, list[str], np.ndarray, float]]) -> None:
+        self.parts = []
+        A = B = None
+        Qx = []
+        for r, given, X, rho in parts:
+            white = lambda M, rho=rho, r=r: r.whiten(M, np.full(M.shape[1], rho))  # noqa: E731
+            Q = _orth(white(r.Z[:, r.cols(given)]))
+            yw = white(r.y[:, None])[:, 0]
+            y = yw - Q @ (Q.T @ yw)
+            s = math.sqrt(float(y @ y) / max(len(y) - Q.shape[1], 1))
+            Xw = white(X) / s
+            y = y / s
+            A = Xw * y[:, None] + (0.0 if A is None else A)
+            B = Xw[:, :, None] * Xw[:, None, :] + (0.0 if B is None else B)
+            Qx.append(Q[:, :, None] * Xw[:, None, :])
+            self.parts.append((r, rho, Q, Xw, white))
+        prefix = lambda M: np.concatenate([np.zeros((1,) + M.shape[1:]), np.cumsum(M, axis=0)])  # noqa: E731
+        self.p = B.shape[1]
+        self.PA, self.PB, self.PQ = prefix(A), prefix(B), prefix(np.concatenate(Qx, axis=1))
+
+    def stats(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Statistic and rank of each set of windows [lo, hi) (sample indices, (K, m): m windows with one set
+        of parameters)."""
+        part = lambda P: (P[hi] - P[lo]).sum(axis=1)  # noqa: E731
+        B, Cq = part(self.PB), part(self.PQ)
+        G = B - np.einsum("wkp,wkq->wpq", Cq, Cq)
+        w, V = np.linalg.eigh(0.5 * (G + np.transpose(G, (0, 2, 1))))
+        keep = w > KEEP_SHARE * np.maximum(np.trace(B, axis1=1, axis2=2) / self.p, 1e-300)[:, None]
+        return _window_stats(part(self.PA), w, V, keep), keep.sum(axis=1)
+
+    def bins(self, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The grid's sums for :func:`discovery.search_bins`: G (bins, p, bins, p), diag0, c."""
+        at = lambda P: P[edges[1:]] - P[edges[:-1]]  # noqa: E731
+        d0, Cb = at(self.PB), at(self.PQ)
+        G = -np.einsum("jkp,lkq->jplq", Cb, Cb)
+        for j in range(len(d0)):
+            G[j, :, j, :] += d0[j]
+        return G, d0, at(self.PA)
+
+    def null_bins(self, edges: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+        """c of :meth:`bins` for ``count`` simulated nulls (AR(1) at each response's coefficient, whitened and
+        projected alike, each scaled to unit noise by its own estimate): (count, bins, p)."""
+        out = np.zeros((count, len(edges) - 1, self.p))
+        for r, rho, Q, Xw, white in self.parts:
+            Y = white(r.simulate(rho, count, rng))
+            Y = Y - Q @ (Q.T @ Y)
+            Y = Y / np.sqrt(np.sum(Y ** 2, axis=0) / max(len(Y) - Q.shape[1], 1))
+            out += np.transpose(np.array([Xw[a:b].T @ Y[a:b] for a, b in zip(edges[:-1], edges[1:])]), (2, 0, 1))
+        return out
+
+
+def _search_window(sums: _Sums, t: np.ndarray, frame: str, null_sims: int, rng: np.random.Generator) -> _Window | None:
+    """The windows (one, or two or three with the same parameters: something switched on and off) in which
+    the offset of ``sums`` best explains the residuals: the table model's search over a grid of N_BINS equal
+    time bins (:func:`discovery.search_bins`, p corrected by the effective number of windows measured on
+    ``null_sims`` simulated nulls searched the same way), then each edge refined to the samples."""
+    n = len(t)
+    edges = np.searchsorted(t, t[0] + np.arange(N_BINS + 1) * max(float(t[-1] - t[0]), 1e-9) / N_BINS)
+    edges[-1] = n
+    G, d0, c = sums.bins(edges)
+    ws = search_bins(G, d0, c, sums.null_bins(edges, null_sims, rng) if null_sims >= 20 else None)
+    if ws is None:
+        return None
+    win = sorted([[int(edges[ws.a]), int(edges[ws.b])]] + [[int(edges[a]), int(edges[b])] for a, b in ws.others])
+    width = max(n // N_BINS, 1)
+    for _ in range(2):  # each edge in turn to the sample that explains most, within a bin of it
+        for k in range(len(win)):
+            for side in (0, 1):
+                cand = np.arange(max(win[k][side] - width, 0), min(win[k][side] + width, n) + 1)
+                lo = np.array([[w[0] for w in win]] * len(cand))
+                hi = np.array([[w[1] for w in win]] * len(cand))
+                (lo if side == 0 else hi)[:, k] = cand
+                good = np.all(hi - lo > sums.p, axis=1) & np.all(lo[:, 1:] >= hi[:, :-1], axis=1)
+                good &= ~((lo[:, 0] == 0) & (hi[:, -1] == n) & (len(win) == 1))
+                if not good.any():
+                    continue
+                st, df = sums.stats(lo[good], hi[good])
+                j = int(np.argmax(np.where(df == ws.df, st, -np.inf)))
+                win[k][side] = int(cand[good][j])
+    st, _ = sums.stats(np.array([[w[0] for w in win]]), np.array([[w[1] for w in win]]))
+
+    def edge(k: int) -> float:  # between the samples on either side (the run's own ends at the ends)
+        return float(t[0]) if k == 0 else float(t[-1]) + 1e-6 if k >= n else float(0.5 * (t[k - 1] + t[k]))
+
+    return _Window(frame, [[edge(a), edge(b)] for a, b in win], float(st[0]) / ws.scale, ws.df, ws.log_p, ws.m_eff,
+                   ws.scale)
+
+
+def _discover(feats: dict[str, _Design], nom: _Nominal, dec: _Data, base: list[str], null_sims: int,
+              rng: np.random.Generator, n_tests: int, alpha: float) -> list["_Test"]:
+    """Windowed offsets joining the magnitude's model one at a time (up to MAX_WINDOWS), given the blocks
+    ``base``: each round the best windows of each frame (:func:`_search_window`), the one with the smallest p
+    kept while its p times ``n_tests`` is below ``alpha``. Each kept window's columns are added to ``feats``
+    (the magnitude's block, the dip's nuisance); returns their tests."""
+    out: list[_Test] = []
+    while len(out) < MAX_WINDOWS:
+        reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
+        given = base + [tt.block for tt in out]
+        sums = {fr: _window_sums(reg, given, _offset_columns(nom, dec, fr), fr) for fr in WINDOW_FRAMES}
+        found = [w for fr in WINDOW_FRAMES if (w := _search_window(sums[fr], dec.t, fr, null_sims, rng))]
+        if not found:
+            break
+        best = min(found, key=lambda w: (w.log_p, -w.statistic))
+        p = float(np.exp(best.log_p))
+        if p * n_tests >= alpha:
+            break
+        segs = best.segments
+        name = f"discovered:{best.frame}/offset/segments@" + "".join(f"[{a:.1f},{b:.1f})" for a, b in segs)
+        _add_window(feats, _offset_columns(nom, dec, best.frame), name, _inside(dec.t, segs))
+        # the other frame in the same windows: alike when its evidence (statistic less twice its parameters) is as good
+        lo = np.array([[int(np.searchsorted(dec.t, a)) for a, _ in segs]])
+        hi = np.array([[int(np.searchsorted(dec.t, b)) for _, b in segs]])
+        evidence = {fr: float(x[0][0] - 2 * x[1][0]) for fr in WINDOW_FRAMES if (x := sums[fr].stats(lo, hi))}
+        alike = [fr for fr in WINDOW_FRAMES if fr != best.frame and evidence[fr] > evidence[best.frame] - ALIKE_EVIDENCE]
+        tt = _Test("discovered", f"an offset {FRAME_TEXT[best.frame]}, present for a while (window search)",
+                   "magnitude", name, "window", tuple(given))
+        tt.statistic, tt.raw, tt.df, tt.p = best.statistic, best.statistic * best.scale, best.df, p
+        tt.p_adj, tt.selected = min(1.0, p * n_tests), True
+        tt.extra = {"bartlett": best.scale, "frame": best.frame, "segments": segs, "m_eff": best.m_eff, "alike": alike}
+        out.append(tt)
+    return out
+
+
+def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, d: _Data, uc: float | None,
+                    cos_dip: float | None, dip: tuple[float, float] | None) -> dict[str, Any]:
+    """A discovered windowed offset as a finding of the one schema (effect "discovered"). ``dip``: the
+    dip's step in the window (rad, and its sigma) for a lab-frame offset, when there is a dip."""
+    sh, kb = nom.shape, nom.kbar
+    frame, segs = tt.extra["frame"], tt.extra["segments"]
+    mask = _inside(d.t, segs)
+    cause = INTERMITTENT if len(segs) > 1 else _cause(Block(frame, "offset", "segments"))
+    when = " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
+    block = Block(frame, "offset", "segments")
+    impact: float | None
+    if frame == "sensor":
+        lsb, lsb_sd = np.where(sh.resolved, coef, np.nan), np.where(sh.resolved, se, np.nan)  # an axis in-plane data leave unseen: n/a
+        params: dict[str, Any] = {"labels": ["d[0]", "d[1]", "d[2]"], "values": lsb.tolist(), "offset_lsb": lsb.tolist()}
+        sigma: dict[str, Any] = {"values": lsb_sd.tolist(), "offset_lsb": lsb_sd.tolist()}
+        params["offset_field_units"] = (lsb / sh.k).tolist()
+        size = "(" + ", ".join("n/a" if not np.isfinite(x) else f"{x:.3g} +- {e:.2g}" for x, e in zip(lsb, lsb_sd)) + ") LSB"
+        if uc is not None:
+            params["offset_ut"], sigma["offset_ut"] = (lsb * uc).tolist(), (lsb_sd * uc).tolist()
+            size += f" = ({_fmt3(lsb * uc, '.3g')}) uT"
+        else:
+            size += f" ({100 * float(np.linalg.norm(np.nan_to_num(lsb / sh.k))):.2g} % of the field)"
+        impact = _perp_impact(sh, d.mag, mask[:, None] * np.nan_to_num(lsb)[None, :], cos_dip)
+        plausible = bool(np.linalg.norm(np.nan_to_num(lsb / sh.k)) < 2.0)
+        expl = f"An offset of {size} {FRAME_TEXT['sensor']}, present {when}: {cause}."
+    else:
+        along, along_sd = float(coef[0]), float(se[0])
+        params = {"labels": ["along_field"], "values": [along], "along_field_pct": 100 * along,
+                  "along_field_lsb": along * kb}
+        sigma = {"values": [along_sd], "along_field_pct": 100 * along_sd, "along_field_lsb": along_sd * kb}
+        part = f"{100 * along:.2g} +- {100 * along_sd:.1g} % of the field along it"
+        if dip is not None:
+            params["dip_change_deg"], sigma["dip_change_deg"] = math.degrees(dip[0]), math.degrees(dip[1])
+            part += f" and a turn of {math.degrees(dip[0]):.2g} +- {math.degrees(dip[1]):.1g} deg of its dip"
+        impact = None  # the horizontal part across the field turns the heading, but needs a heading reference
+        plausible = bool(abs(along) < 1.0)
+        expl = (f"A change of the field {FRAME_TEXT['lab']}, present {when}: {part}; {cause}. Its horizontal "
+                "part across the field, which turns the heading, does not show without a heading reference.")
+    expl += " Found by the search over generic building blocks (no catalogue entry explains it)."
+    if not plausible:
+        expl += " Its size is beyond what such a cause plausibly makes: treat it as a stand-in for something larger."
+    alike = list(tt.extra.get("alike", []))
+    experiment = _experiment(block, segs)
+    if alike:
+        expl += f" This recording cannot tell it from an offset {FRAME_TEXT[alike[0]]}; the one named fits better."
+        experiment += ("; to tell them apart, turn the unit through several attitudes during that time (an offset on "
+                       "the unit turns with it, one in the room does not)")
+    return {"effect": "discovered", "variant": tt.variant, "statistic": tt.statistic, "df": tt.df,
+            "p_value": tt.p, "p_adjusted": tt.p_adj, "parameters": params, "sigma": sigma,
+            "heading_impact_deg": impact, "where": {"response": "magnitude", "frame": frame},
+            "model": {"frame": frame, "form": "offset", "against": None, "segments": [[float(a), float(b)] for a, b in segs]},
+            "plausible": plausible, "explanation": expl, "confusable_with": [f"discovered:{a}/offset" for a in alike],
+            "separating_experiment": experiment, "effective_windows": tt.extra.get("m_eff")}
+
+
+# --------------------------------------------------------------------------------------------------
 # The analysis
 # --------------------------------------------------------------------------------------------------
 
@@ -989,7 +1254,9 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
                    for b in ("unexplained/direction", "unexplained/time")]
     unexplained.append(_Test(UNEXPLAINED, "whiteness (Ljung-Box on the prewhitened residual)", "magnitude", None,
                              "whiteness"))
-    n_tests = len(tests) + len(unexplained)
+    # the window search of each frame (WINDOW_FRAMES) counts as one test each
+    searchable = len(dec) >= 4 * N_BINS
+    n_tests = len(tests) + len(unexplained) + (len(WINDOW_FRAMES) if searchable else 0)
     lb_lags = int(min(LB_LAGS, max(5, reg["magnitude"].n // 10)))
 
     # Bartlett factors from simulated nulls (null model J; AR(1) re-estimated in each simulation)
@@ -1147,6 +1414,68 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
             dropped.append(b)
             notes.append(f"{BLOCKS[b][0]} ({BLOCKS[b][1]}) was significant but is not named: {why[b]}; its "
                          "structure is left to the unexplained-structure tests")
+    # ---- discovery: an offset present for a while, in the unit's frame or the room's ----------------------
+    def prune(catalogue: list[str], wins: list[str]) -> tuple[list[str], list[_Test]]:
+        """The catalogue effects still significant given the windows ``wins`` (the least significant dropped
+        first, one at a time), and the tests that said so."""
+        keep, checks = list(catalogue), []
+        while keep:
+            tts = [run(next(x for x in tests if x.block == b and x.response == "magnitude"),
+                       tuple(x for x in keep if x != b) + tuple(wins)) for b in keep]
+            for tt in tts:
+                tt.variant += " (given the discovered windows)"
+            checks += tts
+            worst = max(tts, key=lambda tt: tt.p)
+            if worst.p_adj < alpha:
+                break
+            keep.remove(worst.block)
+        return keep, checks
+
+    def evidence(model: list[str], wins: list[_Test]) -> float:
+        """The magnitude's likelihood ratio of ``model`` over the nominal one, less twice the parameters added
+        and, for each window, twice the log of its search's effective number of windows (the best of m
+        windows gains about 2 ln m in the statistic by chance alone)."""
+        r = reg["magnitude"]
+        y, base, alt = r.y[:, None], r.cols([]), r.cols(model)
+        G, b, yy, _ = r.forms(y, r.rho(r.ols_resid(alt, y)))
+        searched = sum(2.0 * math.log(max(tt.extra["m_eff"], 1.0)) for tt in wins)
+        return float(r.lr(G, b, yy, base, alt)[0]) - 2.0 * (r.rank(alt) - r.rank(base)) - searched
+
+    report("discovery", 0.75)
+    catalogue = list(selected["magnitude"])
+    wins = _discover(feats, nom, dec, catalogue, null_sims, rng, n_tests, alpha) if searchable else []
+    reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
+    model, checks = catalogue, []
+    if wins:  # a catalogue effect that only stood in for a window is not named
+        kept, checks = prune(catalogue, [tt.block for tt in wins])
+        model = kept + [tt.block for tt in wins]
+    if catalogue and searchable:
+        # the windows searched before the catalogue's effects: one of those may have taken a window's
+        # structure first (a drift for something that came and went); the model with more evidence stands
+        alt = _discover(feats, nom, dec, [], null_sims, rng, n_tests, alpha)
+        reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
+        if alt:
+            kept, alt_checks = prune(catalogue, [tt.block for tt in alt])
+            alt_model = kept + [tt.block for tt in alt]
+            # only where the windows leave a catalogue effect out (it stood in for them): else the catalogue
+            # first had its windows searched already
+            if len(kept) < len(catalogue) and evidence(alt_model, alt) > evidence(model, wins):
+                model, wins, checks = alt_model, alt, alt_checks
+    chosen = {tt.block for tt in wins}
+    for des in feats.values():  # the windows of the model that lost leave the design
+        des.blocks = {k: v for k, v in des.blocks.items()
+                      if not k.startswith("discovered:") or k.removesuffix("@dip") in chosen}
+    reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
+    windows = [(tt.block, tt.extra["frame"], tt.extra["segments"]) for tt in wins]
+    done.extend(checks + wins)
+    for tt in wins:
+        sel_tests[tt.block] = tt
+    for blk in catalogue:
+        if blk not in model:
+            sel_tests.pop(blk).selected = False
+            notes.append(f"{BLOCKS[blk][0]} ({BLOCKS[blk][1]}) was significant but is not named: it is not, given "
+                         f"the offset found present for a while")
+    selected["magnitude"] = model
     if "dip" in reg:
         fixed["dip"] = tuple(b + "@dip" for b in selected["magnitude"] if b + "@dip" in reg["dip"].slices)
         select("dip")
@@ -1171,6 +1500,8 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
     # ---- final joint fits ------------------------------------------------------------------------------
     finals = {name: r.gls(list(fixed[name]) + selected[name]) for name, r in reg.items()}
     full_feats = _features(nom, full, temp_varies)
+    for name, frame, segs in windows:
+        _add_window(full_feats, _offset_columns(nom, full, frame), name, _inside(full.t, segs))
     for name in list(full_feats):
         if name not in reg:
             del full_feats[name]
@@ -1233,7 +1564,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
     dip_deg = float(np.degrees(nom.dip.I)) if nom.dip is not None else None
     cos_dip = math.cos(nom.dip.I) if nom.dip is not None else None
     findings = _findings(nom, dec, reg, finals, sel_tests, selected, confusable, unexpl_done, alpha, cos_dip,
-                         share)
+                         share, ut_per_count(rec.meta))
     findings += _parameter_shifts(nom)
     findings.sort(key=lambda f: (-(f["heading_impact_deg"] if f["heading_impact_deg"] is not None else -1.0),
                                  -(f["statistic"] or 0.0)))
@@ -1246,8 +1577,9 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
     mag_final = finals["magnitude"]
     locate = _locate(full, shape, resid_before, scan_info, f_grid if mains_ok else None, q if mains_ok else None,
                      unexpl_done, lb_lags, mag_final)
-    notes.append(f"Bonferroni over {n_tests} tests ({len(tests)} named effects, 3 unexplained-structure tests); "
-                 "conditional re-tests during selection use the same factor")
+    notes.append(f"Bonferroni over {n_tests} tests ({len(tests)} named effects, 3 unexplained-structure tests"
+                 + (f", the window search of an offset in each of {len(WINDOW_FRAMES)} frames" if searchable else "")
+                 + "); conditional re-tests during selection use the same factor")
     notes.append(f"Bartlett factors from {sims_used} simulated AR(1) nulls per response (null model: the nominal fit); "
                  "factors below 1 are taken as 1 (conservative)")
     notes.append("heading impact without table angles: the fitted distortion's component across the field, divided "
@@ -1339,7 +1671,7 @@ def _coef(fin: dict[str, Any], reg: _Regression, block: str, c: float) -> tuple[
 def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: dict[str, Any],
               sel_tests: dict[str, _Test], selected: dict[str, list[str]], confusable: dict[str, list[str]],
               unexpl: list[_Test], alpha: float, cos_dip: float | None,
-              share: dict[str, float]) -> list[dict[str, Any]]:
+              share: dict[str, float], uc: float | None = None) -> list[dict[str, Any]]:
     sh, kb = nom.shape, nom.kbar
     res = sh.resolved
     out: list[dict[str, Any]] = []
@@ -1350,6 +1682,13 @@ def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: di
             tt = sel_tests[blk]
             c = tt.extra.get("bartlett", 1.0)
             coef, se = _coef(fin, r, blk, c)
+            if blk.startswith("discovered:"):
+                dip = None
+                if tt.extra["frame"] == "lab" and "dip" in finals and blk + "@dip" in reg["dip"].slices:
+                    dc, ds = _coef(finals["dip"], reg["dip"], blk + "@dip", c)
+                    dip = (float(dc[0]), float(ds[0]))
+                out.append(_window_finding(tt, coef, se, nom, dec, uc, cos_dip, dip))
+                continue
             eff = tt.effect
             where: dict[str, Any] = {"response": resp, "frame": "sensor", "time_span_s": [float(t[0]), float(t[-1])]}
             impact: float | None = None

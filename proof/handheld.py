@@ -1,0 +1,132 @@
+"""Hand-held recordings for the blind proof without table angles (issue 12): a random unit carried along
+a smooth random path over the sphere, effects concealed through their forward implementations
+(physics.effects, proof.concealments), then noise and quantisation; and the out-of-catalogue cases drawn
+on them (:func:`make_handheld_case`).
+
+Written independently of the analyser: it never imports physics.discrepancy. A case's size is the
+magnitude's non-centrality before any nominal fit, ``lambda = sum over the window's samples of
+(kbar * (field-magnitude change, in field units))^2 / sigma^2`` with kbar the unit's mean sensitivity
+(LSB per field): the part of the departure the field's magnitude can show at all, an upper bound of what
+a test that also fits the nominal ellipsoid can see.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from physics import effects
+from physics.frames import field_direction, rot_x, rot_y, rot_z
+from physics.recording import Recording
+from physics.sensor import random_unit
+from proof.concealments import IntermittentInterference, LabSegmentOffset, SensorSegmentOffset
+
+RATE_HZ = 22.0  # 50 Hz mains folds to 6 Hz
+#: Out-of-catalogue kinds a recording without angles can show (a stage's frame needs the table's angles).
+HANDHELD_KINDS = ("segment_offset_sensor", "segment_offset_lab", "intermittent_interference")
+
+
+def _attitude(t: np.ndarray, par: np.ndarray) -> np.ndarray:
+    """A smooth hand-held path: yaw turning on, pitch within +-80 deg, roll over the full circle."""
+    yaw = par[0] * t + 60 * np.sin(2 * np.pi * t / par[1] + par[2])
+    pitch = 80 * np.sin(2 * np.pi * t / par[3] + par[4])
+    roll = 180 * np.sin(2 * np.pi * t / par[5] + par[6]) + 40 * np.sin(2 * np.pi * t / 7.3)
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def simulate_handheld(seed: int, n: int = 2400, conceal: list[effects.Effect] | None = None,
+                      temp_c: np.ndarray | None = None, with_gyro: bool = True,
+                      field: np.ndarray | None = None) -> tuple[Recording, object]:
+    """A hand-held recording of a random unit (angles empty), effects concealed sample by sample.
+
+    ``field``: the lab field direction (default: dip 40-70 deg, any azimuth, from the seed).
+    """
+    rng = np.random.default_rng(seed)
+    unit = random_unit(rng)
+    t = np.arange(n) / RATE_HZ
+    par = np.array([rng.uniform(8, 15) * rng.choice([-1, 1]), rng.uniform(20, 40), rng.uniform(0, 6.3),
+                    rng.uniform(25, 45), rng.uniform(0, 6.3), rng.uniform(30, 60), rng.uniform(0, 6.3)])
+    H = field_direction(rng.uniform(40, 70), rng.uniform(0, 360))
+    H = H if field is None else np.asarray(field, float)
+    conceal = conceal or []
+    temps = np.full(n, 23.0) if temp_c is None else temp_c
+    mag = np.empty((n, 3))
+    for i in range(n):
+        ts = t[i]
+        for e in conceal:
+            ts = e.sample_time(ts, 0)
+        C = _attitude(np.array([ts]), par)[0]
+        h = C.T @ H
+        for e in conceal:
+            h = e.body_field(t[i], 0, np.zeros(3), C, h)
+        raw = unit.mag.M @ h + unit.mag.bias
+        for e in conceal:
+            raw = e.mag_raw(t[i], 0, raw, temps[i])
+        mag[i] = raw
+    mag = np.round(mag + rng.normal(0, unit.mag.noise_lsb, mag.shape))
+    C = _attitude(t, par)
+    f_b = np.einsum("nji,j->ni", C, [0.0, 0.0, -1.0])
+    acc = unit.acc.measure(f_b, rng)
+    extra = None
+    if with_gyro:  # body rates from C^T dC/dt
+        eps = 1e-4
+        dC = (_attitude(t + eps, par) - _attitude(t - eps, par)) / (2 * eps)
+        W = np.einsum("nji,njk->nik", C, dC)
+        w = np.degrees(np.column_stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]]))
+        w = w + rng.normal(0, 0.05, w.shape)
+        extra = {k: [f"{x:.4f}" for x in w[:, j]] for j, k in enumerate(("gx", "gy", "gz"))}
+    nan = np.full(n, np.nan)
+    rec = Recording.from_arrays(t=t, step=["handheld"] * n, psi_t=nan, theta_t=nan, phi_t=nan, mag=mag, acc=acc,
+                                temp_c=temp_c, meta={"gyro_unit": "deg/s"}, extra=extra)
+    return rec, unit
+
+
+def _windows(rng: np.random.Generator, span: float, k: int) -> list[list[float]]:
+    """``k`` disjoint windows inside (5 %, 95 %) of the run, each at least 15 % of it, gaps of 10 % at least."""
+    while True:
+        lengths = rng.uniform(0.15, 0.35, k) * span
+        gaps = rng.uniform(0.1, 0.3, k + 1) * span
+        total = lengths.sum() + gaps[1:k].sum()
+        if total < 0.9 * span:
+            break
+    start = rng.uniform(0.05 * span, 0.95 * span - total)
+    out = []
+    for i in range(k):
+        out.append([float(start), float(start + lengths[i])])
+        start += lengths[i] + gaps[i + 1]
+    return out
+
+
+def make_handheld_case(seed: int, kind: str | None, lam: float, n: int = 2400) -> tuple[Recording, dict[str, Any]]:
+    """One hand-held recording with an out-of-catalogue ``kind`` concealed at non-centrality ``lam`` (module
+    docstring), or none (``kind`` None: a null); and its truth (frame, form, windows, lambda)."""
+    rng = np.random.default_rng([seed, 77])
+    if kind is None:
+        rec, _ = simulate_handheld(seed, n=n)
+        return rec, {"kind": None, "lambda": 0.0}
+    unit = random_unit(np.random.default_rng(seed))  # simulate_handheld draws the same unit from the seed
+    span = n / RATE_HZ
+    segs = _windows(rng, span, 2 if kind == "intermittent_interference" else 1)
+    H = field_direction(rng.uniform(40, 70), rng.uniform(0, 360))
+    t = np.arange(n) / RATE_HZ
+    inside = np.zeros(n, bool)
+    for a, b in segs:
+        inside |= (t >= a) & (t < b)
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    kbar = float(np.mean(np.linalg.norm(unit.mag.M, axis=1)))
+    # the field-magnitude change per unit of size, on the window's samples (the same path as the recording)
+    rec0, _ = simulate_handheld(seed, n=n, field=H)
+    if kind == "segment_offset_lab":
+        change = np.full(int(inside.sum()), float(H @ u))
+    else:  # counts in the sensor frame, seen along the calibrated field's direction
+        h = np.linalg.solve(unit.mag.M, (rec0.mag[inside] - unit.mag.bias).T).T
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        change = h @ np.linalg.solve(unit.mag.M, u)
+    size = float(np.sqrt(lam / max(np.sum((kbar * change) ** 2) / unit.mag.noise_lsb ** 2, 1e-300)))
+    cls = {"segment_offset_sensor": SensorSegmentOffset, "segment_offset_lab": LabSegmentOffset,
+           "intermittent_interference": IntermittentInterference}[kind]
+    eff = cls(size * u, segs)
+    rec, _ = simulate_handheld(seed, n=n, conceal=[eff], field=H)
+    return rec, {"kind": kind, "lambda": lam, **eff.model(), "offset": (size * u).tolist()}

@@ -328,13 +328,17 @@ def merge_segments(segments: Sequence[Sequence[float]], gap: float = 0.0) -> lis
 
 def residual_ratio(result: dict[str, Any]) -> float | None:
     """Largest ratio over the axes of ``residual_rms_after_lsb`` to ``noise_floor_lsb`` (None if either is
-    missing or malformed)."""
+    missing or malformed). The attitude-free model's columns are the magnitude and the dip
+    (``residual_columns``): only the magnitude compares with the magnetometer's floor (the dip's noise is the
+    accelerometer's as well)."""
     try:
-        after = np.asarray(result["residual_rms_after_lsb"], dtype=float)
+        after = np.array([np.nan if x is None else x for x in result["residual_rms_after_lsb"]], dtype=float)
         floor = np.asarray(result["noise_floor_lsb"], dtype=float)
         r = after / floor
     except (KeyError, TypeError, ValueError):
         return None
+    named = result.get("residual_columns")
+    r = r[[c == "magnitude" for c in named]] if named else r[~np.isnan(after)]
     return float(np.max(r)) if r.size and np.all(np.isfinite(r)) else None
 
 
@@ -375,14 +379,20 @@ def judge_open(case: Case, result: dict[str, Any] | None) -> dict[str, Any]:
     (the unit's own, or the lab field), the complement of the found windows counts as well: the data
     cannot tell "present in W" from "present outside W" (the bias or the field takes the constant).
     """
-    truth = case.model or {}
+    return judge_model(case.model or {}, case.span_s or (0.0, 0.0), case.frames, result)
+
+
+def judge_model(truth: dict[str, Any], span: Sequence[float], frames: Sequence[str] | None,
+                result: dict[str, Any] | None) -> dict[str, Any]:
+    """:func:`judge_open` on a truth in the finding["model"] schema, the recording's time span and the
+    frames it cannot tell from the true one (None: the true frame alone), for any recording: the table
+    proof's cases and the hand-held ones (proof/handheld.py, whose results have no heading figures)."""
     result = result or {}
-    span = case.span_s or (0.0, 0.0)
     tol = TARGETS["open_edge"] * (span[1] - span[0])
     findings = [f for f in result.get("findings", []) or [] if isinstance(f, dict)]
     models = [f.get("model") or {} for f in findings]
     # the true frame, or one the recording cannot tell from it where the effect is present (case.frames)
-    right = {_frame(f) for f in (case.frames or [truth.get("frame")])}
+    right = {_frame(f) for f in (frames or [truth.get("frame")])}
     same = [m for m in models if isinstance(m, dict) and _frame(m.get("frame")) in right]
     frame_right = bool(same)
     true_segments = truth.get("segments") or []

@@ -863,6 +863,8 @@ def _noise_floor(d: _Data, resid_lsb: np.ndarray, notes: list[str]) -> dict[str,
 WINDOW_FRAMES = ("sensor", "lab")
 #: At most this many windows join one recording's model.
 MAX_WINDOWS = 3
+#: Samples per time bin the window search needs (fewer: a recording of a few seconds, not searched).
+MIN_PER_BIN = 10
 #: A window's two frames count as alike when their evidence (statistic less twice the parameters) in it
 #: differs by less than this.
 ALIKE_EVIDENCE = 2.0
@@ -1254,8 +1256,8 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
                    for b in ("unexplained/direction", "unexplained/time")]
     unexplained.append(_Test(UNEXPLAINED, "whiteness (Ljung-Box on the prewhitened residual)", "magnitude", None,
                              "whiteness"))
-    # the window search of each frame (WINDOW_FRAMES) counts as one test each
-    searchable = len(dec) >= 4 * N_BINS
+    # the window search of each frame (WINDOW_FRAMES) counts as one test each; it needs some samples per bin
+    searchable = len(dec) >= MIN_PER_BIN * N_BINS
     n_tests = len(tests) + len(unexplained) + (len(WINDOW_FRAMES) if searchable else 0)
     lb_lags = int(min(LB_LAGS, max(5, reg["magnitude"].n // 10)))
 

@@ -20,11 +20,12 @@ from physics import effects
 from physics.frames import field_direction, rot_x, rot_y, rot_z
 from physics.recording import Recording
 from physics.sensor import random_unit
-from proof.concealments import IntermittentInterference, LabSegmentOffset, SensorSegmentOffset
+from proof.concealments import GainVsTemp, IntermittentInterference, LabSegmentOffset, SensorSegmentOffset
 
 RATE_HZ = 22.0  # 50 Hz mains folds to 6 Hz
-#: Out-of-catalogue kinds a recording without angles can show (a stage's frame needs the table's angles).
-HANDHELD_KINDS = ("segment_offset_sensor", "segment_offset_lab", "intermittent_interference")
+#: Out-of-catalogue kinds a recording without angles can show (a stage's frame needs the table's angles; a
+#: misalignment turning the sensor's axes leaves the field's magnitude as it is).
+HANDHELD_KINDS = ("segment_offset_sensor", "segment_offset_lab", "intermittent_interference", "gain_vs_temp")
 
 
 def _attitude(t: np.ndarray, par: np.ndarray) -> np.ndarray:
@@ -100,33 +101,44 @@ def _windows(rng: np.random.Generator, span: float, k: int) -> list[list[float]]
 
 def make_handheld_case(seed: int, kind: str | None, lam: float, n: int = 2400) -> tuple[Recording, dict[str, Any]]:
     """One hand-held recording with an out-of-catalogue ``kind`` concealed at non-centrality ``lam`` (module
-    docstring), or none (``kind`` None: a null); and its truth (frame, form, windows, lambda)."""
+    docstring), or none (``kind`` None: a null); and its truth (frame, form, input or windows, lambda). Every
+    recording logs a warm-up (``temp_c``) of 0-4 deg C, 2-5 for a gain following it, as the table proof's do."""
     rng = np.random.default_rng([seed, 77])
+    t = np.arange(n) / RATE_HZ
+    warm = rng.uniform(2.0, 5.0) if kind == "gain_vs_temp" else rng.uniform(0.0, 4.0)  # as the table proof's
+    temp = 23.0 + warm * (1.0 - np.exp(-t / rng.uniform(20.0, 60.0)))
+    H = field_direction(rng.uniform(40, 70), rng.uniform(0, 360))
     if kind is None:
-        rec, _ = simulate_handheld(seed, n=n)
+        rec, _ = simulate_handheld(seed, n=n, temp_c=temp, field=H)
         return rec, {"kind": None, "lambda": 0.0}
     unit = random_unit(np.random.default_rng(seed))  # simulate_handheld draws the same unit from the seed
-    span = n / RATE_HZ
-    segs = _windows(rng, span, 2 if kind == "intermittent_interference" else 1)
-    H = field_direction(rng.uniform(40, 70), rng.uniform(0, 360))
-    t = np.arange(n) / RATE_HZ
+    segs = _windows(rng, n / RATE_HZ, 2 if kind == "intermittent_interference" else 1)
     inside = np.zeros(n, bool)
     for a, b in segs:
         inside |= (t >= a) & (t < b)
     u = rng.normal(size=3)
     u /= np.linalg.norm(u)
     kbar = float(np.mean(np.linalg.norm(unit.mag.M, axis=1)))
-    # the field-magnitude change per unit of size, on the window's samples (the same path as the recording)
-    rec0, _ = simulate_handheld(seed, n=n, field=H)
-    if kind == "segment_offset_lab":
+    # the field-magnitude change (field units) per unit of size, on the same path as the recording
+    rec0, _ = simulate_handheld(seed, n=n, temp_c=temp, field=H)
+    lin = rec0.mag - unit.mag.bias
+    h = np.linalg.solve(unit.mag.M, lin.T).T
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    if kind == "gain_vs_temp":  # a gain of u per deg C about the run's mean temperature
+        ref = float(np.mean(temp))
+        change = np.einsum("nj,nj->n", h, np.linalg.solve(unit.mag.M, (u * lin * (temp - ref)[:, None]).T).T)
+    elif kind == "segment_offset_lab":
         change = np.full(int(inside.sum()), float(H @ u))
     else:  # counts in the sensor frame, seen along the calibrated field's direction
-        h = np.linalg.solve(unit.mag.M, (rec0.mag[inside] - unit.mag.bias).T).T
-        h /= np.linalg.norm(h, axis=1, keepdims=True)
-        change = h @ np.linalg.solve(unit.mag.M, u)
+        change = h[inside] @ np.linalg.solve(unit.mag.M, u)
     size = float(np.sqrt(lam / max(np.sum((kbar * change) ** 2) / unit.mag.noise_lsb ** 2, 1e-300)))
-    cls = {"segment_offset_sensor": SensorSegmentOffset, "segment_offset_lab": LabSegmentOffset,
-           "intermittent_interference": IntermittentInterference}[kind]
-    eff = cls(size * u, segs)
-    rec, _ = simulate_handheld(seed, n=n, conceal=[eff], field=H)
-    return rec, {"kind": kind, "lambda": lam, **eff.model(), "offset": (size * u).tolist()}
+    if kind == "gain_vs_temp":
+        eff = GainVsTemp(gain_per_c=size * u, bias=unit.mag.bias, t_ref_c=ref)
+        truth = {"gain_per_c": (size * u).tolist()}
+    else:
+        cls = {"segment_offset_sensor": SensorSegmentOffset, "segment_offset_lab": LabSegmentOffset,
+               "intermittent_interference": IntermittentInterference}[kind]
+        eff = cls(size * u, segs)
+        truth = {"offset": (size * u).tolist()}
+    rec, _ = simulate_handheld(seed, n=n, conceal=[eff], temp_c=temp, field=H)
+    return rec, {"kind": kind, "lambda": lam, **eff.model(), **truth}

@@ -207,6 +207,30 @@ def test_a_catalogue_effect_that_stood_in_for_windows_is_not_named():
     assert drift[0]["p_adjusted"] < r["alpha"] and not any(t["selected"] for t in drift)
 
 
+def test_the_sensitivity_following_the_temperature_is_named_as_such():
+    """Issue 12's third case without table angles: the sensitivity (not the bias) follows a warm-up of 4 deg C.
+    It is discovered as a sensor-frame gain against temp_c, sized right; no bias drift, field drift or
+    window stands in for it (before the dictionary's gain blocks: windows, a bias following temperature and a
+    field drift); on the same recording without the effect nothing is found."""
+    from proof.concealments import GainVsTemp
+
+    t = np.arange(2400) / RATE_HZ
+    temp = 23.0 + 4.0 * (1 - np.exp(-t / 30.0))
+    unit = random_unit(np.random.default_rng(4))
+    truth = 0.002 * np.array([1.0, -0.6, 0.8])
+    rec, _ = simulate_handheld(4, conceal=[GainVsTemp(gain_per_c=truth, bias=unit.mag.bias, t_ref_c=25.0)], temp_c=temp)
+    r = analyze_attitude_free(rec, null_sims=100).result
+    assert _names(r) == ["discovered"], r["findings"]
+    f = _discovered(r)[0]
+    assert f["model"] == {"frame": "sensor", "form": "gain", "against": "temp_c", "segments": []}
+    got, sd = np.array(f["parameters"]["gain_per_degC"]), np.array(f["sigma"]["gain_per_degC"])
+    assert np.all(np.abs(got - truth) < 4 * sd + 0.1 * np.abs(truth)), (got, truth, sd)
+    assert f["plausible"] and "following the temperature" in f["explanation"]
+    assert r["residual_rms_after_lsb"][0] < 1.1 * max(r["noise_floor_lsb"])
+    clean, _ = simulate_handheld(4, temp_c=temp)
+    assert analyze_attitude_free(clean, null_sims=100).result["verdict"] == "consistent"
+
+
 def test_the_window_search_raises_no_alarm_on_null_recordings():
     """On 30 null recordings the search over windows and frames finds nothing (its p pays for the search)."""
     for seed in range(30):

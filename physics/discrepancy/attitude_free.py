@@ -126,7 +126,6 @@ NONLINEAR_LIMIT = 0.02
 WARMUP_LIMIT = 0.05
 #: A named effect's block inside a generic block (its registry entry says which) must carry this share of
 #: the generic block's evidence.
-GENERIC_OF = free_generic()
 GENERIC_SHARE = 0.5
 
 #: Catalogue effects the attitude-free model cannot test, and why (physics/discrepancy/registry.py).
@@ -492,8 +491,21 @@ class _Nominal:
 
 #: Block name -> (effect id, variant) of the test it serves: each catalogue effect's blocks (its registry
 #: entry), and the generic blocks of structure no entry names.
+#: Blocks of the dictionary of generic building blocks (issue 12) the attitude-free model tests beside the
+#: catalogue: the unit's sensitivity following its temperature, or drifting in time (per axis, relative).
+GAIN_BLOCKS = {"discovered:sensor/gain/temp_c": ("temp_c", "a change of sensitivity fixed in the sensor frame, "
+                                                           "following temp_c (per axis, per deg C)"),
+               "discovered:sensor/gain/time": ("time", "a change of sensitivity fixed in the sensor frame, drifting "
+                                                       "in time (per axis, over the run)")}
+#: Where two blocks explain the same structure of the magnitude, which is named over which (see the selection).
+PREFERRED = {"discovered:sensor/gain/temp_c": "field_drift", "field_drift": "discovered:sensor/gain/time"}
+#: Named blocks that lie partly inside a generic block of unexplained structure: each must carry GENERIC_SHARE
+#: of that block's evidence to be named (a change of sensitivity following the temperature or time moves the
+#: magnitude partly as a function of time alone, which the time polynomials span).
+GENERIC_OF = {**free_generic(), **{name: "unexplained/time" for name in GAIN_BLOCKS}}
 BLOCKS = {
     **free_blocks(),
+    **{name: ("discovered", variant) for name, (_, variant) in GAIN_BLOCKS.items()},
     "unexplained/direction": (UNEXPLAINED, "field direction in the sensor frame (degree 3-4 harmonics)"),
     "unexplained/time": (UNEXPLAINED, f"time (Legendre polynomials to degree {TIME_DEGREE})"),
 }
@@ -543,7 +555,7 @@ def _features(nom: _Nominal, d: _Data, temp_varies: bool) -> dict[str, _Design]:
     blocks: dict[str, np.ndarray] = {}
     # Effects that distort the raw output, delta_m = basis (n, 3, q) . params: the magnitude sees
     # kbar grad . delta_m (so the coefficients are the effect's own parameters, in LSB)
-    raw = raw_distortions(rows)
+    raw = raw_distortions(rows) | _gain_bases(nom, rows)
     for name, basis in raw.items():
         blocks[name] = kb * np.einsum("nj,njq->nq", v, basis)
     blocks.update(magnitude_columns(rows))  # effects the magnitude sees directly (a field drift's trend)
@@ -572,6 +584,19 @@ def _features(nom: _Nominal, d: _Data, temp_varies: bool) -> dict[str, _Design]:
         for name, basis in raw.items():
             bd[name + "@dip"] = kb * np.einsum("nj,njq->nq", ddip, basis)
         out["dip"] = _Design(yd, Jd, bd)
+    return out
+
+
+def _gain_bases(nom: _Nominal, rows: FreeRows) -> dict[str, np.ndarray]:
+    """Raw-count bases (n, 3, 3) of :data:`GAIN_BLOCKS`: a relative change g_j of axis j's sensitivity moves its
+    output by g_j k_j u_j, times the temperature less the run's reference (deg C) or the time from mid-run
+    over half the run (so a coefficient is the change per deg C, or from the middle to the end of the run)."""
+    u = np.nan_to_num(rows.u) * np.where(rows.resolved, nom.shape.k, 0.0)  # counts on each resolved axis
+    out = {}
+    for name, (against, _) in GAIN_BLOCKS.items():
+        x = rows.dtemp if against == "temp_c" else rows.tau / nom.t_half
+        if x is not None:
+            out[name] = np.einsum("nj,jk->njk", u * x[:, None], np.eye(3))
     return out
 
 
@@ -1053,6 +1078,43 @@ def _discover(feats: dict[str, _Design], nom: _Nominal, dec: _Data, base: list[s
     return out
 
 
+def _gain_finding(blk: str, tt: "_Test", coef: np.ndarray, se: np.ndarray, nom: _Nominal, d: _Data,
+                  cos_dip: float | None) -> dict[str, Any]:
+    """A discovered smooth change of the unit's sensitivity (:data:`GAIN_BLOCKS`) as a finding of the one schema."""
+    sh = nom.shape
+    against = GAIN_BLOCKS[blk][0]
+    g, g_sd = np.where(sh.resolved, coef, np.nan), np.where(sh.resolved, se, np.nan)
+    rows = _rows(nom, d, against == "temp_c")
+    delta = np.einsum("njk,k->nj", _gain_bases(nom, rows)[blk], np.nan_to_num(g))
+    pct = lambda v: ", ".join("n/a" if not np.isfinite(x) else f"{100 * x:.3g}" for x in v)  # noqa: E731
+    if against == "temp_c":
+        span = float(np.ptp(d.temp))
+        params, sigma = {"gain_per_degC": g.tolist()}, {"gain_per_degC": g_sd.tolist()}
+        size = f"({pct(g)}) % per deg C (+- {pct(g_sd)}) on x, y, z"
+        total = np.nan_to_num(np.abs(g)) * span
+        cause = ("the sensitivity follows the temperature: the sensing element's scale factor has a temperature "
+                 "coefficient")
+        experiment = "calibrate at two temperatures (or hold one attitude through the warm-up) and compare the sensitivities"
+    else:
+        span = 2.0
+        params, sigma = {"gain_over_half_run": g.tolist()}, {"gain_over_half_run": g_sd.tolist()}
+        size = f"({pct(g)}) % from the middle of the run to its end (+- {pct(g_sd)}) on x, y, z"
+        total = np.nan_to_num(np.abs(g)) * span
+        cause = "the unit's response drifts slowly (a warm-up without a logged temperature, the supply, ageing)"
+        experiment = "log the temperature, or repeat the first attitudes at the end of the run"
+    plausible = bool(np.max(total) < 0.2)  # a fifth of the sensitivity over the run is no drift but a fault
+    expl = (f"A change of sensitivity of {size}, fixed in the sensor frame, {'following the temperature' if against == 'temp_c' else 'drifting in time'}"
+            f": {cause}. Found by the search over generic building blocks (no catalogue entry explains it).")
+    if not plausible:
+        expl += " Its size is beyond what such a cause plausibly makes: treat it as a stand-in for something larger."
+    return {"effect": "discovered", "variant": tt.variant, "statistic": tt.statistic, "df": tt.df, "p_value": tt.p,
+            "p_adjusted": tt.p_adj, "parameters": params, "sigma": sigma,
+            "heading_impact_deg": _perp_impact(sh, d.mag, delta, cos_dip),
+            "where": {"response": "magnitude", "frame": "sensor"},
+            "model": {"frame": "sensor", "form": "gain", "against": against, "segments": []},
+            "plausible": plausible, "explanation": expl, "confusable_with": [], "separating_experiment": experiment}
+
+
 def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, d: _Data, uc: float | None,
                     cos_dip: float | None, dip: tuple[float, float] | None) -> dict[str, Any]:
     """A discovered windowed offset as a finding of the one schema (effect "discovered"). ``dip``: the
@@ -1466,7 +1528,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
     chosen = {tt.block for tt in wins}
     for des in feats.values():  # the windows of the model that lost leave the design
         des.blocks = {k: v for k, v in des.blocks.items()
-                      if not k.startswith("discovered:") or k.removesuffix("@dip") in chosen}
+                      if "/segments@" not in k or k.removesuffix("@dip") in chosen}
     reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
     windows = [(tt.block, tt.extra["frame"], tt.extra["segments"]) for tt in wins]
     done.extend(checks + wins)
@@ -1493,6 +1555,26 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         done.append(tt)
         if tt.p_adj >= alpha:
             confusable.setdefault(a, []).append(b)
+    # The magnitude cannot tell a field that changes in time from a sensitivity that changes the same on
+    # every axis (they are one change of the magnitude). Where the two explain the same structure, the
+    # likelier cause is named and the other kept as its alike: a sensitivity that follows the logged
+    # temperature (every magnetometer's scale factor has a temperature coefficient) over a field that would
+    # have to follow the unit's warm-up; a field drift (2 parameters, a catalogue effect) over a sensitivity
+    # drifting in time (3).
+    for named, alike_of in PREFERRED.items():
+        if named in selected["magnitude"] or alike_of not in selected["magnitude"]:
+            continue
+        if named not in confusable.get(alike_of, []):
+            continue
+        swap = next(tt for tt in reversed(first) if tt.block == named)
+        selected["magnitude"][selected["magnitude"].index(alike_of)] = named
+        sel_tests.pop(alike_of).selected = False
+        sel_tests[named], swap.selected = swap, True
+        confusable[named] = [alike_of] + [b for b in confusable.pop(alike_of) if b != named]
+        notes.append(f"{alike_of} and {named} explain the same structure; {named} is named, as the likelier cause "
+                     f"(the other is listed as its alike)")
+        if "dip" in reg:
+            fixed["dip"] = tuple(b + "@dip" for b in selected["magnitude"] if b + "@dip" in reg["dip"].slices)
 
     # ---- unexplained structure given the named effects -----------------------------------------------
     unexpl_done = [run(tt, tuple(selected["magnitude"])) for tt in unexplained]
@@ -1684,6 +1766,14 @@ def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: di
             tt = sel_tests[blk]
             c = tt.extra.get("bartlett", 1.0)
             coef, se = _coef(fin, r, blk, c)
+            if blk in GAIN_BLOCKS:
+                f = _gain_finding(blk, tt, coef, se, nom, dec, cos_dip)
+                f["confusable_with"] = [BLOCKS[b][0] for b in confusable.get(blk, [])]
+                if f["confusable_with"]:
+                    f["separating_experiment"] += ("; a field that changes in the room (not with the unit's "
+                                                   "temperature) shows the same on a second magnetometer nearby")
+                out.append(f)
+                continue
             if blk.startswith("discovered:"):
                 dip = None
                 if tt.extra["frame"] == "lab" and "dip" in finals and blk + "@dip" in reg["dip"].slices:
@@ -1769,7 +1859,7 @@ def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: di
                         "the field it reports belongs to an earlier attitude (a sensor filter or a time-stamp skew).")
             else:  # pragma: no cover
                 continue
-            conf = [BLOCKS[b][0] for b in confusable.get(blk, [])]
+            conf = [BLOCKS[b][0] if BLOCKS[b][0] != "discovered" else b for b in confusable.get(blk, [])]
             sep = [separating_experiment(eff, b) for b in conf]
             plausible, why = _plausible(blk, params, sh, t)
             if not plausible:

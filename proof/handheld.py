@@ -120,17 +120,18 @@ def make_handheld_case(seed: int, kind: str | None, lam: float, n: int = 2400) -
     u /= np.linalg.norm(u)
     kbar = float(np.mean(np.linalg.norm(unit.mag.M, axis=1)))
     # the field-magnitude change (field units) per unit of size, on the same path as the recording
-    rec0, _ = simulate_handheld(seed, n=n, temp_c=temp, field=H)
-    lin = rec0.mag - unit.mag.bias
-    h = np.linalg.solve(unit.mag.M, lin.T).T
-    h /= np.linalg.norm(h, axis=1, keepdims=True)
-    if kind == "gain_vs_temp":  # a gain of u per deg C about the run's mean temperature
-        ref = float(np.mean(temp))
-        change = np.einsum("nj,nj->n", h, np.linalg.solve(unit.mag.M, (u * lin * (temp - ref)[:, None]).T).T)
-    elif kind == "segment_offset_lab":
+    if kind == "segment_offset_lab":  # along the lab field, whatever the attitude
         change = np.full(int(inside.sum()), float(H @ u))
     else:  # counts in the sensor frame, seen along the calibrated field's direction
-        change = h[inside] @ np.linalg.solve(unit.mag.M, u)
+        rec0, _ = simulate_handheld(seed, n=n, temp_c=temp, field=H)
+        lin = rec0.mag - unit.mag.bias
+        h = np.linalg.solve(unit.mag.M, lin.T).T
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        if kind == "gain_vs_temp":  # a gain of u per deg C about the run's mean temperature
+            ref = float(np.mean(temp))
+            change = np.einsum("nj,nj->n", h, np.linalg.solve(unit.mag.M, (u * lin * (temp - ref)[:, None]).T).T)
+        else:
+            change = h[inside] @ np.linalg.solve(unit.mag.M, u)
     size = float(np.sqrt(lam / max(np.sum((kbar * change) ** 2) / unit.mag.noise_lsb ** 2, 1e-300)))
     if kind == "gain_vs_temp":
         eff = GainVsTemp(gain_per_c=size * u, bias=unit.mag.bias, t_ref_c=ref)

@@ -391,7 +391,7 @@ def judge_model(truth: dict[str, Any], span: Sequence[float], frames: Sequence[s
     tol = TARGETS["open_edge"] * (span[1] - span[0])
     findings = [f for f in result.get("findings", []) or [] if isinstance(f, dict)]
     models = [f.get("model") or {} for f in findings]
-    # the true frame, or one the recording cannot tell from it where the effect is present (case.frames)
+    # the true frame, or one the recording cannot tell from it where the effect is present (frames)
     right = {_frame(f) for f in (frames or [truth.get("frame")])}
     same = [m for m in models if isinstance(m, dict) and _frame(m.get("frame")) in right]
     frame_right = bool(same)

@@ -65,8 +65,8 @@ from scipy import stats
 from scipy.special import eval_legendre
 
 from physics.calibration import json_safe
-from physics.discrepancy.discovery import (FRAME_TEXT, INTERMITTENT, KEEP_SHARE, N_BINS, Block, _cause, _experiment,
-                                           _window_stats, search_bins, ut_per_count)
+from physics.discrepancy.discovery import (AGAINST_TEXT, FOUND_BY_SEARCH, FRAME_TEXT, IMPLAUSIBLE, INTERMITTENT, KEEP_SHARE,
+                                           N_BINS, Block, _cause, _experiment, _window_stats, search_bins, ut_per_count)
 from physics.discrepancy.lrt import _orth
 from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
                                           needs_table_angles, raw_distortions)
@@ -124,8 +124,8 @@ ACC_RADIUS_SPREAD = 0.3
 #: (the catalogue's 100 LSB at 5000 LSB per field), a bias drift over the run above 5 % of full scale.
 NONLINEAR_LIMIT = 0.02
 WARMUP_LIMIT = 0.05
-#: A named effect's block inside a generic block (its registry entry says which) must carry this share of
-#: the generic block's evidence.
+#: A named effect's block inside a generic block (its registry entry says which, GENERIC_OF) must carry this
+#: share of the generic block's evidence.
 GENERIC_SHARE = 0.5
 
 #: Catalogue effects the attitude-free model cannot test, and why (physics/discrepancy/registry.py).
@@ -489,8 +489,6 @@ class _Nominal:
 # Regressors of each effect (linearised about the nominal fit), for any set of rows
 # --------------------------------------------------------------------------------------------------
 
-#: Block name -> (effect id, variant) of the test it serves: each catalogue effect's blocks (its registry
-#: entry), and the generic blocks of structure no entry names.
 #: Blocks of the dictionary of generic building blocks (issue 12) the attitude-free model tests beside the
 #: catalogue: the unit's sensitivity following its temperature, or drifting in time (per axis, relative).
 GAIN_BLOCKS = {"discovered:sensor/gain/temp_c": ("temp_c", "a change of sensitivity fixed in the sensor frame, "
@@ -503,6 +501,8 @@ PREFERRED = {"discovered:sensor/gain/temp_c": "field_drift", "field_drift": "dis
 #: of that block's evidence to be named (a change of sensitivity following the temperature or time moves the
 #: magnitude partly as a function of time alone, which the time polynomials span).
 GENERIC_OF = {**free_generic(), **{name: "unexplained/time" for name in GAIN_BLOCKS}}
+#: Block name -> (effect id, variant) of the test it serves: each catalogue effect's blocks (its registry
+#: entry), the dictionary's gain blocks, and the generic blocks of structure no entry names.
 BLOCKS = {
     **free_blocks(),
     **{name: ("discovered", variant) for name, (_, variant) in GAIN_BLOCKS.items()},
@@ -921,19 +921,25 @@ def _inside(t: np.ndarray, segments: list[list[float]]) -> np.ndarray:
     return m
 
 
-def _window_sums(reg: dict[str, _Regression], given: list[str], cols: dict[str, np.ndarray], frame: str) -> "_Sums":
-    """:class:`_Sums` of one frame's offset over the responses there are, with the magnitude's model ``given``
-    and the dip's nuisance share of it. A lab offset's two visible parts are separate parameters (the step
-    along the field on the magnitude, across it on the dip); a sensor offset's three counts act on both."""
-    parts = []
-    for k, resp in enumerate(r for r in ("magnitude", "dip") if r in cols and r in reg):
+def _responses(reg: dict[str, _Regression], given: list[str]) -> list[tuple]:
+    """Per response (the magnitude, and the dip when there is one): its name, regression, AR(1) coefficient,
+    whitening, the whitened basis Q of its model (the magnitude's blocks ``given``, the dip's nuisance share
+    of them) and its whitened residual orthogonal to Q scaled to unit noise, with that scale. What every
+    frame's :class:`_Sums` of one round shares."""
+    out = []
+    for resp in ("magnitude", "dip"):
+        if resp not in reg:
+            continue
         r = reg[resp]
         model = given if resp == "magnitude" else [b + "@dip" for b in given if b + "@dip" in r.slices]
-        X = cols[resp]
-        if frame == "lab" and "dip" in cols and "dip" in reg:  # [along, across]: each response sees one
-            X = np.column_stack([X[:, 0] * (k == 0), X[:, 0] * (k == 1)])
-        parts.append((r, model, X, r.gls(model)["rho"]))
-    return _Sums(parts)
+        rho = r.gls(model)["rho"]
+        white = lambda M, rho=rho, r=r: r.whiten(M, np.full(M.shape[1], rho))  # noqa: E731
+        Q = _orth(white(r.Z[:, r.cols(model)]))
+        yw = white(r.y[:, None])[:, 0]
+        y = yw - Q @ (Q.T @ yw)
+        s = math.sqrt(float(y @ y) / max(len(y) - Q.shape[1], 1))
+        out.append((resp, r, rho, white, Q, y / s, s))
+    return out
 
 
 @dataclass
@@ -950,23 +956,22 @@ class _Window:
 
 
 class _Sums:
-    """One frame's offset against the residual of each response (the magnitude, and the dip when there is
-    one), AR(1)-whitened, the current model projected out and scaled to unit noise: per sample what a
-    window's statistic is made of, as prefix sums. ``parts``: (regression, blocks in its model, columns
-    (n, p) with the offset's p parameters shared by all responses, AR(1) coefficient)."""
+    """One frame's offset (columns ``cols`` per response, :func:`_offset_columns`) against the residual of each
+    response of ``responses`` (:func:`_responses`), AR(1)-whitened, the current model projected out and
+    scaled to unit noise: per sample what a window's statistic is made of, as prefix sums. The offset's
+    parameters are shared by the responses: a sensor offset's three counts act on both; a lab offset's two
+    visible parts are separate parameters (the step along the field on the magnitude, across it on the dip)."""
 
-    def __init__(self, parts: list[tuple[_Regression, list[str], np.ndarray, float]]) -> None:
+    def __init__(self, responses: list[tuple], cols: dict[str, np.ndarray], frame: str) -> None:
         self.parts = []
         A = B = None
         Qx = []
-        for r, given, X, rho in parts:
-            white = lambda M, rho=rho, r=r: r.whiten(M, np.full(M.shape[1], rho))  # noqa: E731
-            Q = _orth(white(r.Z[:, r.cols(given)]))
-            yw = white(r.y[:, None])[:, 0]
-            y = yw - Q @ (Q.T @ yw)
-            s = math.sqrt(float(y @ y) / max(len(y) - Q.shape[1], 1))
+        present = [x for x in responses if x[0] in cols]
+        for k, (resp, r, rho, white, Q, y, s) in enumerate(present):
+            X = cols[resp]
+            if frame == "lab" and len(present) == 2:  # [along, across]: each response sees one
+                X = np.column_stack([X[:, 0] * (k == 0), X[:, 0] * (k == 1)])
             Xw = white(X) / s
-            y = y / s
             A = Xw * y[:, None] + (0.0 if A is None else A)
             B = Xw[:, :, None] * Xw[:, None, :] + (0.0 if B is None else B)
             Qx.append(Q[:, :, None] * Xw[:, None, :])
@@ -1050,10 +1055,12 @@ def _discover(feats: dict[str, _Design], nom: _Nominal, dec: _Data, base: list[s
     kept while its p times ``n_tests`` is below ``alpha``. Each kept window's columns are added to ``feats``
     (the magnitude's block, the dip's nuisance); returns their tests."""
     out: list[_Test] = []
+    cols = {fr: _offset_columns(nom, dec, fr) for fr in WINDOW_FRAMES}
     while len(out) < MAX_WINDOWS:
         reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
         given = base + [tt.block for tt in out]
-        sums = {fr: _window_sums(reg, given, _offset_columns(nom, dec, fr), fr) for fr in WINDOW_FRAMES}
+        responses = _responses(reg, given)
+        sums = {fr: _Sums(responses, cols[fr], fr) for fr in WINDOW_FRAMES}
         found = [w for fr in WINDOW_FRAMES if (w := _search_window(sums[fr], dec.t, fr, null_sims, rng))]
         if not found:
             break
@@ -1063,7 +1070,7 @@ def _discover(feats: dict[str, _Design], nom: _Nominal, dec: _Data, base: list[s
             break
         segs = best.segments
         name = f"discovered:{best.frame}/offset/segments@" + "".join(f"[{a:.1f},{b:.1f})" for a, b in segs)
-        _add_window(feats, _offset_columns(nom, dec, best.frame), name, _inside(dec.t, segs))
+        _add_window(feats, cols[best.frame], name, _inside(dec.t, segs))
         # the other frame in the same windows: alike when its evidence (statistic less twice its parameters) is as good
         lo = np.array([[int(np.searchsorted(dec.t, a)) for a, _ in segs]])
         hi = np.array([[int(np.searchsorted(dec.t, b)) for _, b in segs]])
@@ -1087,32 +1094,25 @@ def _gain_finding(blk: str, tt: "_Test", coef: np.ndarray, se: np.ndarray, nom: 
     rows = _rows(nom, d, against == "temp_c")
     delta = np.einsum("njk,k->nj", _gain_bases(nom, rows)[blk], np.nan_to_num(g))
     pct = lambda v: ", ".join("n/a" if not np.isfinite(x) else f"{100 * x:.3g}" for x in v)  # noqa: E731
+    block = Block("sensor", "gain", against)
     if against == "temp_c":
         span = float(np.ptp(d.temp))
         params, sigma = {"gain_per_degC": g.tolist()}, {"gain_per_degC": g_sd.tolist()}
         size = f"({pct(g)}) % per deg C (+- {pct(g_sd)}) on x, y, z"
-        total = np.nan_to_num(np.abs(g)) * span
-        cause = ("the sensitivity follows the temperature: the sensing element's scale factor has a temperature "
-                 "coefficient")
-        experiment = "calibrate at two temperatures (or hold one attitude through the warm-up) and compare the sensitivities"
     else:
         span = 2.0
         params, sigma = {"gain_over_half_run": g.tolist()}, {"gain_over_half_run": g_sd.tolist()}
         size = f"({pct(g)}) % from the middle of the run to its end (+- {pct(g_sd)}) on x, y, z"
-        total = np.nan_to_num(np.abs(g)) * span
-        cause = "the unit's response drifts slowly (a warm-up without a logged temperature, the supply, ageing)"
-        experiment = "log the temperature, or repeat the first attitudes at the end of the run"
-    plausible = bool(np.max(total) < 0.2)  # a fifth of the sensitivity over the run is no drift but a fault
-    expl = (f"A change of sensitivity of {size}, fixed in the sensor frame, {'following the temperature' if against == 'temp_c' else 'drifting in time'}"
-            f": {cause}. Found by the search over generic building blocks (no catalogue entry explains it).")
-    if not plausible:
-        expl += " Its size is beyond what such a cause plausibly makes: treat it as a stand-in for something larger."
+    plausible = bool(np.max(np.nan_to_num(np.abs(g)) * span) < 0.2)  # a fifth of the sensitivity over the run is a fault
+    expl = (f"A change of sensitivity of {size}, {FRAME_TEXT['sensor']}, {AGAINST_TEXT[against]}: {_cause(block)}. "
+            + FOUND_BY_SEARCH + ("" if plausible else " " + IMPLAUSIBLE))
     return {"effect": "discovered", "variant": tt.variant, "statistic": tt.statistic, "df": tt.df, "p_value": tt.p,
             "p_adjusted": tt.p_adj, "parameters": params, "sigma": sigma,
             "heading_impact_deg": _perp_impact(sh, d.mag, delta, cos_dip),
             "where": {"response": "magnitude", "frame": "sensor"},
             "model": {"frame": "sensor", "form": "gain", "against": against, "segments": []},
-            "plausible": plausible, "explanation": expl, "confusable_with": [], "separating_experiment": experiment}
+            "plausible": plausible, "explanation": expl, "confusable_with": [],
+            "separating_experiment": _experiment(block, [])}
 
 
 def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, d: _Data, uc: float | None,
@@ -1122,9 +1122,9 @@ def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, 
     sh, kb = nom.shape, nom.kbar
     frame, segs = tt.extra["frame"], tt.extra["segments"]
     mask = _inside(d.t, segs)
-    cause = INTERMITTENT if len(segs) > 1 else _cause(Block(frame, "offset", "segments"))
-    when = " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
     block = Block(frame, "offset", "segments")
+    cause = INTERMITTENT if len(segs) > 1 else _cause(block)
+    when = " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
     impact: float | None
     if frame == "sensor":
         lsb, lsb_sd = np.where(sh.resolved, coef, np.nan), np.where(sh.resolved, se, np.nan)  # an axis in-plane data leave unseen: n/a
@@ -1153,9 +1153,7 @@ def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, 
         plausible = bool(abs(along) < 1.0)
         expl = (f"A change of the field {FRAME_TEXT['lab']}, present {when}: {part}; {cause}. Its horizontal "
                 "part across the field, which turns the heading, does not show without a heading reference.")
-    expl += " Found by the search over generic building blocks (no catalogue entry explains it)."
-    if not plausible:
-        expl += " Its size is beyond what such a cause plausibly makes: treat it as a stand-in for something larger."
+    expl += " " + FOUND_BY_SEARCH + ("" if plausible else " " + IMPLAUSIBLE)
     alike = list(tt.extra.get("alike", []))
     experiment = _experiment(block, segs)
     if alike:
@@ -1540,8 +1538,12 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
             notes.append(f"{BLOCKS[blk][0]} ({BLOCKS[blk][1]}) was significant but is not named: it is not, given "
                          f"the offset found present for a while")
     selected["magnitude"] = model
+    def dip_nuisance() -> tuple[str, ...]:
+        """The dip's share of the magnitude's named blocks (their "@dip" columns), fixed in its model."""
+        return tuple(b + "@dip" for b in selected["magnitude"] if b + "@dip" in reg["dip"].slices)
+
     if "dip" in reg:
-        fixed["dip"] = tuple(b + "@dip" for b in selected["magnitude"] if b + "@dip" in reg["dip"].slices)
+        fixed["dip"] = dip_nuisance()
         select("dip")
 
     # confusable pairs: B absorbed by A, and A not significant given B either
@@ -1574,7 +1576,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         notes.append(f"{alike_of} and {named} explain the same structure; {named} is named, as the likelier cause "
                      f"(the other is listed as its alike)")
         if "dip" in reg:
-            fixed["dip"] = tuple(b + "@dip" for b in selected["magnitude"] if b + "@dip" in reg["dip"].slices)
+            fixed["dip"] = dip_nuisance()
 
     # ---- unexplained structure given the named effects -----------------------------------------------
     unexpl_done = [run(tt, tuple(selected["magnitude"])) for tt in unexplained]
@@ -1768,7 +1770,7 @@ def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: di
             coef, se = _coef(fin, r, blk, c)
             if blk in GAIN_BLOCKS:
                 f = _gain_finding(blk, tt, coef, se, nom, dec, cos_dip)
-                f["confusable_with"] = [BLOCKS[b][0] for b in confusable.get(blk, [])]
+                f["confusable_with"] = [_alike_name(b) for b in confusable.get(blk, [])]
                 if f["confusable_with"]:
                     f["separating_experiment"] += ("; a field that changes in the room (not with the unit's "
                                                    "temperature) shows the same on a second magnetometer nearby")
@@ -1859,7 +1861,7 @@ def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: di
                         "the field it reports belongs to an earlier attitude (a sensor filter or a time-stamp skew).")
             else:  # pragma: no cover
                 continue
-            conf = [BLOCKS[b][0] if BLOCKS[b][0] != "discovered" else b for b in confusable.get(blk, [])]
+            conf = [_alike_name(b) for b in confusable.get(blk, [])]
             sep = [separating_experiment(eff, b) for b in conf]
             plausible, why = _plausible(blk, params, sh, t)
             if not plausible:
@@ -1904,6 +1906,11 @@ def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: di
                     "heading_impact_deg": None, "where": {"response": tt.response}, "explanation": expl,
                     "confusable_with": [], "separating_experiment": ""})
     return out
+
+
+def _alike_name(blk: str) -> str:
+    """How a finding names a look-alike block: its effect id, or the block itself for a dictionary block."""
+    return blk if BLOCKS[blk][0] == "discovered" else BLOCKS[blk][0]
 
 
 def _plausible(blk: str, params: dict[str, Any], sh: _Shape, t: np.ndarray) -> tuple[bool, str]:

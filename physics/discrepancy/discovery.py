@@ -840,6 +840,9 @@ AGAINST_TEXT = {"time": "drifting smoothly in time", "temp_c": "following the te
                 "phi_t": "varying with the roll angle phi_t"}
 
 
+#: What every discovered finding's explanation says of where it came from, and of a size beyond its cause.
+FOUND_BY_SEARCH = "Found by the search over generic building blocks (no catalogue entry explains it)."
+IMPLAUSIBLE = "Its size is beyond what such a cause plausibly makes: treat it as a stand-in for something larger."
 #: The cause of a departure that came and went with the same size.
 INTERMITTENT = ("with the same size each time: something switched on and off (a relay, a motor, a device nearby) "
                 "or put back more than once")
@@ -966,10 +969,9 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
         when = ", present " + " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
     dep = "" if blk.windowed else f", {AGAINST_TEXT.get(blk.dependence, blk.dependence)}"
     cause = (INTERMITTENT if len(segs) > 1 else _cause(blk))
-    explanation = (f"{FORM_TEXT[blk.form]} of {size} {FRAME_TEXT[blk.frame]}{dep}{when}: {cause}. "
-                   "Found by the search over generic building blocks (no catalogue entry explains it).")
+    explanation = f"{FORM_TEXT[blk.form]} of {size} {FRAME_TEXT[blk.frame]}{dep}{when}: {cause}. " + FOUND_BY_SEARCH
     if not plausible:
-        explanation += " Its size is beyond what such a cause plausibly makes: treat it as a stand-in for something larger."
+        explanation += " " + IMPLAUSIBLE
     experiment = _experiment(blk, segs)
     if f.alike:
         explanation += (f" This recording cannot tell it from a {' or a '.join(f.alike)}; the one named is the "

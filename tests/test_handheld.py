@@ -231,6 +231,36 @@ def test_the_sensitivity_following_the_temperature_is_named_as_such():
     assert analyze_attitude_free(clean, null_sims=100).result["verdict"] == "consistent"
 
 
+def test_the_magnetometer_turning_against_the_accelerometer_is_named_as_such():
+    """Issue 12's slow misalignment drift without table angles: the magnetometer's axes turn by 0.3 deg over the
+    run against the accelerometer's. The field's magnitude hardly changes; the dip does. It is discovered as a
+    sensor-frame rotation drifting in time, sized right, tested on the magnitude and the dip at once (before:
+    offsets present for a while in the sensor and the lab frame, a lab window "turning the field's dip");
+    without it, nothing is found."""
+    from proof.concealments import MisalignmentDrift
+
+    t = np.arange(2400) / RATE_HZ
+    temp = 23.0 + 3.0 * (1 - np.exp(-t / 40.0))
+    unit = random_unit(np.random.default_rng(1))
+    axis = np.array([0.2, -0.3, 0.93]) / np.linalg.norm([0.2, -0.3, 0.93])
+    rate = np.radians(0.3) / t[-1] * axis  # rad/s
+    eff = MisalignmentDrift(rate_rad_per_s=rate, bias=unit.mag.bias, t_mid=float(t.mean()))
+    rec, _ = simulate_handheld(1, conceal=[eff], temp_c=temp)
+    r = analyze_attitude_free(rec, null_sims=100, rng=np.random.default_rng(1)).result
+    assert _names(r) == ["discovered"], r["findings"]
+    f = _discovered(r)[0]
+    assert f["model"] == {"frame": "sensor", "form": "rotation", "against": "time", "segments": []}
+    got = np.array(f["parameters"]["rotation_deg_over_half_run"])
+    sd = np.array(f["sigma"]["rotation_deg_over_half_run"])
+    truth = np.degrees(rate * 0.5 * (t[-1] - t[0]))
+    assert np.all(np.abs(got - truth) < 4 * sd + 0.1 * np.abs(truth)), (got, truth, sd)
+    assert f["plausible"] and "against the accelerometer" in f["explanation"] and f["where"]["response"] == "magnitude and dip"
+    tests = [x for x in r["tests"] if x["variant"].startswith("the magnetometer's axes turning")]
+    assert {x["selected"] for x in tests} == {True, False} and min(x["p_adjusted"] for x in tests) < 1e-6
+    clean, _ = simulate_handheld(1, temp_c=temp)
+    assert analyze_attitude_free(clean, null_sims=100, rng=np.random.default_rng(1)).result["verdict"] == "consistent"
+
+
 def test_the_window_search_raises_no_alarm_on_null_recordings():
     """On 30 null recordings the search over windows and frames finds nothing (its p pays for the search)."""
     for seed in range(30):

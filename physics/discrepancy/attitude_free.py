@@ -66,7 +66,8 @@ from scipy.special import eval_legendre
 
 from physics.calibration import json_safe
 from physics.discrepancy.discovery import (AGAINST_TEXT, FOUND_BY_SEARCH, FRAME_TEXT, IMPLAUSIBLE, INTERMITTENT, KEEP_SHARE,
-                                           N_BINS, Block, _cause, _experiment, _window_stats, search_bins, ut_per_count)
+                                           N_BINS, SLOW_PREFERENCE, SLOW_SAME_EVIDENCE, Block, _cause, _experiment,
+                                           _window_stats, search_bins, ut_per_count)
 from physics.discrepancy.lrt import _orth
 from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
                                           needs_table_angles, raw_distortions)
@@ -495,6 +496,15 @@ GAIN_BLOCKS = {"discovered:sensor/gain/temp_c": ("temp_c", "a change of sensitiv
                                                            "following temp_c (per axis, per deg C)"),
                "discovered:sensor/gain/time": ("time", "a change of sensitivity fixed in the sensor frame, drifting "
                                                        "in time (per axis, over the run)")}
+#: The magnetometer's axes turning against the accelerometer's (per axis, small angles), drifting in time or
+#: following temp_c: a mount creeping, a board warping as it warms. It turns the calibrated field against
+#: gravity, so it shows on the dip, and on the magnitude only through the unit's anisotropy: each is tested on
+#: both responses at once with one set of parameters (:func:`_joint_test`), before the window search (whose
+#: lab-frame windows turn the dip too).
+ROTATION_BLOCKS = {"discovered:sensor/rotation/time": ("time", "the magnetometer's axes turning against the "
+                                                               "accelerometer's, drifting in time (about each axis, over the run)"),
+                   "discovered:sensor/rotation/temp_c": ("temp_c", "the magnetometer's axes turning against the "
+                                                                   "accelerometer's, following temp_c (about each axis, per deg C)")}
 #: Where two blocks explain the same structure of the magnitude, which is named over which (see the selection).
 PREFERRED = {"discovered:sensor/gain/temp_c": "field_drift", "field_drift": "discovered:sensor/gain/time"}
 #: Named blocks that lie partly inside a generic block of unexplained structure: each must carry GENERIC_SHARE
@@ -505,7 +515,7 @@ GENERIC_OF = {**free_generic(), **{name: "unexplained/time" for name in GAIN_BLO
 #: entry), the dictionary's gain blocks, and the generic blocks of structure no entry names.
 BLOCKS = {
     **free_blocks(),
-    **{name: ("discovered", variant) for name, (_, variant) in GAIN_BLOCKS.items()},
+    **{name: ("discovered", variant) for name, (_, variant) in {**GAIN_BLOCKS, **ROTATION_BLOCKS}.items()},
     "unexplained/direction": (UNEXPLAINED, "field direction in the sensor frame (degree 3-4 harmonics)"),
     "unexplained/time": (UNEXPLAINED, f"time (Legendre polynomials to degree {TIME_DEGREE})"),
 }
@@ -555,7 +565,7 @@ def _features(nom: _Nominal, d: _Data, temp_varies: bool) -> dict[str, _Design]:
     blocks: dict[str, np.ndarray] = {}
     # Effects that distort the raw output, delta_m = basis (n, 3, q) . params: the magnitude sees
     # kbar grad . delta_m (so the coefficients are the effect's own parameters, in LSB)
-    raw = raw_distortions(rows) | _gain_bases(nom, rows)
+    raw = raw_distortions(rows) | _gain_bases(nom, rows) | (_rotation_bases(nom, rows) if rows.f is not None else {})
     for name, basis in raw.items():
         blocks[name] = kb * np.einsum("nj,njq->nq", v, basis)
     blocks.update(magnitude_columns(rows))  # effects the magnitude sees directly (a field drift's trend)
@@ -594,9 +604,27 @@ def _gain_bases(nom: _Nominal, rows: FreeRows) -> dict[str, np.ndarray]:
     u = np.nan_to_num(rows.u) * np.where(rows.resolved, nom.shape.k, 0.0)  # counts on each resolved axis
     out = {}
     for name, (against, _) in GAIN_BLOCKS.items():
-        x = rows.dtemp if against == "temp_c" else rows.tau / nom.t_half
+        x = _slow_input(nom, rows, against)
         if x is not None:
             out[name] = np.einsum("nj,jk->njk", u * x[:, None], np.eye(3))
+    return out
+
+
+def _slow_input(nom: _Nominal, rows: FreeRows, against: str) -> np.ndarray | None:
+    """The temperature less the run's reference (deg C), or the time from mid-run over half the run."""
+    return rows.dtemp if against == "temp_c" else rows.tau / nom.t_half
+
+
+def _rotation_bases(nom: _Nominal, rows: FreeRows) -> dict[str, np.ndarray]:
+    """Raw-count bases (n, 3, 3) of :data:`ROTATION_BLOCKS`: the axes turned by small angles w (rad) move the
+    output about the bias by w x (raw - bias), times the slow input (:func:`_slow_input`)."""
+    lin = np.nan_to_num(rows.u) * np.where(rows.resolved, nom.shape.k, 0.0)  # counts about the bias
+    turn = np.stack([np.cross(np.eye(3)[j], lin) for j in range(3)], axis=2)  # e_j x lin: (n, 3, 3)
+    out = {}
+    for name, (against, _) in ROTATION_BLOCKS.items():
+        x = _slow_input(nom, rows, against)
+        if x is not None:
+            out[name] = turn * x[:, None, None]
     return out
 
 
@@ -942,6 +970,50 @@ def _responses(reg: dict[str, _Regression], given: list[str]) -> list[tuple]:
     return out
 
 
+def _joint_test(reg: dict[str, _Regression], given: list[str], blk: str, null_sims: int, rng: np.random.Generator,
+                n_tests: int) -> "_Test":
+    """Block ``blk`` of raw-count distortions tested on the magnitude and the dip at once, one set of parameters
+    for both (its columns are ``blk`` on the magnitude and ``blk@dip`` on the dip), given the magnitude's blocks
+    ``given`` (and the dip's share of them): each response AR(1)-whitened, its model projected out and scaled
+    to unit noise (:func:`_responses`), the statistic c' G+ c of the stacked rows. Its Bartlett factor (at least
+    1) is the mean over ``null_sims`` simulated nulls treated alike, p from chi-square on the rank, Bonferroni
+    over ``n_tests``. The joint estimate and its covariance (parameter units) go in ``extra``."""
+    c = np.zeros(3)
+    G = np.zeros((3, 3))
+    B = np.zeros((3, 3))
+    parts = []
+    for resp, r, rho, white, Q, y, s in _responses(reg, given):
+        name = blk if resp == "magnitude" else blk + "@dip"
+        if name not in r.slices:
+            continue
+        sl = r.slices[name]
+        Xw = white(r.Z[:, sl] * r.scale[sl]) / s
+        Xp = Xw - Q @ (Q.T @ Xw)
+        c, G, B = c + Xp.T @ y, G + Xp.T @ Xp, B + Xw.T @ Xw
+        parts.append((r, rho, white, Q, Xp))
+    w, V = np.linalg.eigh(0.5 * (G + G.T))
+    keep = w > KEEP_SHARE * max(float(np.trace(B)) / 3.0, 1e-300)
+    df = int(keep.sum())
+    Ginv = (V[:, keep] / w[keep]) @ V[:, keep].T
+    raw = float(c @ Ginv @ c)
+    scale = 1.0
+    if null_sims >= 20 and df > 0:
+        cn = np.zeros((null_sims, 3))
+        for r, rho, white, Q, Xp in parts:
+            Y = white(r.simulate(rho, null_sims, rng))
+            Y = Y - Q @ (Q.T @ Y)
+            Y = Y / np.sqrt(np.sum(Y ** 2, axis=0) / max(len(Y) - Q.shape[1], 1))
+            cn += (Xp.T @ Y).T
+        scale = max(1.0, float(np.mean(np.einsum("kp,pq,kq->k", cn, Ginv, cn))) / df)
+    tt = _Test("discovered", BLOCKS[blk][1], "magnitude", blk, "joint", tuple(given))
+    tt.raw, tt.df = raw, df
+    tt.statistic = raw / scale
+    tt.p = float(stats.chi2.sf(tt.statistic, df)) if df > 0 else 1.0
+    tt.p_adj = min(1.0, tt.p * n_tests)
+    tt.extra = {"bartlett": scale, "coef": Ginv @ c, "cov": Ginv * scale}
+    return tt
+
+
 @dataclass
 class _Window:
     """The best windows of one frame's offset (one set of parameters), their p corrected for the search."""
@@ -1111,6 +1183,41 @@ def _gain_finding(blk: str, tt: "_Test", coef: np.ndarray, se: np.ndarray, nom: 
             "heading_impact_deg": _perp_impact(sh, d.mag, delta, cos_dip),
             "where": {"response": "magnitude", "frame": "sensor"},
             "model": {"frame": "sensor", "form": "gain", "against": against, "segments": []},
+            "plausible": plausible, "explanation": expl, "confusable_with": [],
+            "separating_experiment": _experiment(block, [])}
+
+
+def _rotation_finding(blk: str, tt: "_Test", nom: _Nominal, d: _Data, cos_dip: float | None) -> dict[str, Any]:
+    """A discovered turn of the magnetometer's axes against the accelerometer's (:data:`ROTATION_BLOCKS`), with
+    the joint estimate of :func:`_joint_test`, as a finding of the one schema."""
+    against = ROTATION_BLOCKS[blk][0]
+    w = np.asarray(tt.extra["coef"], float)
+    w_sd = np.sqrt(np.maximum(np.diag(np.asarray(tt.extra["cov"], float)), 0.0))
+    deg, deg_sd = np.degrees(w), np.degrees(w_sd)
+    rows = _rows(nom, d, against == "temp_c")
+    delta = np.einsum("njk,k->nj", _rotation_bases(nom, rows)[blk], w)
+    size = "(" + ", ".join(f"{x:.3g} +- {e:.2g}" for x, e in zip(deg, deg_sd)) + ") deg about x, y, z"
+    if against == "temp_c":
+        span = float(np.ptp(d.temp))
+        params, sigma = {"rotation_deg_per_degC": deg.tolist()}, {"rotation_deg_per_degC": deg_sd.tolist()}
+        size += " per deg C"
+        cause = "the board or the mount warps as it warms, turning the magnetometer against the accelerometer"
+    else:
+        span = 2.0
+        params, sigma = {"rotation_deg_over_half_run": deg.tolist()}, {"rotation_deg_over_half_run": deg_sd.tolist()}
+        size += " from the middle of the run to its end"
+        cause = "the magnetometer's mount creeping against the accelerometer's (adhesive, clamp, thermal settling)"
+    # a turn beyond the largest misalignment a unit is built with is a fault or a stand-in
+    plausible = bool(float(np.linalg.norm(deg)) * span < MISALIGNMENT_LIMIT_DEG)
+    block = Block("sensor", "rotation", against)
+    expl = (f"The magnetometer's axes turning against the accelerometer's by {size}, {AGAINST_TEXT[against]}: "
+            f"{cause}. It turns the field against gravity (the dip), not its magnitude. "
+            + FOUND_BY_SEARCH + ("" if plausible else " " + IMPLAUSIBLE))
+    return {"effect": "discovered", "variant": tt.variant, "statistic": tt.statistic, "df": tt.df, "p_value": tt.p,
+            "p_adjusted": tt.p_adj, "parameters": params, "sigma": sigma,
+            "heading_impact_deg": _perp_impact(nom.shape, d.mag, delta, cos_dip),
+            "where": {"response": "magnitude and dip", "frame": "sensor"},
+            "model": {"frame": "sensor", "form": "rotation", "against": against, "segments": []},
             "plausible": plausible, "explanation": expl, "confusable_with": [],
             "separating_experiment": _experiment(block, [])}
 
@@ -1306,7 +1413,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
     tests: list[_Test] = []
     for name, r in reg.items():
         for blk in feats[name].blocks:
-            if "@" in blk:  # nuisance for the dip, not a test
+            if "@" in blk or blk in ROTATION_BLOCKS:  # nuisance for the dip, or tested on both responses at once
                 continue
             eff, variant = BLOCKS[blk]
             if eff == UNEXPLAINED:
@@ -1318,7 +1425,8 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
                              "whiteness"))
     # the window search of each frame (WINDOW_FRAMES) counts as one test each; it needs some samples per bin
     searchable = len(dec) >= MIN_PER_BIN * N_BINS
-    n_tests = len(tests) + len(unexplained) + (len(WINDOW_FRAMES) if searchable else 0)
+    turns = [b for b in ROTATION_BLOCKS if "dip" in reg and b in reg["magnitude"].slices]
+    n_tests = len(tests) + len(unexplained) + (len(WINDOW_FRAMES) if searchable else 0) + len(turns)
     lb_lags = int(min(LB_LAGS, max(5, reg["magnitude"].n // 10)))
 
     # Bartlett factors from simulated nulls (null model J; AR(1) re-estimated in each simulation)
@@ -1503,26 +1611,77 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         searched = sum(2.0 * math.log(max(tt.extra["m_eff"], 1.0)) for tt in wins)
         return float(r.lr(G, b, yy, base, alt)[0]) - 2.0 * (r.rank(alt) - r.rank(base)) - searched
 
+    def turned(given: list[str]) -> _Test | None:
+        """The significant rotation of the magnetometer's axes (:data:`ROTATION_BLOCKS`) given ``given``, tested on
+        the magnitude and the dip at once. Time and the temperature are nearly one input in a warm-up: the likelier
+        one for axes that turn (discovery.SLOW_PREFERENCE: time, by creep) unless the other explains
+        SLOW_SAME_EVIDENCE more."""
+        tts = [_joint_test(reg, given, b, null_sims, rng, n_tests) for b in turns]
+        done.extend(tts)
+        sig = sorted((tt for tt in tts if tt.p_adj < alpha), key=lambda tt: -tt.statistic)
+        if not sig:
+            return None
+        likelier = next((tt for tt in sig if ROTATION_BLOCKS[tt.block][0] == SLOW_PREFERENCE["rotation"][0]), None)
+        return likelier if likelier is not None and likelier.statistic > sig[0].statistic - SLOW_SAME_EVIDENCE else sig[0]
+
+    def search(catalogue: list[str], fixed_blocks: list[str]) -> tuple[list[str], list[_Test], list[_Test]]:
+        """The windows given the catalogue's effects and ``fixed_blocks`` (searched after and before the catalogue,
+        the model with more evidence standing), and the catalogue's effects still significant given them."""
+        nonlocal reg
+        wins = _discover(feats, nom, dec, catalogue + fixed_blocks, null_sims, rng, n_tests, alpha) if searchable else []
+        reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
+        model, checks = catalogue + fixed_blocks, []
+        if wins:  # a catalogue effect that only stood in for a window is not named
+            kept, checks = prune(catalogue, fixed_blocks + [tt.block for tt in wins])
+            model = kept + fixed_blocks + [tt.block for tt in wins]
+        if catalogue and searchable:
+            # the windows searched before the catalogue's effects: one of those may have taken a window's
+            # structure first (a drift for something that came and went); the model with more evidence stands
+            alt = _discover(feats, nom, dec, fixed_blocks, null_sims, rng, n_tests, alpha)
+            reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
+            if alt:
+                kept, alt_checks = prune(catalogue, fixed_blocks + [tt.block for tt in alt])
+                alt_model = kept + fixed_blocks + [tt.block for tt in alt]
+                # only where the windows leave a catalogue effect out (it stood in for them): else the catalogue
+                # first had its windows searched already
+                if len(kept) < len(catalogue) and evidence(alt_model, alt) > evidence(model, wins):
+                    model, wins, checks = alt_model, alt, alt_checks
+        return model, wins, checks
+
+    def joint_evidence(model: list[str], wins: list[_Test]) -> float:
+        """:func:`evidence` on both responses: the magnitude's and the dip's likelihood ratios of ``model`` (the
+        dip: its share of the blocks) over the nominal one, less twice the parameters each adds and, per window,
+        twice the log of its search's effective number of windows."""
+        total = -sum(2.0 * math.log(max(tt.extra["m_eff"], 1.0)) for tt in wins)
+        for resp, r in reg.items():
+            blocks = model if resp == "magnitude" else [b + "@dip" for b in model if b + "@dip" in r.slices]
+            y, base, alt = r.y[:, None], r.cols([]), r.cols(blocks)
+            G, b, yy, _ = r.forms(y, r.rho(r.ols_resid(alt, y)))
+            total += float(r.lr(G, b, yy, base, alt)[0]) - 2.0 * (r.rank(alt) - r.rank(base))
+        return total
+
     report("discovery", 0.75)
     catalogue = list(selected["magnitude"])
-    wins = _discover(feats, nom, dec, catalogue, null_sims, rng, n_tests, alpha) if searchable else []
-    reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
-    model, checks = catalogue, []
-    if wins:  # a catalogue effect that only stood in for a window is not named
-        kept, checks = prune(catalogue, [tt.block for tt in wins])
-        model = kept + [tt.block for tt in wins]
-    if catalogue and searchable:
-        # the windows searched before the catalogue's effects: one of those may have taken a window's
-        # structure first (a drift for something that came and went); the model with more evidence stands
-        alt = _discover(feats, nom, dec, [], null_sims, rng, n_tests, alpha)
-        reg = {nm: _Regression(nm, des, dec.t) for nm, des in feats.items()}
-        if alt:
-            kept, alt_checks = prune(catalogue, [tt.block for tt in alt])
-            alt_model = kept + [tt.block for tt in alt]
-            # only where the windows leave a catalogue effect out (it stood in for them): else the catalogue
-            # first had its windows searched already
-            if len(kept) < len(catalogue) and evidence(alt_model, alt) > evidence(model, wins):
-                model, wins, checks = alt_model, alt, alt_checks
+    model, wins, checks = search(catalogue, [])
+    # The magnetometer turning against the accelerometer: a lab window turns the dip for a while and can take a
+    # slow turn's structure piece by piece, and a turn can take part of an offset present for a while. So the
+    # windows are searched given the turn too; the turn stays only if it is still significant given the windows
+    # found with it, and that model stands only where it has more evidence, on both responses, than the windows'.
+    turn = turned(catalogue) if turns else None
+    if turn is not None:
+        t_model, t_wins, t_checks = search(catalogue, [turn.block])
+        again = turned([b for b in t_model if b != turn.block])
+        if again is not None:
+            t_model = [again.block if b == turn.block else b for b in t_model]
+        if again is not None and joint_evidence(t_model, t_wins) > joint_evidence(model, wins):
+            model, wins, checks, turn = t_model, t_wins, t_checks, again
+        else:
+            notes.append(f"a turn of the magnetometer's axes ({ROTATION_BLOCKS[turn.block][1]}) was significant but "
+                         "is not named: the offsets found present for a while explain the data better")
+            turn = None
+    if turn is not None:
+        turn.selected = True
+        sel_tests[turn.block] = turn
     chosen = {tt.block for tt in wins}
     for des in feats.values():  # the windows of the model that lost leave the design
         des.blocks = {k: v for k, v in des.blocks.items()
@@ -1768,6 +1927,9 @@ def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: di
             tt = sel_tests[blk]
             c = tt.extra.get("bartlett", 1.0)
             coef, se = _coef(fin, r, blk, c)
+            if blk in ROTATION_BLOCKS:
+                out.append(_rotation_finding(blk, tt, nom, dec, cos_dip))
+                continue
             if blk in GAIN_BLOCKS:
                 f = _gain_finding(blk, tt, coef, se, nom, dec, cos_dip)
                 f["confusable_with"] = [_alike_name(b) for b in confusable.get(blk, [])]

@@ -1,13 +1,15 @@
 """Hand-held recordings for the blind proof without table angles (issue 12): a random unit carried along
 a smooth random path over the sphere, effects concealed through their forward implementations
-(physics.effects, proof.concealments), then noise and quantisation; and the out-of-catalogue cases drawn
-on them (:func:`make_handheld_case`).
+(physics.effects, proof.concealments), then noise and quantisation; the out-of-catalogue cases drawn
+on them (:func:`make_handheld_case`) and the proof's list of cases (:func:`handheld_jobs`).
 
 Written independently of the analyser: it never imports physics.discrepancy. A case's size is the
 magnitude's non-centrality before any nominal fit, ``lambda = sum over the window's samples of
 (kbar * (field-magnitude change, in field units))^2 / sigma^2`` with kbar the unit's mean sensitivity
 (LSB per field): the part of the departure the field's magnitude can show at all, an upper bound of what
-a test that also fits the nominal ellipsoid can see.
+a test that also fits the nominal ellipsoid can see. For the axes turning (misalignment_drift), which
+hardly change the magnitude, the dip's change (rad, the angle between the field and the vertical) adds
+its square to the magnitude's.
 """
 
 from __future__ import annotations
@@ -20,12 +22,14 @@ from physics import effects
 from physics.frames import field_direction, rot_x, rot_y, rot_z
 from physics.recording import Recording
 from physics.sensor import random_unit
-from proof.concealments import GainVsTemp, IntermittentInterference, LabSegmentOffset, SensorSegmentOffset
+from proof.concealments import (GainVsTemp, IntermittentInterference, LabSegmentOffset, MisalignmentDrift,
+                                SensorSegmentOffset)
 
 RATE_HZ = 22.0  # 50 Hz mains folds to 6 Hz
-#: Out-of-catalogue kinds a recording without angles can show (a stage's frame needs the table's angles; a
-#: misalignment turning the sensor's axes leaves the field's magnitude as it is).
-HANDHELD_KINDS = ("segment_offset_sensor", "segment_offset_lab", "intermittent_interference", "gain_vs_temp")
+#: Out-of-catalogue kinds a recording without angles can show (a stage's frame needs the table's angles; the
+#: sensor's axes turning slowly show on the dip against the accelerometer, hardly on the field's magnitude).
+HANDHELD_KINDS = ("segment_offset_sensor", "segment_offset_lab", "intermittent_interference", "gain_vs_temp",
+                  "misalignment_drift")
 
 
 def _attitude(t: np.ndarray, par: np.ndarray) -> np.ndarray:
@@ -36,6 +40,15 @@ def _attitude(t: np.ndarray, par: np.ndarray) -> np.ndarray:
     return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
 
 
+def _draw(seed: int) -> tuple[np.random.Generator, Any, np.ndarray, np.ndarray]:
+    """The seed's draws: its generator (for the noise that follows), the unit, the path's parameters, the field."""
+    rng = np.random.default_rng(seed)
+    unit = random_unit(rng)
+    par = np.array([rng.uniform(8, 15) * rng.choice([-1, 1]), rng.uniform(20, 40), rng.uniform(0, 6.3),
+                    rng.uniform(25, 45), rng.uniform(0, 6.3), rng.uniform(30, 60), rng.uniform(0, 6.3)])
+    return rng, unit, par, field_direction(rng.uniform(40, 70), rng.uniform(0, 360))
+
+
 def simulate_handheld(seed: int, n: int = 2400, conceal: list[effects.Effect] | None = None,
                       temp_c: np.ndarray | None = None, with_gyro: bool = True,
                       field: np.ndarray | None = None) -> tuple[Recording, object]:
@@ -43,12 +56,8 @@ def simulate_handheld(seed: int, n: int = 2400, conceal: list[effects.Effect] | 
 
     ``field``: the lab field direction (default: dip 40-70 deg, any azimuth, from the seed).
     """
-    rng = np.random.default_rng(seed)
-    unit = random_unit(rng)
+    rng, unit, par, H = _draw(seed)
     t = np.arange(n) / RATE_HZ
-    par = np.array([rng.uniform(8, 15) * rng.choice([-1, 1]), rng.uniform(20, 40), rng.uniform(0, 6.3),
-                    rng.uniform(25, 45), rng.uniform(0, 6.3), rng.uniform(30, 60), rng.uniform(0, 6.3)])
-    H = field_direction(rng.uniform(40, 70), rng.uniform(0, 360))
     H = H if field is None else np.asarray(field, float)
     conceal = conceal or []
     temps = np.full(n, 23.0) if temp_c is None else temp_c
@@ -122,6 +131,18 @@ def make_handheld_case(seed: int, kind: str | None, lam: float, n: int = 2400) -
     # the field-magnitude change (field units) per unit of size, on the same path as the recording
     if kind == "segment_offset_lab":  # along the lab field, whatever the attitude
         change = np.full(int(inside.sum()), float(H @ u))
+    elif kind == "misalignment_drift":  # the axes turning by u rad per s about mid-run: field and dip change
+        _, _, par, _ = _draw(seed)
+        C = _attitude(t, par)
+        h = np.einsum("nji,j->ni", C, H)  # the field in body axes (unit length)
+        g = np.einsum("nji,j->ni", C, [0.0, 0.0, 1.0])  # the vertical in body axes
+        ref = float(t.mean())
+        lin = h @ unit.mag.M.T
+        dh = np.linalg.solve(unit.mag.M, np.cross(u[None, :] * (t - ref)[:, None], lin).T).T
+        cos_i = np.einsum("nj,nj->n", h, g)
+        along = np.einsum("nj,nj->n", h, dh)
+        turn = -np.einsum("nj,nj->n", dh, g - cos_i[:, None] * h) / np.sqrt(np.maximum(1.0 - cos_i ** 2, 1e-12))
+        change = np.sqrt(along ** 2 + turn ** 2)  # the magnitude's change and the dip's (field units, rad)
     else:  # counts in the sensor frame, seen along the calibrated field's direction
         rec0, _ = simulate_handheld(seed, n=n, temp_c=temp, field=H)
         lin = rec0.mag - unit.mag.bias
@@ -136,6 +157,9 @@ def make_handheld_case(seed: int, kind: str | None, lam: float, n: int = 2400) -
     if kind == "gain_vs_temp":
         eff = GainVsTemp(gain_per_c=size * u, bias=unit.mag.bias, t_ref_c=ref)
         truth = {"gain_per_c": (size * u).tolist()}
+    elif kind == "misalignment_drift":
+        eff = MisalignmentDrift(rate_rad_per_s=size * u, bias=unit.mag.bias, t_mid=ref)
+        truth = {"rate_rad_per_s": (size * u).tolist()}
     else:
         cls = {"segment_offset_sensor": SensorSegmentOffset, "segment_offset_lab": LabSegmentOffset,
                "intermittent_interference": IntermittentInterference}[kind]
@@ -143,3 +167,14 @@ def make_handheld_case(seed: int, kind: str | None, lam: float, n: int = 2400) -
         truth = {"offset": (size * u).tolist()}
     rec, _ = simulate_handheld(seed, n=n, conceal=[eff], temp_c=temp, field=H)
     return rec, {"kind": kind, "lambda": lam, **eff.model(), **truth}
+
+
+def handheld_jobs(n: int, nulls: int, seed: int) -> list[tuple[int, str | None, float]]:
+    """The hand-held proof's cases as (case seed, kind, lambda): ``n`` per kind of :data:`HANDHELD_KINDS` at
+    non-centralities log-uniform over 3-300, then ``nulls`` without a departure (kind None, lambda 0)."""
+    rng = np.random.default_rng(seed)
+    jobs: list[tuple[int, str | None, float]] = [
+        (int(rng.integers(1 << 30)), kind, float(np.exp(rng.uniform(np.log(3), np.log(300)))))
+        for kind in HANDHELD_KINDS for _ in range(n)]
+    jobs += [(int(rng.integers(1 << 30)), None, 0.0) for _ in range(nulls)]
+    return jobs

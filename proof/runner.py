@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from itertools import combinations
@@ -23,7 +24,8 @@ from physics.simulate import Pose, Scan
 from physics.table import Motion
 from proof.concealments import OPEN_KINDS
 from proof.generator import EFFECTS, NC_RANGE, PAIR_NC_RANGE, Case, log_uniform, make_case, make_open_case, ordinary_plan
-from proof.score import Outcome, judge_open, score
+from proof.handheld import HANDHELD_KINDS, handheld_jobs, make_handheld_case
+from proof.score import Outcome, judge_model, judge_open, score, score_handheld
 
 
 def heldout_ratio(case: Case, series: dict[str, np.ndarray], key: str = "heldout_pred_after") -> float | None:
@@ -151,28 +153,33 @@ class _SingleThreadedBLAS:
                 os.environ[k] = v
 
 
+def _map(fn: Callable[[Any], Any], jobs: Sequence[Any], workers: int,
+         progress: Callable[[int, int, str], None] | None, label: Callable[[Any], str]) -> list[Any]:
+    """``fn`` over ``jobs`` in a spawn pool of ``workers`` processes (in this process when ``workers`` <= 1),
+    calling ``progress(done, total, label(result))`` after each; results in job order."""
+    results: dict[int, Any] = {}
+    total = len(jobs)
+    if workers <= 1:
+        for i, job in enumerate(jobs):
+            results[i] = fn(job)
+            if progress:
+                progress(len(results), total, label(results[i]))
+    else:
+        with _SingleThreadedBLAS(), ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+            futures = {pool.submit(fn, job): i for i, job in enumerate(jobs)}
+            for f in as_completed(futures):
+                results[futures[f]] = f.result()
+                if progress:
+                    progress(len(results), total, label(results[futures[f]]))
+    return [results[i] for i in range(total)]
+
+
 def run_tasks(tasks: Sequence[Task], workers: int = 2,
               progress: Callable[[int, int, str], None] | None = None) -> tuple[list[Case], list[Outcome]]:
     """Run tasks (in a spawn pool of ``workers`` processes; in this process when ``workers`` <= 1),
     calling ``progress(done, total, kind)`` after each; results in task order."""
-    results: dict[int, tuple[Case, Outcome]] = {}
-    total = len(tasks)
-    if workers <= 1:
-        for task in tasks:
-            i, case, out = run_task(task)
-            results[i] = (case, out)
-            if progress:
-                progress(len(results), total, case.kind)
-    else:
-        with _SingleThreadedBLAS(), ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
-            futures = [pool.submit(run_task, t) for t in tasks]
-            for f in as_completed(futures):
-                i, case, out = f.result()
-                results[i] = (case, out)
-                if progress:
-                    progress(len(results), total, case.kind)
-    ordered = [results[t.index] for t in tasks]
-    return [c for c, _ in ordered], [o for _, o in ordered]
+    ordered = _map(run_task, tasks, workers, progress, lambda r: r[1].kind)
+    return [c for _, c, _ in ordered], [o for _, _, o in ordered]
 
 
 #: What each case's record keeps of a finding.
@@ -211,3 +218,48 @@ def run_proof(n: int, seed: int, workers: int = 2, progress: Callable[[int, int,
               "open_plan_items": len(tasks[-1].plan) if open_n or open_nulls else 0,
               "analyze_kwargs": dict(analyze_kwargs or {}), "wall_s": time.perf_counter() - t0}
     return json_safe({"score": sc, "cases": per_case, "config": config})
+
+
+# --------------------------------------------------------------------------------------------------
+# The proof without table angles (hand-held recordings, the attitude-free model)
+# --------------------------------------------------------------------------------------------------
+
+def run_handheld_case(job: tuple[int, str | None, float]) -> dict[str, Any]:
+    """Generate one hand-held case (:func:`proof.handheld.make_handheld_case`), hand its recording (only) to
+    the analyser, judge it as the table proof's open-world cases are (:func:`proof.score.judge_model`; a
+    hand-held recording has no heading reference, so that criterion drops out). Top level for spawn."""
+    from physics.discrepancy import analyze  # the analyser is imported here only, never by the generator
+
+    seed, kind, lam = job
+    rec, truth = make_handheld_case(seed, kind, lam)
+    t0 = time.perf_counter()
+    out: dict[str, Any] = {"seed": seed, "kind": kind, "lambda": lam, "truth": truth}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            r = analyze(rec.select(slice(None)), rng=np.random.default_rng(seed)).result
+    except Exception as e:  # noqa: BLE001 - a crash is a result of the proof, scored and reported
+        out.update(seconds=time.perf_counter() - t0, error=f"{type(e).__name__}: {e}", alarm=None, success=False,
+                   frame=False, windows=False, findings=[])
+        return out
+    out.update(seconds=time.perf_counter() - t0, error=None, alarm=r["verdict"] != "consistent",
+               findings=[{k: f.get(k) for k in FINDING_KEYS} for f in r.get("findings", [])])
+    if kind is not None:
+        span = (float(rec.t[0]), float(rec.t[-1] + np.median(np.diff(rec.t))))
+        j = judge_model(truth, span, None, r)
+        out.update(success=j["success"], frame=j["frame_right"], windows=j["where_right"], failed=j["failed"],
+                   residual_ratio=j["residual_ratio"])
+    return out
+
+
+def run_handheld_proof(n: int, nulls: int, seed: int, workers: int = 2,
+                       progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
+    """The blind proof without table angles: the cases of :func:`proof.handheld.handheld_jobs`, each
+    analysed by ``physics.discrepancy.analyze`` (the attitude-free model: the recordings have no table
+    angles), scored by :func:`proof.score.score_handheld`. Returns ``{"score", "cases", "config"}``, JSON-safe."""
+    jobs = handheld_jobs(n, nulls, seed)
+    t0 = time.perf_counter()
+    cases = _map(run_handheld_case, jobs, workers, progress, lambda r: f"hand-held {r['kind'] or 'null'}")
+    config = {"n": n, "nulls": nulls, "seed": seed, "workers": workers, "kinds": list(HANDHELD_KINDS),
+              "wall_s": time.perf_counter() - t0}
+    return json_safe({"score": score_handheld(cases), "cases": cases, "config": config})

@@ -1007,18 +1007,23 @@ def prove(
                                        "accelerometer poses) or characterize."),
     open_nulls: int = typer.Option(0, "--open-nulls", min=0,
                                    help="Null recordings drawn as the open-world cases are (their plan and noise)."),
+    handheld_n: int = typer.Option(0, "--handheld-n", min=0,
+                                   help="Hand-held recordings without table angles per out-of-catalogue kind, "
+                                        "analysed by the attitude-free model (0: none; see proof.handheld)."),
+    handheld_nulls: int = typer.Option(0, "--handheld-nulls", min=0, help="Hand-held recordings without a departure."),
     workers: int = typer.Option(2, "--workers", min=1, help="Processes analysing in parallel."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the score and every case to this JSON file."),
 ) -> None:
     """The blind proof: recordings of random units on the characterize plan with concealed effects, nulls
-    and pairs (and with --open-n, physics outside the catalogue on the calibrate plan); the analyser sees
-    only the recordings; prints detection, false alarms, naming, recovery and the open-world success."""
+    and pairs (and with --open-n, physics outside the catalogue on the calibrate plan; with --handheld-n,
+    hand-held recordings without table angles); the analyser sees only the recordings; prints detection,
+    false alarms, naming, recovery and the open-world success."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from procedures.calibrate import characterize_plan
     from proof.generator import ordinary_plan
-    from proof.runner import run_proof
-    from proof.score import format_report
+    from proof.runner import run_handheld_proof, run_proof
+    from proof.score import format_handheld_report, format_report
 
     plans = {"calibrate": ordinary_plan, "characterize": characterize_plan}
     if open_plan not in plans:
@@ -1031,10 +1036,21 @@ def prove(
         def on_progress(done: int, total: int, kind: str) -> None:
             bar.update(task, completed=done, total=total, info=kind)
 
+        table = n or nulls is None or nulls or open_n or open_nulls  # any recording on the table (nulls default > 0)
         out = run_proof(n, seed, workers, on_progress, plan=characterize_plan(), nulls=nulls, open_n=open_n,
-                        open_plan=plans[open_plan](), open_nulls=open_nulls)
-    console.print(format_report(out["score"]), markup=False, highlight=False, soft_wrap=True)
-    console.print(f"{len(out['cases'])} recordings in {out['config']['wall_s']:.0f} s", markup=False, highlight=False)
+                        open_plan=plans[open_plan](), open_nulls=open_nulls) if table else {}
+        if handheld_n or handheld_nulls:
+            out["handheld"] = run_handheld_proof(handheld_n, handheld_nulls, seed, workers, on_progress)
+    if table:
+        console.print(format_report(out["score"]), markup=False, highlight=False, soft_wrap=True)
+        console.print(f"{len(out['cases'])} recordings in {out['config']['wall_s']:.0f} s", markup=False, highlight=False)
+    if "handheld" in out:
+        hh = out["handheld"]
+        console.print(format_handheld_report(hh["score"]), markup=False, highlight=False, soft_wrap=True)
+        console.print(f"{len(hh['cases'])} hand-held recordings in {hh['config']['wall_s']:.0f} s", markup=False,
+                      highlight=False)
+    if not out:
+        console.print("nothing to prove: every count is 0", markup=False, highlight=False)
     if json_out is not None:
         json_out.write_text(json.dumps(out, indent=1))
         console.print(f"score and cases written to {json_out}")

@@ -549,6 +549,9 @@ WIN = [[50.0, 120.0]]  # edges within 5 % of 200 s: +-10 s
     ("gain_vs_temp", None, open_result(found("sensor", "gain", "time")), ["where"]),
     ("misalignment_drift", None, open_result(found("platform", "rotation", "time")), []),
     ("misalignment_drift", None, open_result(found("lab", "offset", "time", effect="field_drift")), ["frame", "where"]),
+    # a parameter shift (the nominal model's own parameter out of range) is not a model of the departure
+    ("misalignment_drift", None, open_result(found("platform", "linear", None, effect="parameter_shift")),
+     ["frame", "where"]),
 ])
 def test_open_scorer_judges_frame_windows_input_residual_and_heading(kind: str, truth: list | None, result: dict,
                                                                      failed: list) -> None:
@@ -619,3 +622,72 @@ def test_open_world_end_to_end_through_the_analyser() -> None:
     assert set(so["by_kind"]) == set(kinds) and so["overall"]["cases"] == 3
     assert out["config"]["open_n"] == 1 and out["config"]["open_plan_items"] == len(OPEN_PLAN)
     assert "Out-of-catalogue" in format_report(out["score"])
+
+
+# ---------------------------------------------------------------------------------------------------
+# The proof without table angles (hand-held recordings): scorer, CLI end to end
+# ---------------------------------------------------------------------------------------------------
+
+def handheld_record(kind: str | None, lam: float, success: bool = False, frame: bool = False, windows: bool = False,
+                    failed: list | None = None, alarm: bool = False, error: str | None = None) -> dict:
+    rec = {"seed": 1, "kind": kind, "lambda": lam, "seconds": 2.0, "error": error, "alarm": alarm}
+    if kind is not None:
+        rec.update(success=success, frame=frame, windows=windows, failed=failed or [])
+    return rec
+
+
+def test_handheld_scorer_counts_success_by_bin_failures_and_false_alarms() -> None:
+    from proof.score import format_handheld_report, score_handheld
+
+    cases = [handheld_record("segment_offset_sensor", 4.0, failed=["frame", "where"]),
+             handheld_record("segment_offset_sensor", 50.0, True, True, True),
+             handheld_record("segment_offset_sensor", 150.0, frame=True, failed=["where"]),
+             handheld_record("gain_vs_temp", 30.0, True, True, True),
+             handheld_record("gain_vs_temp", 20.0, frame=True, windows=True, failed=["residual"]),
+             handheld_record(None, 0.0), handheld_record(None, 0.0, alarm=True), handheld_record(None, 0.0),
+             handheld_record(None, 0.0, error="ValueError: x")]
+    sc = score_handheld(cases)
+    s = sc["by_kind"]["segment_offset_sensor"]
+    assert s["cases"] == 3 and s["bins"] == [[0, 1], [0, 0], [0, 0], [1, 1], [0, 1]]
+    assert s["frame_right"] == pytest.approx(2 / 3) and s["where_right"] == pytest.approx(1 / 3)
+    assert sc["by_kind"]["gain_vs_temp"]["bins"] == [[0, 0], [0, 0], [1, 2], [0, 0], [0, 0]]
+    # lambda >= 25: the sensor cases at 50 and 150 and the gain case at 30
+    at = sc["at_target"]
+    assert (at["cases"], at["success"]) == (3, 2) and at["failed"]["where"] == 1 and at["failed"]["frame"] == 0
+    fa = sc["false_alarms"]
+    assert (fa["nulls"], fa["alarms"]) == (3, 1) and fa["upper95"] == pytest.approx(clopper_pearson_upper(1, 3))
+    assert sc["errors"] == [{"kind": None, "seed": 1, "error": "ValueError: x"}]
+    text = format_handheld_report(sc)
+    assert "success at lambda >= 25: 2/3 = 67% (target >= 90%) MISSED" in text
+    assert "false alarms on hand-held nulls: 1/3" in text and "null (seed 1): ValueError: x" in text
+
+
+def test_cli_prove_runs_the_handheld_proof_alone_end_to_end(tmp_path, monkeypatch) -> None:  # noqa: ANN001
+    from typer.testing import CliRunner
+
+    from proof.handheld import HANDHELD_KINDS
+    from service.cli import app
+
+    def no_table(*a, **kw):  # noqa: ANN002, ANN003, ANN202
+        raise AssertionError("no table recording was asked for")
+
+    monkeypatch.setattr(proof.runner, "run_proof", no_table)
+    out = tmp_path / "proof.json"
+    res = CliRunner().invoke(app, ["prove", "--n", "0", "--nulls", "0", "--handheld-n", "1", "--handheld-nulls", "1",
+                                   "--seed", "3", "--workers", "1", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "Hand-held cases without table angles" in res.output
+    assert f"{len(HANDHELD_KINDS) + 1} hand-held recordings" in res.output
+    hh = json.loads(out.read_text())["handheld"]
+    cases = hh["cases"]
+    assert [c["kind"] for c in cases] == [*HANDHELD_KINDS, None]
+    for c in cases:
+        assert c["error"] is None and 0 < c["seconds"] < 60
+        if c["kind"] is not None:  # judged by the open-world rule: success exactly when nothing failed
+            assert c["success"] == (not c["failed"]) and c["truth"]["kind"] == c["kind"]
+            assert c["success"] <= (c["frame"] and c["windows"])
+    assert sum(d["cases"] for d in hh["score"]["by_kind"].values()) == len(HANDHELD_KINDS)
+    assert hh["score"]["false_alarms"]["nulls"] == 1
+    # the strongest case in this draw is found in its frame and window
+    top = max(cases[:-1], key=lambda c: c["lambda"])
+    assert top["lambda"] > 25 and top["frame"] and top["windows"], top

@@ -261,6 +261,20 @@ def test_the_magnetometer_turning_against_the_accelerometer_is_named_as_such():
     assert analyze_attitude_free(clean, null_sims=100, rng=np.random.default_rng(1)).result["verdict"] == "consistent"
 
 
+def test_the_verdict_follows_what_is_reported():
+    """A null hand-held recording (drawn by the blind proof) on which a bias following temperature is significant
+    (p_adj 0.0008) but not given smooth structure against time and direction, which the generic tests then do not
+    find: nothing is reported, so the verdict is "consistent", as the table model's would be (before:
+    "discrepancy" with no finding, and a summary pointing to unexplained structure that was not there)."""
+    from proof.handheld import make_handheld_case
+
+    rec, _ = make_handheld_case(281033984, None, 0.0)
+    r = analyze_attitude_free(rec, rng=np.random.default_rng(281033984)).result
+    assert any(t["p_adjusted"] < r["alpha"] and not t["selected"] for t in r["tests"]), r["tests"]
+    assert _names(r) == [] and r["verdict"] == "consistent"
+    assert any("nothing they named held" in n for n in r["notes"]), r["notes"]
+
+
 def test_the_window_search_raises_no_alarm_on_null_recordings():
     """On 30 null recordings the search over windows and frames finds nothing (its p pays for the search)."""
     for seed in range(30):

@@ -970,19 +970,19 @@ def _responses(reg: dict[str, _Regression], given: list[str]) -> list[tuple]:
     return out
 
 
-def _joint_test(reg: dict[str, _Regression], given: list[str], blk: str, null_sims: int, rng: np.random.Generator,
+def _joint_test(responses: list[tuple], given: list[str], blk: str, null_sims: int, rng: np.random.Generator,
                 n_tests: int) -> "_Test":
     """Block ``blk`` of raw-count distortions tested on the magnitude and the dip at once, one set of parameters
     for both (its columns are ``blk`` on the magnitude and ``blk@dip`` on the dip), given the magnitude's blocks
     ``given`` (and the dip's share of them): each response AR(1)-whitened, its model projected out and scaled
-    to unit noise (:func:`_responses`), the statistic c' G+ c of the stacked rows. Its Bartlett factor (at least
+    to unit noise (``responses``: :func:`_responses` of ``given``, shared by the blocks tested), the statistic c' G+ c of the stacked rows. Its Bartlett factor (at least
     1) is the mean over ``null_sims`` simulated nulls treated alike, p from chi-square on the rank, Bonferroni
     over ``n_tests``. The joint estimate and its covariance (parameter units) go in ``extra``."""
     c = np.zeros(3)
     G = np.zeros((3, 3))
     B = np.zeros((3, 3))
     parts = []
-    for resp, r, rho, white, Q, y, s in _responses(reg, given):
+    for resp, r, rho, white, Q, y, s in responses:
         name = blk if resp == "magnitude" else blk + "@dip"
         if name not in r.slices:
             continue
@@ -1616,7 +1616,8 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         the magnitude and the dip at once. Time and the temperature are nearly one input in a warm-up: the likelier
         one for axes that turn (discovery.SLOW_PREFERENCE: time, by creep) unless the other explains
         SLOW_SAME_EVIDENCE more."""
-        tts = [_joint_test(reg, given, b, null_sims, rng, n_tests) for b in turns]
+        responses = _responses(reg, given)  # one whitening and projection for both blocks
+        tts = [_joint_test(responses, given, b, null_sims, rng, n_tests) for b in turns]
         done.extend(tts)
         sig = sorted((tt for tt in tts if tt.p_adj < alpha), key=lambda tt: -tt.statistic)
         if not sig:

@@ -555,6 +555,60 @@ def test_whitening_restarts_at_each_segment_and_the_window_statistic_matches_the
         assert complement_statistic(Xc, Q, y) == pytest.approx(float(np.sum((B.T @ y) ** 2)), rel=1e-9)
 
 
+def test_the_window_statistics_of_a_moving_edge_equal_the_statistic_one_window_at_a_time() -> None:
+    """window_statistics takes every position of one edge at once from the part the windows share and
+    each window's own stretch (the whitening restarts at each run of samples and its response dies
+    out): the same numbers as window_statistic one window at a time, for either edge, with a second
+    window tied to it, in white and strongly coloured noise, the edge crossing several holds."""
+    from physics.discrepancy.noise import NoiseModel
+    rec, _ = _recording(seed=6)
+    ctx, nom, noise, Q0, z = _whitened(_with(rec, np.outer(_window(rec, 0.3, 0.6), [20.0, -9.0, 14.0])))
+    X, _ = dv.base_columns(ctx, nom, "lab", "offset")
+    t = ctx.t
+    coloured = NoiseModel(noise.sigma, np.array([0.95, 0.0, 0.7]), noise.white)
+    for nm in (noise, coloured):
+        for other in (None, _window(rec, 0.8, 0.9)):
+            extra = np.zeros(len(t), bool) if other is None else other
+            edges = t[(t > t[0] + 0.2 * np.ptp(t)) & (t < t[0] + 0.4 * np.ptp(t))][::3] + 1e-3
+            t1 = t[0] + 0.6 * np.ptp(t)
+            masks = ((t[None] >= edges[:, None]) & (t[None] < t1)) | extra
+            one = [dv.window_statistic(X, ctx, nm, Q0, z, e, t1, other) for e in edges]
+            assert np.allclose(dv.window_statistics(X, ctx, nm, Q0, z, masks), one, rtol=1e-9, atol=1e-9)
+            t0 = t[0] + 0.3 * np.ptp(t)
+            ends = edges + 0.35 * np.ptp(t)
+            masks = ((t[None] >= t0) & (t[None] < ends[:, None])) | extra
+            one = [dv.window_statistic(X, ctx, nm, Q0, z, t0, e, other) for e in ends]
+            assert np.allclose(dv.window_statistics(X, ctx, nm, Q0, z, masks), one, rtol=1e-9, atol=1e-9)
+
+
+def test_a_large_offset_is_placed_to_the_sample_even_at_the_end_of_the_run() -> None:
+    """A magnet of several hundred counts attached in the middle of a hold and taken off a second before
+    the run ended: both edges are placed between the right two samples (one sample on the wrong side of
+    such a step is a residual far above the noise), the run's last second is not counted inside the
+    window, and the residual after is at the noise floor. Before, the refinement looked at thinned
+    candidates inside holds and never moved an edge the grid had put at the run's end: the window ended
+    at the run's end, more windows and a sensor gain patched what it left, and the residual stayed at
+    2-4 times the floor."""
+    rec, _ = _recording(seed=7)
+    t = rec.t
+    run = np.r_[0, np.flatnonzero(np.diff(t) > 0.2) + 1, len(t)]  # holds: runs of samples
+    mid = next(a for a, b in zip(run[:-1], run[1:]) if t[a] > t[0] + 0.4 * np.ptp(t) and b - a >= 20)
+    start, stop = mid + 17, len(t) - 20  # mid-hold, and a second before the last sample
+    m = np.zeros(len(t), bool)
+    m[start:stop] = True
+    a = analyze(_with(rec, np.outer(m, [180.0, -240.0, 320.0])), null_sims=100, rng=np.random.default_rng(0))
+    found = [f for f in a.result["findings"] if f["effect"] == "discovered"]
+    assert len(found) == 1 and found[0]["model"]["frame"] in ("sensor", "platform")
+    inside = np.zeros(len(t), bool)
+    for s0, s1 in found[0]["model"]["segments"]:  # a segment reaching the run's end holds its last sample
+        inside |= (t >= s0) & ((t < s1) | ((s1 >= t[-1]) & (t <= s1)))
+    # the found window holds exactly the samples with the offset (or, for the unit's own frame, where
+    # the bias takes the constant, exactly those without it)
+    assert np.array_equal(inside, m) or np.array_equal(inside, ~m)
+    ratio = np.array(a.result["residual_rms_after_lsb"]) / np.array(a.result["noise_floor_lsb"])
+    assert np.all(ratio < 1.1), ratio
+
+
 def test_a_spectral_line_the_twin_does_not_confirm_is_left_out() -> None:
     """A null recording of the open-world proof (seed 13, null 65: white 3 LSB noise) whose strongest
     spectral line passes the periodogram's test at alpha 0.05 (p 1.5e-3 over ~8000 frequencies, against

@@ -4,6 +4,7 @@ spectral line search."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import special, stats
@@ -112,18 +113,23 @@ def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: flo
         t.log_p = float(min(0.0, chi2_logsf(t.statistic / c, nu) + np.log(m)))
 
 
-def chi2_logsf(x: float, df: float) -> float:
+def chi2_logsf(x: Any, df: Any) -> Any:
     """log of the chi-square tail, finite far beyond where scipy's underflows. There it is the asymptotic
     series of the upper incomplete gamma function, log Gamma(a, y) ~ (a - 1) log y - y + log(1 + (a - 1) / y
     + (a - 1)(a - 2) / y^2), a = df / 2, y = x / 2: exact in its leading terms, so tests with different
     degrees of freedom still rank correctly (a normal approximation compresses the far tail, and far
-    more for few degrees of freedom than for many)."""
-    v = float(stats.chi2.logsf(x, df))
-    if np.isfinite(v):
-        return v
-    a, y = df / 2.0, x / 2.0
-    series = 1.0 + (a - 1.0) / y + (a - 1.0) * (a - 2.0) / (y * y)
-    return float((a - 1.0) * np.log(y) - y + np.log(max(series, 1e-300)) - special.gammaln(a))
+    more for few degrees of freedom than for many). Scalars give a float, arrays an array (elementwise;
+    scipy.special directly: the window search evaluates thousands at once)."""
+    xa, da = np.broadcast_arrays(np.asarray(x, float), np.asarray(df, float))
+    with np.errstate(divide="ignore"):
+        v = np.log(special.chdtrc(da, xa))
+    far = ~np.isfinite(v)
+    if np.any(far):
+        a, y = da[far] / 2.0, xa[far] / 2.0
+        series = 1.0 + (a - 1.0) / y + (a - 1.0) * (a - 2.0) / (y * y)
+        v = np.array(v, float)
+        v[far] = (a - 1.0) * np.log(y) - y + np.log(np.maximum(series, 1e-300)) - special.gammaln(a)
+    return float(v) if v.ndim == 0 else v
 
 
 def _null_residuals(ctx: Context, noise: NoiseModel, Q: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:

@@ -23,7 +23,8 @@ from physics.calibration import json_safe
 from physics.simulate import Pose, Scan
 from physics.table import Motion
 from proof.concealments import OPEN_KINDS
-from proof.generator import EFFECTS, NC_RANGE, PAIR_NC_RANGE, Case, log_uniform, make_case, make_open_case, ordinary_plan
+from proof.generator import (EFFECTS, LARGE_NC_RANGE, NC_RANGE, PAIR_NC_RANGE, Case, log_uniform, make_case,
+                             make_open_case, ordinary_plan)
 from proof.handheld import HANDHELD_KINDS, handheld_jobs, make_handheld_case
 from proof.score import Outcome, judge_model, judge_open, score, score_handheld
 
@@ -86,9 +87,9 @@ def run_task(task: Task) -> tuple[int, Case, Outcome]:
     return task.index, replace(case, rec=None, clean=None), out
 
 
-def _stratified(rng: np.random.Generator, n: int) -> list[float]:
-    """``n`` non-centralities log-uniform over :data:`NC_RANGE`, one in each of n equal log-intervals, shuffled."""
-    lo, hi = np.log(NC_RANGE[0]), np.log(NC_RANGE[1])
+def _stratified(rng: np.random.Generator, n: int, nc_range: tuple[float, float] = NC_RANGE) -> list[float]:
+    """``n`` non-centralities log-uniform over ``nc_range``, one in each of n equal log-intervals, shuffled."""
+    lo, hi = np.log(nc_range[0]), np.log(nc_range[1])
     u = (np.arange(n) + rng.uniform(0.0, 1.0, n)) / max(n, 1)
     return [float(np.exp(lo + x * (hi - lo))) for x in rng.permutation(u)]
 
@@ -97,16 +98,19 @@ def proof_tasks(n: int, seed: int, plan: Sequence[Pose | Scan], nulls: int | Non
                 motion: Motion = Motion(), analyze_kwargs: dict[str, Any] | None = None,
                 pair_nc: tuple[float, float] = PAIR_NC_RANGE, open_n: int = 0,
                 open_plan: Sequence[Pose | Scan] | None = None, open_nulls: int = 0,
-                open_kinds: Sequence[str] = OPEN_KINDS) -> list[Task]:
+                open_kinds: Sequence[str] = OPEN_KINDS, open_large: int = 0) -> list[Task]:
     """The proof's cases: ``n`` per catalogue effect at non-centralities spread log-uniformly over
     [3, 300] (stratified: one draw in each of n equal log-intervals), ``nulls`` nulls (default
     max(3 n, 20)), ``pairs`` pairs (default n // 2) of different effects drawn from all pairs, each
     effect at its own target log-uniform in ``pair_nc`` (see :data:`PAIR_NC_RANGE`), all on ``plan``;
-    then ``open_n`` per open-world kind of ``open_kinds`` (stratified the same way) and ``open_nulls``
-    nulls of the open world's draw, on ``open_plan`` (default: proof.generator.ordinary_plan).
+    then ``open_n`` per open-world kind of ``open_kinds`` (stratified the same way), ``open_nulls``
+    nulls of the open world's draw, and ``open_large`` per kind stratified over :data:`LARGE_NC_RANGE`,
+    on ``open_plan`` (default: proof.generator.ordinary_plan).
 
     The catalogue tasks do not depend on the open-world arguments (their targets and seeds come
-    first and from their own streams), so adding open-world cases leaves the catalogue figures as they were.
+    first and from their own streams), so adding open-world cases leaves the catalogue figures as they
+    were; the large departures come last and from a stream of their own, so adding them leaves the
+    other open-world cases as they were.
     """
     nulls = max(3 * n, 20) if nulls is None else nulls
     pairs = n // 2 if pairs is None else pairs
@@ -127,6 +131,9 @@ def proof_tasks(n: int, seed: int, plan: Sequence[Pose | Scan], nulls: int | Non
             raise ValueError(f"open_kinds: expected some of {', '.join(OPEN_KINDS)}, got {k!r}")
         specs += [(k, {k: x}, "open") for x in _stratified(orng, open_n)]
     specs += [("null", None, "open")] * open_nulls
+    lrng = np.random.default_rng(np.random.SeedSequence([seed, 13]))  # the large departures' own stream
+    for k in open_kinds if open_large else ():
+        specs += [(k, {k: x}, "open") for x in _stratified(lrng, open_large, LARGE_NC_RANGE)]
     # generate_state is prefix-stable: the catalogue tasks keep their seeds whatever follows them
     seeds = np.random.SeedSequence(seed).generate_state(len(specs), dtype=np.uint64)
     oplan = tuple(open_plan) if open_plan is not None else (tuple(ordinary_plan()) if len(specs) > catalogue else ())
@@ -191,13 +198,13 @@ def run_proof(n: int, seed: int, workers: int = 2, progress: Callable[[int, int,
               motion: Motion = Motion(), analyze_kwargs: dict[str, Any] | None = None,
               pair_nc: tuple[float, float] = PAIR_NC_RANGE, open_n: int = 0,
               open_plan: Sequence[Pose | Scan] | None = None, open_nulls: int = 0,
-              open_kinds: Sequence[str] = OPEN_KINDS) -> dict[str, Any]:
+              open_kinds: Sequence[str] = OPEN_KINDS, open_large: int = 0) -> dict[str, Any]:
     """The blind proof: generate the cases of :func:`proof_tasks`, analyse each noisy recording with
     ``physics.discrepancy.analyze`` (default arguments unless ``analyze_kwargs``; never anything of the
     truth), score. Returns ``{"score", "cases", "config"}``, JSON-safe; an open-world case's record
     also has the scorer's ``judgement`` (proof.score.judge_open)."""
     tasks = proof_tasks(n, seed, plan, nulls, pairs, motion, analyze_kwargs, pair_nc, open_n, open_plan, open_nulls,
-                        open_kinds)
+                        open_kinds, open_large)
     t0 = time.perf_counter()
     cases, outcomes = run_tasks(tasks, workers, progress)
     sc = score(cases, outcomes)
@@ -214,8 +221,9 @@ def run_proof(n: int, seed: int, workers: int = 2, progress: Callable[[int, int,
         per_case.append(d)
     config = {"n": n, "seed": seed, "nulls": sum(c.kind == "null" for c in cases),
               "pairs": sum("+" in c.kind for c in cases), "pair_nc": list(pair_nc), "workers": workers, "plan_items": len(plan),
-              "open_n": open_n, "open_nulls": open_nulls, "open_kinds": list(open_kinds) if open_n else [],
-              "open_plan_items": len(tasks[-1].plan) if open_n or open_nulls else 0,
+              "open_n": open_n, "open_nulls": open_nulls, "open_large": open_large,
+              "open_kinds": list(open_kinds) if open_n or open_large else [],
+              "open_plan_items": len(tasks[-1].plan) if open_n or open_nulls or open_large else 0,
               "analyze_kwargs": dict(analyze_kwargs or {}), "wall_s": time.perf_counter() - t0}
     return json_safe({"score": sc, "cases": per_case, "config": config})
 

@@ -17,7 +17,7 @@ from scipy.optimize import minimize
 from scipy.stats import beta, chi2, ncx2
 
 from proof.concealments import OPEN_KINDS
-from proof.generator import EFFECTS, Case
+from proof.generator import EFFECTS, LARGE_NC_RANGE, NC_RANGE, Case
 
 #: Bins of the detection and success tables (lower edges inclusive; the first bin also takes values a
 #: little under 3, the last a little over 300).
@@ -432,23 +432,30 @@ def score_open(cases: Sequence[Case], analyses: Sequence[Outcome | dict[str, Any
     right, the form right, detected; the median residual ratio (after / noise floor, largest axis),
     median level heading error before and after and the share made better, seconds per analysis;
     overall success at lambda >= 25 (the issue's 90 % target) and at any lambda, with the failures'
-    reasons. JSON-safe."""
+    reasons. Large departures (a target above the main range, proof.generator.LARGE_NC_RANGE) are scored
+    apart ("large", per kind and in all), so that they never lift the figure at lambda >= 25. JSON-safe."""
     if len(cases) != len(analyses):
         raise ValueError(f"score_open: {len(cases)} cases but {len(analyses)} analyses")
     rows: dict[str, list[tuple[float, dict[str, Any], float | None]]] = {}
+    large: dict[str, list[tuple[dict[str, Any], float | None]]] = {}  # departures above the main range
     errors: list[dict[str, Any]] = []
     for case, a in zip(cases, analyses):
         o = _outcome(a)
         if o.error is not None or o.result is None:
             errors.append({"kind": case.kind, "seed": case.seed, "error": o.error})
-        rows.setdefault(case.kind, []).append((case.nc.get(case.kind, case.nc_total), judge_open(case, o.result), o.seconds))
+        j = judge_open(case, o.result)
+        if (case.target_nc or {}).get(case.kind, 0.0) > NC_RANGE[1]:
+            large.setdefault(case.kind, []).append((j, o.seconds))
+            continue
+        rows.setdefault(case.kind, []).append((case.nc.get(case.kind, case.nc_total), j, o.seconds))
 
     def share(js: list[dict[str, Any]], key: str) -> float | None:
         return sum(bool(j[key]) for j in js) / len(js) if js else None
 
     by_kind: dict[str, dict[str, Any]] = {}
-    for kind in [k for k in OPEN_KINDS if k in rows] + sorted(set(rows) - set(OPEN_KINDS)):
-        r = rows[kind]
+    kinds = set(rows) | set(large)
+    for kind in [k for k in OPEN_KINDS if k in kinds] + sorted(kinds - set(OPEN_KINDS)):
+        r = rows.get(kind, [])
         bins = [[0, 0] for _ in NC_BINS]
         for nc, j, _ in r:
             b = bins[_bin(nc)]
@@ -467,7 +474,8 @@ def score_open(cases: Sequence[Case], analyses: Sequence[Outcome | dict[str, Any
                          "heading_max_better": share([j for j in js if j["heading_max_better"] is not None],
                                                      "heading_max_better"),
                          "seconds_median": _pct([s for _, _, s in r if s is not None], 50),
-                         "seconds_max": _pct([s for _, _, s in r if s is not None], 100)}
+                         "seconds_max": _pct([s for _, _, s in r if s is not None], 100),
+                         "large": [sum(j["success"] for j, _ in large.get(kind, [])), len(large.get(kind, []))]}
 
     def total(keep: Any) -> dict[str, Any]:
         js = [j for r in rows.values() for nc, j, _ in r if keep(nc)]
@@ -476,8 +484,13 @@ def score_open(cases: Sequence[Case], analyses: Sequence[Outcome | dict[str, Any
         return {"cases": n, "success": k, "rate": k / n if n else None, "failed": failed}
 
     secs = [s for r in rows.values() for _, _, s in r if s is not None]
+    secs += [s for r in large.values() for _, s in r if s is not None]
+    lj = [j for r in large.values() for j, _ in r]
     return {"by_kind": by_kind, "at_target": {"nc_min": TARGETS["open_nc"], **total(lambda nc: nc >= TARGETS["open_nc"])},
             "overall": total(lambda nc: True),
+            "large": {"cases": len(lj), "success": sum(j["success"] for j in lj),
+                      "rate": sum(j["success"] for j in lj) / len(lj) if lj else None,
+                      "failed": {k: sum(k in j["failed"] for j in lj) for k in OPEN_FAILURES}},
             "seconds": {"analyses": len(secs), "median": _pct(secs, 50), "max": _pct(secs, 100)},
             "errors": errors}
 
@@ -632,6 +645,9 @@ def format_open_report(so: dict[str, Any]) -> str:
     """The open-world score (:func:`score_open`) as a plain-text table, next to the issue's targets."""
     T = TARGETS
     bins = _bin_labels()
+    with_large = bool(so.get("large", {}).get("cases"))
+    if with_large:
+        bins = bins + ["large"]
     head = (f"{'kind':<26}{'n':>4}" + "".join(f"{b:>10}" for b in bins) + f"{'frame':>7}{'where':>7}{'form':>6}"
             f"{'resid':>7}{'heading rms before->after':>27}{'better':>8}{'max':>6}{'s':>6}")
     out = [f"Out-of-catalogue cases: success by non-centrality (successes/cases). Success = a finding in the true "
@@ -641,7 +657,7 @@ def format_open_report(so: dict[str, Any]) -> str:
            f"resid: median residual over the noise floor; heading: medians (deg); better: share with the RMS lower "
            f"after, max: with the maximum lower; s: median seconds per analysis", head, "-" * len(head)]
     for kind, d in so["by_kind"].items():
-        cells = _bin_cells(d["bins"])
+        cells = _bin_cells(list(d["bins"]) + ([d["large"]] if with_large else []))
         heading = f"{_f(d['heading_before_median'], '{:.3f}')} -> {_f(d['heading_after_median'], '{:.3f}')}"
         out.append(f"{kind:<26}{d['cases']:>4}{cells}{_f(d['frame_right']):>7}{_f(d['where_right']):>7}"
                    f"{_f(d['form_right']):>6}{_f(d['residual_ratio_median'], '{:.2f}'):>7}{heading:>27}"
@@ -654,6 +670,11 @@ def format_open_report(so: dict[str, Any]) -> str:
         out.append(f"  failed at lambda >= {a['nc_min']:g} on: " + ", ".join(
             f"{k} {v}" for k, v in a["failed"].items()) + "  (frame: no finding in the true frame; where: windows or "
             "input wrong; residual: over the floor; heading: not better; a case can fail on several)")
+    if with_large:
+        lg = so["large"]
+        out.append(f"large departures (lambda {LARGE_NC_RANGE[0]:g}-{LARGE_NC_RANGE[1]:g}, column 'large'; not counted above): "
+                   f"{lg['success']}/{lg['cases']} = {_f(lg['rate'])}; failed on: "
+                   + ", ".join(f"{k} {v}" for k, v in lg["failed"].items()))
     s = so["seconds"]
     ok = None if s["max"] is None else s["max"] <= T["seconds"]
     out.append(f"Seconds per open-world analysis: median {_f(s['median'], '{:.1f}')}, max {_f(s['max'], '{:.1f}')} "

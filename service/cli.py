@@ -1007,6 +1007,9 @@ def prove(
                                        "accelerometer poses) or characterize."),
     open_nulls: int = typer.Option(0, "--open-nulls", min=0,
                                    help="Null recordings drawn as the open-world cases are (their plan and noise)."),
+    open_large: int = typer.Option(0, "--open-large", min=0,
+                                   help="Large out-of-catalogue departures per open-world kind (non-centrality "
+                                        "log-uniform in 300-1e6, scored apart: is the model right to the sample?)."),
     handheld_n: int = typer.Option(0, "--handheld-n", min=0,
                                    help="Hand-held recordings without table angles per out-of-catalogue kind, "
                                         "analysed by the attitude-free model (0: none; see proof.handheld)."),
@@ -1036,9 +1039,10 @@ def prove(
         def on_progress(done: int, total: int, kind: str) -> None:
             bar.update(task, completed=done, total=total, info=kind)
 
-        table = n or nulls is None or nulls or open_n or open_nulls  # any recording on the table (nulls default > 0)
+        # any recording on the table (nulls default > 0)
+        table = n or nulls is None or nulls or open_n or open_nulls or open_large
         out = run_proof(n, seed, workers, on_progress, plan=characterize_plan(), nulls=nulls, open_n=open_n,
-                        open_plan=plans[open_plan](), open_nulls=open_nulls) if table else {}
+                        open_plan=plans[open_plan](), open_nulls=open_nulls, open_large=open_large) if table else {}
         if handheld_n or handheld_nulls:
             out["handheld"] = run_handheld_proof(handheld_n, handheld_nulls, seed, workers, on_progress)
     if table:

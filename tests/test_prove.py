@@ -21,8 +21,8 @@ from proof.concealments import OPEN_KINDS, make_open
 from proof.generator import (EFFECTS, INTERMITTENT_GAP, WINDOW_FRAC, Case, draw_windows, equivalent_frames, field_base,
                              make_case, make_open_case, nominal_misfit, ordinary_plan, recording_span)
 from proof.runner import proof_tasks, run_proof
-from proof.score import (Outcome, clopper_pearson_upper, format_report, judge_open, logistic_fit, merge_segments, score,
-                         score_open)
+from proof.score import (Outcome, clopper_pearson_upper, format_open_report, format_report, judge_open, logistic_fit,
+                         merge_segments, score, score_open)
 
 RATE = Motion().sample_rate_hz
 
@@ -327,6 +327,8 @@ def test_cli_prove_passes_the_characterize_plan_and_prints_the_report(tmp_path, 
     assert "Out-of-catalogue" in res.output and "segment_offset_lab" in res.output
     res = CliRunner().invoke(app, ["prove", "--open-n", "1", "--open-plan", "characterize", "--workers", "1"])
     assert res.exit_code == 0 and seen["open_plan"] == characterize_plan()
+    res = CliRunner().invoke(app, ["prove", "--n", "0", "--nulls", "0", "--open-large", "3", "--workers", "1"])
+    assert res.exit_code == 0 and (seen["open_n"], seen["open_large"]) == (0, 3)
     assert CliRunner().invoke(app, ["prove", "--open-n", "1", "--open-plan", "nope"]).exit_code != 0
 
 
@@ -478,6 +480,12 @@ def test_open_tasks_follow_the_catalogue_tasks_unchanged() -> None:
     targets = sorted(t.target_nc["gain_vs_temp"] for t in extra if t.kind == "gain_vs_temp")
     assert 3 <= targets[0] < 10 and 90 < targets[-1] <= 300  # stratified log-uniform, 4 strata
     assert len({t.seed for t in tasks}) == len(tasks)
+    # the large departures come last, from their own stream: the cases before them are unchanged
+    with_large = proof_tasks(2, 3, PLAN, open_n=4, open_nulls=3, open_large=2)
+    assert [(t.kind, t.seed, t.target_nc) for t in with_large[:len(tasks)]] == [(t.kind, t.seed, t.target_nc) for t in tasks]
+    large = with_large[len(tasks):]
+    assert [t.kind for t in large] == [k for k in OPEN_KINDS for _ in range(2)]
+    assert all(300 <= t.target_nc[t.kind] <= 1e6 and t.generator == "open" for t in large)
 
 
 def test_generator_never_imports_the_analyser() -> None:
@@ -602,6 +610,26 @@ def test_open_scorer_reports_per_kind_and_the_target() -> None:
     # open-world cases alone: no empty catalogue tables
     only = format_report(score(cases, [Outcome(r, None, 2.0) if isinstance(r, dict) else r for r in results]))
     assert "Detection rate" not in only and "Out-of-catalogue" in only and "Analyses that raised: 1" in only
+
+
+def test_open_scorer_keeps_the_large_departures_apart() -> None:
+    """Large departures (a target above 300) are scored in their own column and line: they never lift the
+    figure at lambda >= 25, and their failures are counted by reason."""
+    ok = open_result(found("lab", segments=WIN))
+    cases = [open_case("segment_offset_lab", 30.0, WIN), open_case("segment_offset_lab", 3e4, WIN),
+             open_case("segment_offset_lab", 2e5, WIN), open_case("segment_offset_sensor", 5e3, WIN)]
+    results = [open_result(found("sensor", segments=WIN)), ok, open_result(found("lab", segments=WIN), after=(4.0, 3.0, 3.0)),
+               open_result(found("sensor", segments=WIN))]
+    so = score_open(cases, [Outcome(r, None, s) for r, s in zip(results, (2.0, 3.0, 40.0, 4.0))])
+    assert (so["at_target"]["cases"], so["at_target"]["success"]) == (1, 0)
+    assert so["large"] == {"cases": 3, "success": 2, "rate": pytest.approx(2 / 3),
+                           "failed": {"frame": 0, "where": 0, "residual": 1, "heading": 0}}
+    assert so["by_kind"]["segment_offset_lab"]["large"] == [1, 2] and so["by_kind"]["segment_offset_lab"]["cases"] == 1
+    assert so["by_kind"]["segment_offset_sensor"]["large"] == [1, 1] and so["by_kind"]["segment_offset_sensor"]["cases"] == 0
+    assert so["seconds"]["max"] == 40.0  # every analysis counts against the time target
+    text = format_open_report(so)
+    assert "large departures (lambda 300-1e+06" in text and "2/3 = 67%" in text and "residual 1" in text
+    assert "success at lambda >= 25: 0/1" in text
 
 
 def test_open_world_end_to_end_through_the_analyser() -> None:

@@ -526,8 +526,9 @@ def format_report(sc: dict[str, Any]) -> str:
         out.append(_format_catalogue(sc))
     elif sc["false_alarms"]["nulls"]:
         out.append("\n".join(_format_false_alarms(sc["false_alarms"])))
-    if (sc.get("open") or {}).get("overall", {}).get("cases"):
-        out.append(format_open_report(sc["open"]))
+    so = sc.get("open") or {}
+    if so.get("overall", {}).get("cases") or so.get("large", {}).get("cases"):
+        out.append(format_open_report(so))
     text = "\n\n".join(out)
     if sc["errors"]:
         text += f"\nAnalyses that raised: {len(sc['errors'])}"

@@ -630,6 +630,9 @@ def test_open_scorer_keeps_the_large_departures_apart() -> None:
     text = format_open_report(so)
     assert "large departures (lambda 300-1e+06" in text and "2/3 = 67%" in text and "residual 1" in text
     assert "success at lambda >= 25: 0/1" in text
+    # a proof of large departures alone still prints the open-world table
+    only = format_report(score(cases[1:], [Outcome(r, None, 2.0) for r in results[1:]]))
+    assert "large departures" in only and "2/3 = 67%" in only
 
 
 def test_open_world_end_to_end_through_the_analyser() -> None:

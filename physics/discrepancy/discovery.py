@@ -618,33 +618,69 @@ def window_statistics(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndar
     return np.sum(np.where(keep, u * u / np.where(keep, lam, 1.0), 0.0), axis=1)
 
 
+#: Candidate edges of an edge search's first pass (sample intervals inside long stretches are thinned
+#: to this many, the gaps between holds kept): every sample interval of a long hand-held recording's
+#: search range cost its analysis five times as long.
+COARSE_EDGES = 240
+
+
+def _cells(ctx: Context, lo_t: float, hi_t: float, limit: int, before: bool, after: bool) -> list[tuple]:
+    """The candidate edges between ``lo_t`` and ``hi_t`` (:func:`_edge_candidates`, at most ``limit``) as
+    cells (sample interval, cell start, cell end), with the candidates beyond the run's ends (:func:`place_edge`)."""
+    t = ctx.t
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    gaps, bounds = _edge_candidates(ctx, lo_t, hi_t, limit=limit)
+    cells = [(tuple(g), bounds[i], bounds[i + 1]) for i, g in enumerate(gaps)]
+    if before and lo_t <= t[0]:
+        cells.insert(0, ((t[0] - dt, t[0]), t[0] - dt, t[0]))
+    if after and hi_t >= t[-1]:
+        cells.append(((t[-1], t[-1] + dt), t[-1], t[-1] + dt))
+    return cells
+
+
 def place_edge(ctx: Context, lo_t: float, hi_t: float, stats_of: Callable[[np.ndarray], np.ndarray],
                before: bool = False, after: bool = False) -> float | None:
-    """An edge's time between ``lo_t`` and ``hi_t``: the posterior median over every sample interval
-    there (:func:`_posterior_edge`); ``stats_of(edges)`` gives the window's statistic with this edge at
-    each of ``edges``. None when no sample interval lies there.
+    """An edge's time between ``lo_t`` and ``hi_t``: the posterior median (:func:`_posterior_edge`) over
+    the sample intervals there; ``stats_of(edges)`` gives the window's statistic with this edge at each
+    of ``edges``. None when no sample interval lies there.
 
     ``before`` / ``after``: the window may also begin before the first sample (end after the last), one
     more candidate standing for a sample interval beyond the recording's end: a departure present at the
     start of the run is then found as such, and one that ended a second before the run did is not
     stretched to the end. Returns a time before ``ctx.t[0]`` (after ``ctx.t[-1]``) for that candidate.
-    Every sample interval counts: one sample on the wrong side of a large step leaves a residual far
-    above the noise (a 460-LSB offset placed 2 samples early, among thinned candidates, left the
-    residual at 3.6 times the floor).
+
+    A first pass looks at :data:`COARSE_EDGES` candidates (a few samples apart inside a hold); then every
+    sample interval within a cell of its largest statistic and of its median is looked at: one sample on
+    the wrong side of a large step leaves a residual far above the noise (a 460-LSB offset placed 2
+    samples early among 60 thinned candidates left the residual at 3.6 times the floor), and such a
+    step's statistic falls by thousands per sample away from it, so the first pass's best lies next to it.
     """
-    t = ctx.t
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
-    gaps, bounds = _edge_candidates(ctx, lo_t, hi_t, limit=len(t))
-    cells = [(g, bounds[i], bounds[i + 1]) for i, g in enumerate(gaps)]
-    if before and lo_t <= t[0]:
-        cells.insert(0, ((t[0] - dt, t[0]), t[0] - dt, t[0]))
-    if after and hi_t >= t[-1]:
-        cells.append(((t[-1], t[-1] + dt), t[-1], t[-1] + dt))
-    if not cells:
+    first = _cells(ctx, lo_t, hi_t, COARSE_EDGES, before, after)
+    if not first:
         return None
-    gaps = np.array([cl[0] for cl in cells], float)
-    bounds = np.array([cl[1] for cl in cells] + [cells[-1][2]], float)
-    return _posterior_edge(gaps, bounds, np.asarray(stats_of(gaps.mean(axis=1)), float))
+    gaps = np.array([c[0] for c in first], float)
+    bounds = np.array([c[1] for c in first] + [first[-1][2]], float)
+    stat = np.asarray(stats_of(gaps.mean(axis=1)), float)
+    tau = _posterior_edge(gaps, bounds, stat)
+    near: set[int] = set()
+    for k in (int(np.argmax(stat)), int(np.clip(np.searchsorted(bounds, tau, side="right") - 1, 0, len(first) - 1))):
+        near |= {i for i in (k - 1, k, k + 1) if 0 <= i < len(first)}
+    runs = np.split(np.array(sorted(near)), np.flatnonzero(np.diff(sorted(near)) > 1) + 1)
+    cells = [(c, st) for i, (c, st) in enumerate(zip(first, stat)) if i not in near]
+    for run in runs:  # stretches of whole first-pass cells: every sample interval there
+        lo, hi = first[run[0]][1], first[run[-1]][2]
+        fine = _cells(ctx, lo, hi, len(ctx.t), before and run[0] == 0, after and run[-1] == len(first) - 1)
+        if len(fine) <= len(run):
+            cells += [(first[i], stat[i]) for i in run]
+            continue
+        fine[0] = (fine[0][0], lo, fine[0][2])  # the stretch's cells tile it exactly
+        fine[-1] = (fine[-1][0], fine[-1][1], hi)
+        fstat = np.asarray(stats_of(np.array([c[0] for c in fine], float).mean(axis=1)), float)
+        cells += list(zip(fine, fstat))
+    cells.sort(key=lambda cs: cs[0][1])
+    gaps = np.array([c[0] for c, _ in cells], float)
+    bounds = np.array([c[1] for c, _ in cells] + [cells[-1][0][2]], float)
+    return _posterior_edge(gaps, bounds, np.array([st for _, st in cells], float))
 
 
 def window_statistic(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray,

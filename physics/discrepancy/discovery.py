@@ -620,8 +620,11 @@ def window_statistics(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndar
 
 #: Candidate edges of an edge search's first pass (sample intervals inside long stretches are thinned
 #: to this many, the gaps between holds kept): every sample interval of a long hand-held recording's
-#: search range cost its analysis five times as long.
-COARSE_EDGES = 240
+#: search range cost its analysis five times as long. Where the range holds many samples (a long
+#: recording sampled throughout) the first pass takes fewer, down to 60, so that candidates times samples
+#: stay within :data:`COARSE_BUDGET` (each candidate's statistic costs in proportion to the range).
+COARSE_EDGES = (60, 240)
+COARSE_BUDGET = 120_000
 
 
 def _cells(ctx: Context, lo_t: float, hi_t: float, limit: int, before: bool, after: bool) -> list[tuple]:
@@ -649,13 +652,14 @@ def place_edge(ctx: Context, lo_t: float, hi_t: float, stats_of: Callable[[np.nd
     start of the run is then found as such, and one that ended a second before the run did is not
     stretched to the end. Returns a time before ``ctx.t[0]`` (after ``ctx.t[-1]``) for that candidate.
 
-    A first pass looks at :data:`COARSE_EDGES` candidates (a few samples apart inside a hold); then every
+    A first pass looks at up to :data:`COARSE_EDGES` candidates (a few samples apart inside a hold); then every
     sample interval within a cell of its largest statistic and of its median is looked at: one sample on
     the wrong side of a large step leaves a residual far above the noise (a 460-LSB offset placed 2
     samples early among 60 thinned candidates left the residual at 3.6 times the floor), and such a
     step's statistic falls by thousands per sample away from it, so the first pass's best lies next to it.
     """
-    first = _cells(ctx, lo_t, hi_t, COARSE_EDGES, before, after)
+    rows = int(np.count_nonzero((ctx.t >= lo_t) & (ctx.t <= hi_t)))
+    first = _cells(ctx, lo_t, hi_t, int(np.clip(COARSE_BUDGET // max(rows, 1), *COARSE_EDGES)), before, after)
     if not first:
         return None
     gaps = np.array([c[0] for c in first], float)

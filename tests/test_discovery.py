@@ -651,3 +651,29 @@ def test_between_the_two_stages_the_evidence_decides_however_close():
     lab = found("lab", 104.5)
     pick, alike = dv._likeliest(middle, [outer, middle, lab], alpha=0.01)
     assert pick is lab and set(alike) == {"offset in the outer frame", "offset in the middle frame"}
+
+
+def test_time_and_temperature_tie_within_one_form_not_across_forms():
+    """During a warm-up time and temperature are nearly the same input, so within one frame and form they
+    tie over the wider margin (:data:`SLOW_SAME_EVIDENCE`); that margin is not a licence to name another
+    form. A sensitivity following the temperature (evidence 100) was named a bias following it (96.5:
+    within 6, so the commoner form, offset, won) and reported as ``temperature_drift``."""
+    from physics.discrepancy.lrt import Test
+
+    def found(form: str, against: str, statistic: float) -> dv.Found:
+        test = Test(f"discovered:sensor/{form}/{against}", np.zeros((10, 3)), statistic=statistic,
+                    p_adjusted=1e-12, log_p=float(np.log(1e-12)))
+        return dv.Found(dv.Block("sensor", form, against), np.zeros((10, 3, 3)), np.zeros((30, 3)), [], test)
+
+    gain_t, offset_t, gain_time = found("gain", "temp_c", 100.0), found("offset", "temp_c", 96.5), found("gain", "time", 95.0)
+    for chosen in (gain_t, offset_t):
+        pick, alike = dv._likeliest(chosen, [gain_t, offset_t, gain_time], alpha=0.01)
+        assert pick is gain_t and alike == ["gain in the sensor frame against time"], (pick.block, alike)
+    # within one form the wider margin still holds: an offset 5 better against time than against the
+    # temperature is named against the temperature (the likelier input for an offset), the other listed
+    offset_time, offset_temp = found("offset", "time", 100.0), found("offset", "temp_c", 95.0)
+    pick, alike = dv._likeliest(offset_time, [offset_time, offset_temp], alpha=0.01)
+    assert pick is offset_temp and alike == ["offset in the sensor frame against time"]
+    # and across forms, within SAME_EVIDENCE, the commoner form is named
+    pick, alike = dv._likeliest(gain_t, [gain_t, found("offset", "temp_c", 98.5)], alpha=0.01)
+    assert pick.block.form == "offset" and alike == ["gain in the sensor frame against temp_c"]

@@ -924,8 +924,9 @@ def _rarer(b: Block) -> float:
 def _likeliest(chosen: Found, cands: list[Found], alpha: float) -> tuple[Found, list[str]]:
     """Among the significant candidates of ``chosen``'s size, in any frame and form, against the same
     input (or the other slow input: time or temperature), those whose evidence (`Test.evidence`, less
-    :data:`RARER` or :data:`RARER_WINDOWED` for a rare cause) is within :data:`SAME_EVIDENCE`
-    (:data:`SLOW_SAME_EVIDENCE` against a slow input) of the largest explain the residual equally well;
+    :data:`RARER` or :data:`RARER_WINDOWED` for a rare cause) is within :data:`SAME_EVIDENCE` of the
+    largest (between time and temperature for one frame and form: :data:`SLOW_SAME_EVIDENCE`) explain the
+    residual equally well;
     the likeliest of them, and the descriptions of the others, which this recording cannot tell apart
     from it. (Evidence, not the p-value, decides: at large statistics the null-calibrated scale of each
     test moves p a lot; and a pair of windows pays for its second window's search, so it does not tie
@@ -936,9 +937,17 @@ def _likeliest(chosen: Found, cands: list[Found], alpha: float) -> tuple[Found, 
     group = [c for c in cands if c.test.df == chosen.test.df and c.block.dependence in deps
              and c.test.log_p < np.log(alpha)] or [chosen]
     score = {id(c): c.test.evidence - _rarer(c.block) for c in group}
-    top = max(score.values())
+    # frames and forms within SAME_EVIDENCE of the best (each by its better slow input), and of those the
+    # inputs within SLOW_SAME_EVIDENCE: the wider margin is for time against temperature only (with it
+    # across forms, a bias following the temperature 3.5 behind a sensitivity following it was named)
+    best_of: dict[tuple[str, str], float] = {}
+    for c in group:
+        key = (c.block.frame, c.block.form)
+        best_of[key] = max(best_of.get(key, -np.inf), score[id(c)])
+    top = max(best_of.values())
     margin = SLOW_SAME_EVIDENCE if b0.dependence in slow else SAME_EVIDENCE
-    alike = [c for c in group if score[id(c)] >= top - margin]
+    alike = [c for c in group if best_of[(c.block.frame, c.block.form)] >= top - SAME_EVIDENCE
+             and score[id(c)] >= best_of[(c.block.frame, c.block.form)] - margin]
     # frames of equal rank (the two stages: nothing makes a magnet on one likelier than on the other)
     # are told apart by the evidence, however close
     pick = min(alike, key=lambda c: (FRAME_PREFERENCE[c.block.frame], FORMS.index(c.block.form),

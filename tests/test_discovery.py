@@ -677,3 +677,45 @@ def test_time_and_temperature_tie_within_one_form_not_across_forms():
     # and across forms, within SAME_EVIDENCE, the commoner form is named
     pick, alike = dv._likeliest(gain_t, [gain_t, found("offset", "temp_c", 98.5)], alpha=0.01)
     assert pick.block.form == "offset" and alike == ["gain in the sensor frame against temp_c"]
+
+
+def test_a_term_that_leaves_the_model_takes_its_share_of_the_nominal_fit_with_it(monkeypatch) -> None:
+    """The nominal model is refitted around the fitted effects (relinearised); when a term then leaves
+    the model (here the held-out check is made to refuse the only one), the nominal fit must not keep
+    the share that term had taken out: the result is the one of an analysis that never found the term.
+    (Before, the nominal fit stayed the one made without the dropped term's share: a dropped offset
+    following the accelerometer left the field's direction off and its residue was reported as
+    unexplained structure, the heading error worse after than before.)"""
+    from physics.discrepancy import analysis
+
+    rec, _ = _recording(seed=4)
+    extra = np.zeros_like(rec.mag, dtype=float)
+    extra[_window(rec, 0.3, 0.6)] = [400.0, -250.0, 300.0]  # a magnet on the unit for a while
+    rec = _with(rec, extra)
+    real_heldout, real_forward, calls = analysis._heldout, analysis._forward, []
+
+    def refuse_the_first_model(ctx, y, nom, cols, fold, sigma):
+        calls.append(len(cols))
+        pred = real_heldout(ctx, y, nom, cols, fold, sigma)
+        return pred + 1e4 if len(calls) == 2 else pred  # call 1: the nominal model; 2: the model with terms
+
+    monkeypatch.setattr(analysis, "_heldout", refuse_the_first_model)
+    dropped = analyze(rec, null_sims=40, rng=np.random.default_rng(1)).result
+    assert calls[1] > 1 and any("left out: with it the model predicted held-out data worse" in n
+                                for n in dropped["notes"]), (calls, dropped["notes"])
+    assert not [f for f in dropped["findings"] if f["effect"] == "discovered"], dropped["findings"]
+
+    def find_nothing(selected, found, *args, **kwargs):
+        rows = real_forward(selected, found, *args, **kwargs)
+        selected.clear()
+        found.clear()
+        return rows
+
+    monkeypatch.setattr(analysis, "_heldout", real_heldout)
+    monkeypatch.setattr(analysis, "_forward", find_nothing)
+    never = analyze(rec, null_sims=40, rng=np.random.default_rng(1)).result
+    assert not never["notes"] and not [f for f in never["findings"] if f["effect"] == "discovered"]
+    for key in ("residual_rms_after_lsb",):
+        assert np.allclose(dropped[key], never[key], rtol=1e-9, atol=0), (dropped[key], never[key])
+    assert np.allclose(dropped["heldout"]["rms_after_lsb"], never["heldout"]["rms_after_lsb"], rtol=1e-9, atol=0)
+    assert dropped["heading_error_deg"] == pytest.approx(never["heading_error_deg"], rel=1e-9)

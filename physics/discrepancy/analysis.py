@@ -153,18 +153,25 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     say("model: refit with the effects", 0.7)
     raw_of.update({f.name: f.X for f in found})
     nom0, J00, r00 = nom, J0, r0  # the nominal model alone: the "before" of every figure
-    if terms:
-        # Relinearise: the twin is linear around a nominal fit that the departures themselves pulled. Refit
-        # the nominal model on the readings with the fitted effects taken out and check every term again
-        # around it (a large departure otherwise leaves second-order residue that passes for more blocks).
+    def relinearise() -> None:
+        """The twin is linear around a nominal fit that the departures themselves pulled: refit the nominal
+        model on the readings with the fitted effects taken out and rebuild every term around it (a large
+        departure otherwise leaves second-order residue that passes for more blocks). Again whenever a
+        term leaves the model: the nominal fit had taken that term's share out too (a dropped offset
+        following the accelerometer left the field's direction off, and 32 more in the residual's
+        statistic passed for unexplained structure). With no term left, the nominal fit of the readings."""
+        nonlocal nom, eff, r0, J0, A0, Q0, zr, z, raw_of, candidates, found, terms
         coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
         contrib = sum(np.einsum("nip,p->ni", raw_of[s], coef[offsets[i + 1]:offsets[i + 2]]) for i, s in enumerate(terms))
         nom = fit_nominal(ctx, y_raw - contrib)
         eff = effect_columns(ctx, nom, temp)
         r0, J0, A0, Q0, zr, z, raw_of, candidates = _linearise(ctx, y_raw, nom, eff, noise, mains_hz)
-        found = [rebuild(f, ctx, nom, temp, noise) for f in found]
+        found = [rebuild(f, ctx, nom, temp, noise) for f in found if f.name in terms]
         raw_of.update({f.name: f.X for f in found})
-        terms = {**{s: candidates[s] for s in selected}, **{f.name: f.Xw for f in found}}
+        terms = {**{s: candidates[s] for s in selected if s in terms}, **{f.name: f.Xw for f in found}}
+
+    if terms:
+        relinearise()  # and check every term again around it
         final = _backward(terms, A0, z, null, alpha, n_round1, all_tests)
         selected = [s for s in selected if s in terms]
         found = [f for f in found if f.name in terms]
@@ -181,6 +188,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
             selected = [s for s in selected if s != LINE]
             notes.append(f"a line at {mains_hz:.4f} Hz in the spectrum is not confirmed by the twin's test at that "
                          f"frequency (p {p_twin:.2g} after the search): left out")
+            relinearise()
     fold = _folds(ctx)
     pred_before = _heldout(ctx, y_raw, nom0, [J00], fold, noise.floor)
     rms = lambda r: np.sqrt(np.mean(r * r, axis=0))  # noqa: E731
@@ -197,6 +205,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         worst = min(trial, key=trial.get)
         notes.append(f"{worst} left out: with it the model predicted held-out data worse than without")
         del terms[worst]
+        selected = [s for s in selected if s in terms]
+        relinearise()  # with no term left: the nominal model alone, as before
     selected = [s for s in selected if s in terms]
     found = [f for f in found if f.name in terms]
     coef, cov, offsets = _fit_terms(A0, list(terms.values()), zr)

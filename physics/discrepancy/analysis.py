@@ -159,8 +159,10 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         departure otherwise leaves second-order residue that passes for more blocks). Again whenever a
         term leaves the model: the nominal fit had taken that term's share out too (a dropped offset
         following the accelerometer left the field's direction off, and 32 more in the residual's
-        statistic passed for unexplained structure). With no term left, the nominal fit of the readings."""
-        nonlocal nom, eff, r0, J0, A0, Q0, zr, z, raw_of, candidates, found, terms
+        statistic passed for unexplained structure). With no term left, the nominal fit of the readings.
+        ``selected`` and ``found`` keep only what is in ``terms``."""
+        nonlocal nom, eff, r0, J0, A0, Q0, zr, z, raw_of, candidates, found, terms, selected
+        selected = [s for s in selected if s in terms]
         coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
         contrib = sum(np.einsum("nip,p->ni", raw_of[s], coef[offsets[i + 1]:offsets[i + 2]]) for i, s in enumerate(terms))
         nom = fit_nominal(ctx, y_raw - contrib)
@@ -168,7 +170,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         r0, J0, A0, Q0, zr, z, raw_of, candidates = _linearise(ctx, y_raw, nom, eff, noise, mains_hz)
         found = [rebuild(f, ctx, nom, temp, noise) for f in found if f.name in terms]
         raw_of.update({f.name: f.X for f in found})
-        terms = {**{s: candidates[s] for s in selected if s in terms}, **{f.name: f.Xw for f in found}}
+        terms = {**{s: candidates[s] for s in selected}, **{f.name: f.Xw for f in found}}
 
     if terms:
         relinearise()  # and check every term again around it
@@ -185,7 +187,6 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         p_twin = min(1.0, final[LINE].p_value * line["independent"] * n_round1)
         if final[LINE].df > 0 and p_twin >= alpha * CATALOGUE_SHARE:
             del terms[LINE]
-            selected = [s for s in selected if s != LINE]
             notes.append(f"a line at {mains_hz:.4f} Hz in the spectrum is not confirmed by the twin's test at that "
                          f"frequency (p {p_twin:.2g} after the search): left out")
             relinearise()
@@ -205,10 +206,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         worst = min(trial, key=trial.get)
         notes.append(f"{worst} left out: with it the model predicted held-out data worse than without")
         del terms[worst]
-        selected = [s for s in selected if s in terms]
         relinearise()  # with no term left: the nominal model alone, as before
-    selected = [s for s in selected if s in terms]
-    found = [f for f in found if f.name in terms]
     coef, cov, offsets = _fit_terms(A0, list(terms.values()), zr)
     raw_cols = [J0] + [raw_of[s] for s in terms]
     Xraw = np.concatenate(raw_cols, axis=2)

@@ -631,12 +631,13 @@ def _cells(ctx: Context, lo_t: float, hi_t: float, limit: int, before: bool, aft
     """The candidate edges between ``lo_t`` and ``hi_t`` (:func:`_edge_candidates`, at most ``limit``) as
     cells (sample interval, cell start, cell end), with the candidates beyond the run's ends (:func:`place_edge`)."""
     t = ctx.t
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
     gaps, bounds = _edge_candidates(ctx, lo_t, hi_t, limit=limit)
     cells = [(tuple(g), bounds[i], bounds[i + 1]) for i, g in enumerate(gaps)]
-    if before and lo_t <= t[0]:
+    before, after = before and lo_t <= t[0], after and hi_t >= t[-1]
+    dt = float(np.median(np.diff(t))) if (before or after) and len(t) > 1 else 1.0  # only a pseudo-candidate needs it
+    if before:
         cells.insert(0, ((t[0] - dt, t[0]), t[0] - dt, t[0]))
-    if after and hi_t >= t[-1]:
+    if after:
         cells.append(((t[-1], t[-1] + dt), t[-1], t[-1] + dt))
     return cells
 
@@ -669,7 +670,8 @@ def place_edge(ctx: Context, lo_t: float, hi_t: float, stats_of: Callable[[np.nd
     near: set[int] = set()
     for k in (int(np.argmax(stat)), int(np.clip(np.searchsorted(bounds, tau, side="right") - 1, 0, len(first) - 1))):
         near |= {i for i in (k - 1, k, k + 1) if 0 <= i < len(first)}
-    runs = np.split(np.array(sorted(near)), np.flatnonzero(np.diff(sorted(near)) > 1) + 1)
+    idx = np.array(sorted(near))
+    runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
     cells = [(c, st) for i, (c, st) in enumerate(zip(first, stat)) if i not in near]
     for run in runs:  # stretches of whole first-pass cells: every sample interval there
         lo, hi = first[run[0]][1], first[run[-1]][2]

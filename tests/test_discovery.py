@@ -92,6 +92,41 @@ def test_change_point_search_finds_the_window_and_refines_its_edges() -> None:
     assert dv.window_statistic(X, ctx, noise, Q0, z, t0, t1) >= ws.statistic - 1e-6
 
 
+def test_window_search_sums_over_each_bins_rows_equal_the_dense_bin_masked_matrix() -> None:
+    """search_windows sums each bin's whitened columns over its own rows and the whitening's tail only;
+    the search must be the one the dense (3N, bins p) matrix of bin-masked columns gives, in noise with a
+    slow AR part (long tails running into the next bins and restarting at each segment) and with nulls."""
+    from physics.discrepancy.lrt import _null_residuals
+    from physics.discrepancy.noise import NoiseModel
+    rec, _ = _recording(seed=5)
+    m = _window(rec, 0.3, 0.6)
+    ctx, nom, _, Q0, _ = _whitened(_with(rec, np.outer(m, [5.0, -4.0, 6.0])))
+    noise = NoiseModel(np.array([3.0, 2.5, 3.0]), np.array([0.9, 0.5, 0.0]), np.array([1.0, 0.5, 1.5]))
+    r0 = np.asarray(rec.mag, float) + np.outer(m, [5.0, -4.0, 6.0]) - nom.predict(ctx)
+    Q = _orth(whiten_all(nominal_columns(ctx, nom), noise, ctx.segment))
+    zr = whiten_all(r0, noise, ctx.segment)
+    z = zr - Q @ (Q.T @ zr)
+    null = _null_residuals(ctx, noise, Q, 40, np.random.default_rng(1))
+    X, _ = dv.base_columns(ctx, nom, "sensor", "offset")
+    n, _, p = X.shape
+    b_of = dv._bins(ctx, dv.N_BINS)
+    masked = np.zeros((n, 3, dv.N_BINS * p))
+    for k in range(dv.N_BINS):
+        masked[b_of == k, :, k * p:(k + 1) * p] = X[b_of == k]
+    W = whiten_all(masked, noise, ctx.segment)
+    diag0 = np.array([W[:, k * p:(k + 1) * p].T @ W[:, k * p:(k + 1) * p] for k in range(dv.N_BINS)])
+    Wp = W - Q @ (Q.T @ W)
+    dense = dv.search_bins((Wp.T @ Wp).reshape(dv.N_BINS, p, dv.N_BINS, p), diag0, (Wp.T @ z).reshape(dv.N_BINS, p),
+                           (null @ Wp).reshape(len(null), dv.N_BINS, p))
+    sparse = dv.search_windows(X, ctx, noise, Q, z, null)
+    assert dense is not None and sparse is not None
+    assert (sparse.a, sparse.b, sparse.df, sparse.others) == (dense.a, dense.b, dense.df, dense.others)
+    assert sparse.statistic == pytest.approx(dense.statistic, rel=1e-9)
+    assert sparse.log_p == pytest.approx(dense.log_p, rel=1e-9, abs=1e-9)
+    assert sparse.m_eff == pytest.approx(dense.m_eff, rel=1e-9)
+    assert sparse.statistic > 30  # the window is there: the comparison is not between two empty searches
+
+
 def test_an_edge_weighs_a_long_gap_between_holds_by_its_length() -> None:
     """With a uniform prior in time, an edge whose data cannot tell a 10-s move from the first sample
     interval of the next hold is placed in the move; a hold interval the data clearly prefer keeps it."""
@@ -553,6 +588,29 @@ def test_whitening_restarts_at_each_segment_and_the_window_statistic_matches_the
     for Xc in (rng.normal(size=(300, 3)), np.column_stack([rng.normal(size=300), Q[:, 0] * 3.0, np.zeros(300)])):
         B = _complement(Xc, Q)
         assert complement_statistic(Xc, Q, y) == pytest.approx(float(np.sum((B.T @ y) ** 2)), rel=1e-9)
+
+
+def test_the_adjoint_whitening_is_the_transpose_and_extend_spans_what_orth_spans() -> None:
+    """whiten_adjoint is the transpose of whiten_all (V^T W X from the raw X), with segments of 1 to 700
+    samples, white and coloured axes; _extend(Q, X) is an orthonormal basis of span [Q, X] that keeps Q,
+    and adds nothing for a column already in span Q."""
+    from physics.discrepancy.lrt import _extend
+    from physics.discrepancy.noise import NoiseModel, whiten_adjoint
+    rng = np.random.default_rng(8)
+    seg = np.repeat(np.arange(30), rng.choice([1, 2, 7, 60, 240, 700], 30))
+    n = len(seg)
+    noise = NoiseModel(np.array([2.0, 0.0, 1.5]), np.array([0.7, 0.0, 0.95]), np.array([1.0, 3.0, 0.2]))
+    X, V, y = rng.normal(size=(n, 3, 4)), rng.normal(size=(3 * n, 5)), rng.normal(size=3 * n)
+    W = whiten_all(X, noise, seg)
+    assert np.allclose(np.einsum("tjq,tjp->qp", whiten_adjoint(V, noise, seg), X), V.T @ W, rtol=1e-10, atol=1e-9)
+    assert np.allclose(np.einsum("tj,tjp->p", whiten_adjoint(y, noise, seg), X), y @ W, rtol=1e-10, atol=1e-9)
+    Q = _orth(rng.normal(size=(400, 6)))
+    Xc = np.column_stack([rng.normal(size=400) * 1e3, Q @ rng.normal(size=6), rng.normal(size=400)])
+    E = _extend(Q, Xc)
+    assert E.shape[1] == 8 and np.allclose(E[:, :6], Q)  # the column in span Q adds nothing
+    assert np.allclose(E.T @ E, np.eye(8), atol=1e-12)
+    ref = _orth(np.column_stack([Q, Xc]))
+    assert np.allclose(E @ (E.T @ ref), ref, atol=1e-10)  # the same span
 
 
 def test_the_window_statistics_of_a_moving_edge_equal_the_statistic_one_window_at_a_time() -> None:

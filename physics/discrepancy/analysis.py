@@ -5,13 +5,13 @@ from __future__ import annotations
 from typing import Any, Callable, NamedTuple
 
 import numpy as np
-from scipy import stats
+from scipy import linalg, stats
 from threadpoolctl import threadpool_limits
 
 from physics import effects as fx
 from physics.calibration import Calibration, json_safe
 from physics.discrepancy.discovery import MAX_BLOCKS, Dictionary, Found, discovered_finding, merge_windows, rebuild, rows_of
-from physics.discrepancy.lrt import Test, _complement, _null_residuals, _orth, _score, line_search
+from physics.discrepancy.lrt import Test, _complement, _extend, _null_residuals, _orth, _score, line_search
 from physics.discrepancy.noise import NoiseModel, estimate_noise, whiten_all
 from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_of, parameters, where_extra
 from physics.discrepancy.schema import Analysis, summary, with_schema
@@ -138,7 +138,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         if attempt == 0:
             generic_first = {row["variant"]: row for row in rows if row["generic"]}
         terms = {**{s: candidates[s] for s in selected}, **{f.name: f.Xw for f in found}}
-        final = _backward(terms, A0, z, null, alpha, n_round1, all_tests)
+        final = _backward(terms, Q0, z, null, alpha, n_round1, all_tests)
         selected = [s for s in selected if s in terms]
         found = [f for f in found if f.name in terms]
         coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
@@ -174,7 +174,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
 
     if terms:
         relinearise()  # and check every term again around it
-        final = _backward(terms, A0, z, null, alpha, n_round1, all_tests)
+        final = _backward(terms, Q0, z, null, alpha, n_round1, all_tests)
         selected = [s for s in selected if s in terms]
         found = [f for f in found if f.name in terms]
     # The periodogram found the line against a running median of the spectrum; the twin tests it at that
@@ -216,7 +216,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     # generic tests again on the final residual: what neither the catalogue nor discovery explains
     unexplained = [row for row in generic_first.values() if row["p_adjusted"] < alpha * FALLBACK_SHARE]
     if terms:
-        Qf = _orth(np.column_stack([A0, *terms.values()]))
+        Qf = _extend(Q0, np.column_stack(list(terms.values())))
         zf = zr - Qf @ (Qf.T @ zr)
         gt = [Test(name, _complement(Xw, Qf)) for name, Xw in generic_w.items()]
         _score(gt, zf, null)
@@ -344,9 +344,10 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
     # alpha is shared between the two families (weighted Bonferroni): each is held to its share, so the
     # round's false-alarm rate stays alpha
     a_cat, a_dic = alpha * CATALOGUE_SHARE, alpha * DICTIONARY_SHARE
+    Q0 = _orth(A0)
     for round_no in range(MAX_EFFECTS + MAX_BLOCKS):
         say(f"tests: round {round_no + 1}", min(0.55 + 0.03 * round_no, 0.69))
-        Q = _orth(np.column_stack([A0] + [candidates[s] for s in selected] + [f.Xw for f in found]))
+        Q = _extend(Q0, np.column_stack([A0[:, :0]] + [candidates[s] for s in selected] + [f.Xw for f in found]))
         resid = z - Q @ (Q.T @ z)
         tests: dict[str, Test] = {}
         gtests: dict[str, Test] = {}
@@ -392,7 +393,7 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
     return rows
 
 
-def _backward(terms: dict[str, np.ndarray], A0: np.ndarray, z: np.ndarray, null: np.ndarray | None, alpha: float,
+def _backward(terms: dict[str, np.ndarray], Q0: np.ndarray, z: np.ndarray, null: np.ndarray | None, alpha: float,
               m: int, rows: list[dict[str, Any]]) -> dict[str, Test]:
     """Backward check (in place on ``terms``): forward selection can take a many-parameter effect first
     that only stands in for a simpler one chosen after it, or a catalogue effect that stands in for a
@@ -401,11 +402,17 @@ def _backward(terms: dict[str, np.ndarray], A0: np.ndarray, z: np.ndarray, null:
     final: dict[str, Test] = {}
     while terms:
         final = {}
+        # every test's bases within the span of the whole model, in its orthonormal coordinates: the
+        # same numbers as a tall decomposition per term (each term's columns lie in that span), at the
+        # cost of one
+        Qf = _extend(Q0, np.column_stack(list(terms.values())))
+        coords = {name: Qf.T @ Xw for name, Xw in terms.items()}
+        q0 = Q0.shape[1]
         for name in terms:
-            others = [Xw for o, Xw in terms.items() if o != name]
-            Qo = _orth(np.column_stack([A0, *others]))
-            t = Test(name, _complement(terms[name], Qo))
-            _score([t], z - Qo @ (Qo.T @ z), null, extra=m - 1)
+            others = [C for o, C in coords.items() if o != name]
+            Qo = _extend(np.eye(len(Qf.T), q0), np.column_stack([np.zeros((len(Qf.T), 0)), *others]))
+            t = Test(name, Qf @ _complement(coords[name], Qo))
+            _score([t], z - Qf @ (Qo @ (Qo.T @ (Qf.T @ z))), null, extra=m - 1)
             final[name] = t
         weakest = max(terms, key=lambda nm: final[nm].log_p)
         if final[weakest].log_p < np.log(alpha):
@@ -444,7 +451,7 @@ def _simplest(best: str, tests: dict[str, "Test"], candidates: dict[str, np.ndar
     simpler = sorted((t.df, t.log_p, name) for name, t in tests.items()
                      if 0 < t.df < tests[best].df and t.log_p < np.log(alpha))
     for _, _, name in simpler:
-        Qs = _orth(np.column_stack([Q, candidates[name]]))
+        Qs = _extend(Q, candidates[name])
         given = Test(best, _complement(candidates[best], Qs))
         _score([given], resid - Qs @ (Qs.T @ resid), null, extra=m - 1)
         if given.df == 0 or given.log_p >= np.log(alpha):
@@ -459,11 +466,14 @@ def _lstsq_cov(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     An = A / scale
-    U, s, Vt = np.linalg.svd(An, full_matrices=False)
+    # An = Q R (Q^T y without forming Q), then R's small SVD: An's singular values and right vectors
+    # for half the cost of An's own SVD
+    (Qty,), R = linalg.qr_multiply(An, y[None, :], mode="right")
+    U, s, Vt = np.linalg.svd(R)
     keep = s > 1e-9 * s[0]
     inv = np.zeros_like(s)
     inv[keep] = 1.0 / s[keep]
-    coef = (Vt.T * inv) @ (U.T @ y) / scale
+    coef = (Vt.T * inv) @ (U.T @ Qty) / scale
     cov = (Vt.T * inv ** 2) @ Vt / np.outer(scale, scale)
     if not keep.all():
         lost = np.max(np.abs(Vt[~keep]), axis=0) > 0.05
@@ -492,7 +502,7 @@ def _confusable(name: str, selected: list[str], candidates: dict[str, np.ndarray
         _score([alone], zb, None)
         if alone.p_value > alpha / 10:
             continue
-        Qo = _orth(np.column_stack([base, Xw]))
+        Qo = _extend(Qb, Xw)
         given = Test(name, _complement(candidates[name], Qo))
         _score([given], z - Qo @ (Qo.T @ z), None)
         if given.df == 0 or given.p_value > alpha:

@@ -39,8 +39,8 @@ from typing import Any, Callable
 import numpy as np
 from scipy import special
 
-from physics.discrepancy.lrt import Test, _complement, _orth, _score, chi2_logsf, complement_statistic
-from physics.discrepancy.noise import NoiseModel, whiten_all
+from physics.discrepancy.lrt import Test, _complement, _extend, _orth, _score, chi2_logsf, complement_statistic
+from physics.discrepancy.noise import NoiseModel, whiten_adjoint, whiten_all
 from physics.discrepancy.twin import ATTITUDE_SOURCE_KEY, Context, Nominal, _stage_Q
 
 FRAMES = ("sensor", "platform", "outer", "middle", "lab")
@@ -289,18 +289,51 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
     windows is corrected by the effective number of independent windows m_eff, measured on the
     simulated nulls searched the same way (the more conservative of the fits at their median and
     their 10 % quantile: 1 - (1 - p)^m_eff is the chance that the best of m_eff independent windows
-    reaches p)."""
+    reaches p).
+
+    Each bin's whitened columns are non-zero only over its own samples and the filter's tail after them
+    (:func:`_stretch`), so the sums are taken over those rows alone: bins' Gram blocks where their rows
+    overlap (a bin and the next), and the projections on Q and on the residuals as Q^T W per bin (the
+    projected Gram matrix is W^T W - (Q^T W)^T (Q^T W)). On a long recording this is the bins' count
+    times less work than whitening and multiplying the dense (3N, bins p) matrix."""
     n, _, p = X.shape
     b_of = _bins(ctx, n_bins)
-    masked = np.zeros((n, 3, n_bins * p))
+    Q3 = Q.reshape(3, n, -1)
+    y3 = y.reshape(3, n)
+    n3 = None if null is None or len(null) < 20 else null.reshape(len(null), 3, n)
+    rows, blocks = [], []
+    diag0 = np.zeros((n_bins, p, p))
+    A = np.zeros((Q.shape[1], n_bins, p))
+    c = np.zeros((n_bins, p))
+    cn = None if n3 is None else np.zeros((len(n3), n_bins, p))
     for k in range(n_bins):
-        m = b_of == k
-        masked[m, :, k * p:(k + 1) * p] = X[m]
-    W = whiten_all(masked, noise, ctx.segment)  # (3N, G p)
-    diag0 = np.array([W[:, k * p:(k + 1) * p].T @ W[:, k * p:(k + 1) * p] for k in range(n_bins)])
-    Wp = W - Q @ (Q.T @ W)
-    cn = None if null is None or len(null) < 20 else (null @ Wp).reshape(len(null), n_bins, p)
-    return search_bins((Wp.T @ Wp).reshape(n_bins, p, n_bins, p), diag0, (Wp.T @ y).reshape(n_bins, p), cn)
+        inside = np.flatnonzero(b_of == k)
+        if inside.size == 0:
+            rows.append((0, 0))
+            blocks.append(np.zeros((3, 0, p)))
+            continue
+        i0, i1 = _stretch(ctx.segment, noise, int(inside[0]), int(inside[-1]) + 1)
+        Wk = whiten_all(X[i0:i1] * (b_of[i0:i1] == k)[:, None, None], noise, ctx.segment[i0:i1]).reshape(3, i1 - i0, p)
+        rows.append((i0, i1))
+        blocks.append(Wk)
+        diag0[k], A[:, k], c[k] = _stretch_sums(Wk, Q3[:, i0:i1], y3[:, i0:i1])
+        if cn is not None:
+            cn[:, k] = sum(n3[:, j, i0:i1] @ Wk[j] for j in range(3))
+    G = np.zeros((n_bins, p, n_bins, p))
+    for k in range(n_bins):
+        G[k, :, k, :] = diag0[k]
+        for m in range(k + 1, n_bins):  # later bins whose rows overlap this one's tail
+            lo, hi = max(rows[k][0], rows[m][0]), min(rows[k][1], rows[m][1])
+            if hi > lo:
+                G[k, :, m, :] = sum(blocks[k][j, lo - rows[k][0]:hi - rows[k][0]].T
+                                    @ blocks[m][j, lo - rows[m][0]:hi - rows[m][0]] for j in range(3))
+                G[m, :, k, :] = G[k, :, m, :].T
+    A = A.reshape(Q.shape[1], n_bins * p)
+    G = G.reshape(n_bins * p, n_bins * p) - A.T @ A
+    c = c.ravel() - A.T @ (Q.T @ y)
+    if cn is not None:
+        cn = (cn.reshape(len(n3), n_bins * p) - (null @ Q) @ A).reshape(len(n3), n_bins, p)
+    return search_bins(G.reshape(n_bins, p, n_bins, p), diag0, c.reshape(n_bins, p), cn)
 
 
 def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray | None) -> WindowSearch | None:
@@ -565,6 +598,24 @@ def _tail_length(noise: NoiseModel) -> int:
     return 1 if c <= 0.0 else int(np.ceil(np.log(TAIL) / np.log(min(c, 1.0 - 1e-9)))) + 1
 
 
+def _stretch(segment: np.ndarray, noise: NoiseModel, d0: int, d1: int) -> tuple[int, int]:
+    """Rows [i0, i1) outside which columns that are zero outside samples [d0, d1) stay zero once
+    whitened (:func:`whiten_all` of those rows alone gives the same numbers there): a sample early where
+    the run goes on before the stretch (its input is zero there, so the filter started from rest at it
+    is the whole filter), to where the response has died out or the run ends."""
+    n = len(segment)
+    i0 = d0 - 1 if d0 > 0 and segment[d0 - 1] == segment[d0] else d0
+    run_end = int(np.searchsorted(segment, segment[d1 - 1], side="right")) if np.all(np.diff(segment) >= 0) else n
+    return i0, min(run_end, d1 + _tail_length(noise), n)
+
+
+def _stretch_sums(W: np.ndarray, Q3: np.ndarray, y3: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """W^T W, Q^T W and y^T W of whitened columns W (3, n, p) over a stretch of rows, Q3 (3, n, q) and
+    y3 (3, n) the same rows of Q and y (per axis: BLAS products, not einsum)."""
+    return (sum(W[j].T @ W[j] for j in range(3)), sum(Q3[j].T @ W[j] for j in range(3)),
+            sum(y3[j] @ W[j] for j in range(3)))
+
+
 def window_statistics(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray,
                       masks: np.ndarray) -> np.ndarray:
     """:func:`complement_statistic` of ``X`` present where each row of ``masks`` (K, N) is true, given
@@ -582,31 +633,64 @@ def window_statistics(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndar
     base = masks[0].copy()
     d0, d1 = (int(differ[0]), int(differ[-1]) + 1) if differ.size else (0, 0)
     base[d0:d1] = False
-    Bw = whiten_all(X * base[:, None, None], noise, ctx.segment)
-    G, A, c = np.broadcast_to(Bw.T @ Bw, (K, p, p)).copy(), np.broadcast_to(Q.T @ Bw, (K, Q.shape[1], p)).copy(), \
-        np.broadcast_to(Bw.T @ y, (K, p)).copy()
+    # the common part, whitened over its own stretch of rows (zero elsewhere)
+    Bw3 = np.zeros((3, N, p))
+    sums = (np.zeros((p, p)), np.zeros((Q.shape[1], p)), np.zeros(p))
+    on = np.flatnonzero(base)
+    if on.size:
+        b0, b1 = _stretch(ctx.segment, noise, int(on[0]), int(on[-1]) + 1)
+        Bw3[:, b0:b1] = whiten_all(X[b0:b1] * base[b0:b1, None, None], noise, ctx.segment[b0:b1]).reshape(3, b1 - b0, p)
+        sums = _stretch_sums(Bw3[:, b0:b1], Q.reshape(3, N, -1)[:, b0:b1], y.reshape(3, N)[:, b0:b1])
+    Bw = Bw3.reshape(3 * N, p)
+    G, A, c = (np.broadcast_to(v, (K,) + v.shape).copy() for v in sums)
     if differ.size:
         seg = ctx.segment
-        # start a sample early where the run goes on before the stretch (its input is zero there, so
-        # the filter started from rest at it is the whole filter), end where the response has died out
-        i0 = d0 - 1 if d0 > 0 and seg[d0 - 1] == seg[d0] else d0
-        run_end = int(np.searchsorted(seg, seg[d1 - 1], side="right")) if np.all(np.diff(seg) >= 0) else N
-        i1 = min(run_end, d1 + _tail_length(noise), N)
+        i0, i1 = _stretch(seg, noise, d0, d1)
         n = i1 - i0
         R = (np.arange(3)[:, None] * N + np.arange(i0, i1)[None, :]).ravel()
         inside = (np.arange(i0, i1) >= d0) & (np.arange(i0, i1) < d1)
         BR, QR, yR = Bw[R], Q[R], y[R]
+        # projections of each window's whitened stretch on the fixed columns (Q, the common part, y) from
+        # the raw stretch: per sample, the fixed columns' adjoint-whitened rows times X (whiten_adjoint),
+        # summed over each window's samples
+        XR, sg = X[i0:i1], seg[i0:i1]
+        per_row = np.concatenate([np.matmul(whiten_adjoint(cols, noise, sg).transpose(0, 2, 1), XR).reshape(n, -1)
+                                  for cols in (QR, BR, yR[:, None])], axis=1)  # (n, (q + p + 1) p)
+        q = QR.shape[1]
+        # each window's own whitened columns, for its Gram matrix, without filtering them: the stretch
+        # whitened unmasked (F), masked, plus at each sample b where the mask switches on (off) the
+        # decaying response to what the samples before b had carried into b (g_b c^i for the i-th sample
+        # after b, to the segment's end), taken away (given back)
+        Kf, S = noise.kalman()
+        cf = noise.phi * (1.0 - Kf)
+        firsts = np.r_[True, sg[1:] != sg[:-1]]
+        F = whiten_all(XR, noise, sg).reshape(3, n, p)
+        nu = F * np.where(firsts[None, :], noise.floor[:, None], S[:, None])[:, :, None]  # the innovations, unscaled
+        g = np.zeros((n, 3, p))
+        g[1:] = (-noise.phi[None, :, None] * XR[:-1] + cf[None, :, None] * nu[:, :-1].transpose(1, 0, 2))
+        g[firsts] = 0.0
+        starts = np.flatnonzero(firsts)
+        end_of = np.r_[starts[1:], n][np.cumsum(firsts) - 1]  # each sample's segment end
+        longest = min(_tail_length(noise), n)
         step = max(1, BATCH_FLOATS // max(n * 3 * p, 1))
         for k0 in range(0, K, step):
             m = masks[k0:k0 + step, i0:i1] & inside  # (k, n)
             k = len(m)
-            D = (X[i0:i1, :, None, :] * m.T[:, None, :, None]).reshape(n, 3, k * p)
-            Dw = whiten_all(D, noise, seg[i0:i1])  # (3n, k p)
-            Dk = Dw.reshape(3 * n, k, p).transpose(1, 0, 2)  # (k, 3n, p)
-            cross = (BR.T @ Dw).reshape(p, k, p).transpose(1, 0, 2)
-            G[k0:k0 + k] += np.matmul(Dk.transpose(0, 2, 1), Dk) + cross + cross.transpose(0, 2, 1)
-            A[k0:k0 + k] += (QR.T @ Dw).reshape(-1, k, p).transpose(1, 0, 2)
-            c[k0:k0 + k] += (yR @ Dw).reshape(k, p)
+            W = F[None] * m[:, None, :, None]  # (k, 3, n, p)
+            switch = np.diff(m.astype(np.int8), axis=1, prepend=0)
+            kk, bb = np.nonzero(switch)
+            amp = -switch[kk, bb][:, None, None] * g[bb]  # (switches, 3, p)
+            for i in range(longest):
+                ok = bb + i < end_of[bb]
+                if not ok.any():
+                    break
+                W[kk[ok], :, bb[ok] + i, :] += amp[ok] * (cf ** i / S)[None, :, None]
+            Wk = W.reshape(k, 3 * n, p)
+            sums = m.astype(float) @ per_row
+            cross = sums[:, q * p:(q + p) * p].reshape(k, p, p)
+            G[k0:k0 + k] += np.matmul(Wk.transpose(0, 2, 1), Wk) + cross + cross.transpose(0, 2, 1)
+            A[k0:k0 + k] += sums[:, :q * p].reshape(k, q, p)
+            c[k0:k0 + k] += sums[:, (q + p) * p:]
     # as complement_statistic: columns normalised, the directions Q leaves (eigenvalue above 1e-6)
     norm = np.sqrt(np.maximum(np.einsum("kpp->kp", G), 0.0))
     inv = np.where(norm > 0, 1.0 / np.where(norm > 0, norm, 1.0), 0.0)
@@ -970,7 +1054,7 @@ def _simplest(best: Found, cands: list[Found], Q: np.ndarray, y: np.ndarray, nul
                       and (_rarer(c.block) <= _rarer(best.block) or c.test.evidence - _rarer(c.block) >= floor)),
                      key=lambda c: (c.test.df, c.test.log_p))
     for c in simpler:
-        Qs = _orth(np.column_stack([Q, c.Xw]))
+        Qs = _extend(Q, c.Xw)
         given = Test(best.block.name, _complement(best.Xw, Qs))
         _score([given], y - Qs @ (Qs.T @ y), null, extra=cost - 1.0)
         if given.df == 0 or given.log_p >= np.log(alpha):

@@ -26,6 +26,19 @@ def _orth(A: np.ndarray, rcond: float = 1e-9) -> np.ndarray:
     return U[:, s > rcond * max(s[0], 1e-300)] if s.size else U[:, :0]
 
 
+def _extend(Q: np.ndarray, X: np.ndarray, rcond: float = 1e-9) -> np.ndarray:
+    """:func:`_orth` of ``[Q, X]`` for orthonormal Q: Q and the orthonormal basis of what X adds beyond
+    span(Q). Only X's projected part is decomposed (a tall SVD of a few columns, not of the whole model's:
+    on a long recording these SVDs had cost the analysis a sixth of its time)."""
+    if X.shape[1] == 0:
+        return Q
+    Xp = X - Q @ (Q.T @ X)
+    Xp -= Q @ (Q.T @ Xp)  # once more: one pass leaves ~eps |X| of span(Q), which a kept direction would carry
+    U, s, _ = np.linalg.svd(Xp, full_matrices=False)
+    top = max(1.0 if Q.shape[1] else 0.0, float(np.max(np.linalg.norm(X, axis=0))), 1e-300)
+    return np.column_stack([Q, U[:, s > rcond * top]])
+
+
 def _complement(X: np.ndarray, Q: np.ndarray, rcond: float = 1e-6) -> np.ndarray:
     """Orthonormal basis of what X adds beyond span(Q) (Q orthonormal). Directions that are mostly in
     span(Q) (kept fraction below sqrt(rcond)) count as absorbed."""
@@ -34,8 +47,11 @@ def _complement(X: np.ndarray, Q: np.ndarray, rcond: float = 1e-6) -> np.ndarray
     norm = np.linalg.norm(X, axis=0)
     Xn = X[:, norm > 0] / norm[norm > 0]
     Xp = Xn - Q @ (Q.T @ Xn)
-    U, s, _ = np.linalg.svd(Xp, full_matrices=False)
-    return U[:, s > 1e-3]
+    # the basis from Xp's small Gram matrix, not a tall SVD: the same directions, since the kept ones
+    # have s^2 = lam above rcond, far above the Gram matrix's rounding
+    lam, V = np.linalg.eigh(Xp.T @ Xp)
+    keep = lam > rcond
+    return Xp @ (V[:, keep] / np.sqrt(lam[keep]))
 
 
 def complement_statistic(X: np.ndarray, Q: np.ndarray, y: np.ndarray) -> float:

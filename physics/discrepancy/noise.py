@@ -298,6 +298,30 @@ def whiten_all(X: np.ndarray, noise: NoiseModel, segment: np.ndarray) -> np.ndar
     return out[:, 0] if flat else out
 
 
+def whiten_adjoint(V: np.ndarray, noise: NoiseModel, segment: np.ndarray) -> np.ndarray:
+    """The transpose of :func:`whiten_all` as a linear map: for stacked rows V (3N, q) the (N, 3, q) array U
+    with V^T whiten_all(X) = sum over samples t and axes j of U[t, j]^T X[t, j] for every X (N, 3, p).
+
+    So the projections of many whitened columns on a few fixed ones (Q^T W X) need only the raw columns:
+    W^T Q once instead of W X for each. Per axis the whitening is a diagonal scaling after a first-order
+    filter restarted at each segment, a block-diagonal lower-triangular Toeplitz map; its transpose is the
+    same filter run backwards in time over the same segments, after the scaling."""
+    flat = V.ndim == 1
+    n = len(segment)
+    V3 = V.reshape(3, n, -1)
+    K, S = noise.kalman()
+    first = np.r_[True, segment[1:] != segment[:-1]]
+    out = np.empty((n, 3, V3.shape[2]))
+    for j in range(3):
+        if noise.phi[j] == 0.0:
+            out[:, j] = V3[j] / noise.floor[j]
+            continue
+        scale = np.where(first, 1.0 / noise.floor[j], 1.0 / S[j])
+        back = (V3[j] * scale[:, None])[::-1]
+        out[:, j] = _filter_segments([1.0, -noise.phi[j]], [1.0, -noise.phi[j] * (1.0 - K[j])], back, segment[::-1])[::-1]
+    return out[:, :, 0] if flat else out
+
+
 def _filter_segments(b: list[float], a: list[float], x: np.ndarray, segment: np.ndarray) -> np.ndarray:
     """``lfilter(b, a)`` (first order) along axis 0 of ``x`` (N, p), restarted from rest at each segment.
 
@@ -340,9 +364,7 @@ def simulate_noise(n: int, noise: NoiseModel, segment: np.ndarray, rng: np.rando
     innov = e * (noise.sigma * np.sqrt(1 - noise.phi ** 2))[None, :, None]
     innov[first] = e[first] * noise.sigma[None, :, None]
     out = np.empty_like(e)
-    starts = np.flatnonzero(first)
-    for a, b in zip(starts, np.r_[starts[1:], n]):
-        for j in range(3):
-            out[a:b, j] = signal.lfilter([1.0], [1.0, -noise.phi[j]], innov[a:b, j], axis=0)
+    for j in range(3):  # the AR recursion restarted at each segment (from its first innovation)
+        out[:, j] = _filter_segments([1.0, 0.0], [1.0, -noise.phi[j]], innov[:, j], segment)
     return out + rng.normal(size=(n, 3, k)) * noise.white[None, :, None]
 

@@ -349,6 +349,21 @@ def test_intermittent_offset_is_one_finding_with_several_segments() -> None:
     _ok_fit(r)
 
 
+def test_of_a_window_and_the_times_between_the_shorter_is_reported() -> None:
+    """Where the nominal bias takes a constant offset, an offset present in two visits (one running to
+    the end of the run) and one present at all other times are the same data: the search ties them
+    exactly. The finding names the visits, the shorter state, not the times between them."""
+    rec, _ = _recording(seed=3)
+    m = _window(rec, 0.45, 0.6) | _window(rec, 0.85, 1.01)
+    r = analyze(_with(rec, np.outer(m, [10.0, 12.0, -9.0])), null_sims=60).result
+    disc = [f for f in r["findings"] if f["effect"] == "discovered"]
+    assert len(disc) == 1 and disc[0]["model"]["frame"] == "sensor", r["findings"]
+    segs = disc[0]["model"]["segments"]
+    assert len(segs) == 2, segs
+    assert _edges_ok(segs[0], rec, 0.45, 0.6) and _edges_ok(segs[1], rec, 0.85, 1.0), segs
+    _ok_fit(r)
+
+
 def test_summary_says_plainly_when_nothing_improves_the_fit() -> None:
     base = {"verdict": "discrepancy", "findings": [{"effect": "unexplained"}],
             "heldout": {"rms_before_lsb": [3.0, 3.0, 3.0], "rms_after_lsb": [3.0, 3.0, 3.0]}}

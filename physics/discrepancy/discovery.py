@@ -370,7 +370,9 @@ def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray 
         m_eff, p_ref = _m_eff(np.exp(np.min(lp, axis=1)), ok.sum())
     lps = np.full(len(stat), np.inf)
     lps[ok] = chi2_logsf(stat[ok] / c_scale, df[ok])
-    i = int(np.argmin(lps))
+    # a window and its complement tie exactly where the model absorbs the block held constant: the
+    # first of the tied windows (the earliest), not the sums' rounding, decides which is refined
+    i = int(np.flatnonzero(lps <= lps.min() + 1e-9 * max(1.0, abs(float(lps.min()))))[0])
     single = WindowSearch(int(a_idx[i]), int(b_idx[i]), float(stat[i]), int(df[i]), float(lps[i]), m_eff,
                           _search_log_p(float(lps[i]), m_eff, stat[i] / c_scale, int(df[i]), p_ref, 2), scale=c_scale)
     # Two windows with the same parameters: something that came and went twice (a relay, a motor, a
@@ -822,13 +824,20 @@ def _absorbed_when_constant(X: np.ndarray, noise: NoiseModel, ctx: Context, Q0: 
     return _complement(whiten_all(X, noise, ctx.segment), Q0).shape[1] == 0
 
 
-def segments_of(ctx: Context, t0: float, t1: float, complement: bool) -> list[list[float]]:
-    """The window [t0, t1) (or its complement within the recording) as [[start, end], ...] in t."""
-    lo, hi = float(ctx.t[0]), float(ctx.t[-1])
-    t0, t1 = max(t0, lo), min(t1, hi)
-    if not complement:
-        return [[t0, t1]]
-    return [[s, e] for s, e in ((lo, t0), (t1, hi)) if e - s > 0]
+def segments_of(ctx: Context, t0: float, t1: float) -> list[list[float]]:
+    """The window [t0, t1) within the recording as [[start, end]] in t."""
+    return [[max(t0, float(ctx.t[0])), min(t1, float(ctx.t[-1]))]]
+
+
+def _disjoint(segs: list[list[float]]) -> bool:
+    """True when sorted segments do not overlap."""
+    return all(a[1] <= b[0] for a, b in zip(segs, segs[1:]))
+
+
+def _gaps(ctx: Context, segs: list[list[float]]) -> list[list[float]]:
+    """The times of the recording outside sorted, disjoint ``segs`` (within the recording)."""
+    bounds = [float(ctx.t[0])] + [x for s in segs for x in s] + [float(ctx.t[-1])]
+    return [[s, e] for s, e in zip(bounds[::2], bounds[1::2]) if e - s > 0]
 
 
 def _mask(ctx: Context, segments: list[list[float]]) -> np.ndarray:
@@ -919,12 +928,11 @@ class Dictionary:
                     others = [e for n, e in enumerate(edges) if n != k]
                     other = _mask(ctx, [list(e) for e in others]) if others else None
                     edges[k] = refine_window(X, ctx, noise, Q, y, a, b, other=other)
-            if len(edges) == 1:
-                t0, t1 = edges[0]
-                comp = self.absorbed[(blk.frame, blk.form)] and (min(t1, ctx.t[-1]) - max(t0, ctx.t[0])) > 0.5 * span
-                segs = segments_of(ctx, t0, t1, comp)
-            else:
-                segs = sorted(seg for e in edges for seg in segments_of(ctx, e[0], e[1], False))
+            segs = sorted(seg for e in edges for seg in segments_of(ctx, e[0], e[1]))
+            if self.absorbed[(blk.frame, blk.form)] and _disjoint(segs) and sum(e - s for s, e in segs) > 0.5 * span:
+                # where the nominal model takes the block held constant, windows and the times between them
+                # are the same departure: the shorter state is reported as the one something came in
+                segs = _gaps(ctx, segs)
             Xs = X * _mask(ctx, segs)[:, None, None]
             Xw = whiten_all(Xs, noise, ctx.segment)
             t = Test(blk.name, _complement(Xw, Q))

@@ -835,9 +835,11 @@ def _disjoint(segs: list[list[float]]) -> bool:
 
 
 def _gaps(ctx: Context, segs: list[list[float]]) -> list[list[float]]:
-    """The times of the recording outside sorted, disjoint ``segs`` (within the recording)."""
+    """The times of the recording outside sorted, disjoint ``segs`` (within the recording) that hold two
+    samples or more: an edge placed a sample from the run's end, or a move between two windows, leaves
+    nothing the data could say was there."""
     bounds = [float(ctx.t[0])] + [x for s in segs for x in s] + [float(ctx.t[-1])]
-    return [[s, e] for s, e in zip(bounds[::2], bounds[1::2]) if e - s > 0]
+    return [[s, e] for s, e in zip(bounds[::2], bounds[1::2]) if e > s and np.count_nonzero(_mask(ctx, [[s, e]])) >= 2]
 
 
 def _mask(ctx: Context, segments: list[list[float]]) -> np.ndarray:

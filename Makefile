@@ -38,7 +38,8 @@ bench: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py
 	$(PY) benchmarks/drivers.py
 	$(PY) benchmarks/procedure.py
-	$(PY) benchmarks/service.py
+	$(PY) benchmarks/service_speed.py
+	$(PY) benchmarks/real.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis

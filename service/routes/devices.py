@@ -58,7 +58,7 @@ async def device_calibrations(request: Request, serial: Serial, limit: int = Que
     # The quality engineers' most frequent query: one indexed query of small columns on the event
     # loop, the stored JSON spliced in as text instead of decoded and re-encoded. (In the thread pool
     # instead, 50 clients starting at the same instant wait less, but every later request waits
-    # 3-5x longer: benchmarks/service.py, README.)
+    # 3-5x longer: benchmarks/service_speed.py, README.)
     with request.app.state.sessions() as session:
         rows = session.execute(
             select(Calibration.id, Calibration.run_id, Calibration.created_at, Calibration.status, Calibration.verdict,

@@ -45,8 +45,8 @@ part, also on errors, Ctrl-C and SIGTERM.
 
 Run (on a quiet machine: the figures are latencies on 2 shared cores):
 
-    .venv/bin/python benchmarks/service.py [--skip-overhead] [--only insert|history|overhead|stations|notify]
-    .venv/bin/python benchmarks/service.py --quick      # a fast check (~1.5 min): 24,000 rows per
+    .venv/bin/python benchmarks/service_speed.py [--skip-overhead] [--only insert|history|overhead|stations|notify]
+    .venv/bin/python benchmarks/service_speed.py --quick      # a fast check (~1.5 min): 24,000 rows per
                                                         # insert figure, 1,000 requests per latency
                                                         # figure, K in (1, 2), 100 events
 
@@ -819,7 +819,7 @@ def main() -> None:
     args = ap.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so that the finally below runs
     parts = [args.only] if args.only else [p for p in PARTS if not (p == "overhead" and args.skip_overhead)]
-    print(f"benchmarks/service.py{' --quick' if args.quick else ''}: {', '.join(parts)}; {os.cpu_count()} CPUs; "
+    print(f"benchmarks/service_speed.py{' --quick' if args.quick else ''}: {', '.join(parts)}; {os.cpu_count()} CPUs; "
           f"PostgreSQL database {BENCH_DB}", flush=True)
     failed = []
     try:

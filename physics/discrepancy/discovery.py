@@ -627,7 +627,10 @@ def window_statistics(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndar
     filter restarted at each run of samples, so the whitened columns are those of the common part plus
     those of each window's stretch, whose response dies out at the end of its run or after
     :func:`_tail_length` samples: the Gram matrices, the projections on Q and on y are the common part's
-    plus small corrections (5-9 times less work per window than one at a time on the ordinary plan).
+    plus each stretch's. The stretch is whitened once, unmasked; a window's own whitened columns are it
+    masked plus, where the mask switches, the filter's decaying carry-in, and their projections on the
+    fixed columns come from the raw samples through the whitening's transpose (:func:`whiten_adjoint`):
+    no window is filtered on its own.
     """
     K, N = masks.shape
     p = X.shape[2]

@@ -133,7 +133,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     for attempt in range(3):
         selected = list(always)
         found = []
-        rows = _forward(selected, found, candidates, eff, generic_w, dic, A0, z, zr, null, alpha, gated, say)
+        rows = _forward(selected, found, candidates, eff, generic_w, dic, A0, Q0, z, zr, null, alpha, gated, say)
         all_tests += rows
         if attempt == 0:
             generic_first = {row["variant"]: row for row in rows if row["generic"]}
@@ -216,7 +216,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     # generic tests again on the final residual: what neither the catalogue nor discovery explains
     unexplained = [row for row in generic_first.values() if row["p_adjusted"] < alpha * FALLBACK_SHARE]
     if terms:
-        Qf = _extend(Q0, np.column_stack(list(terms.values())))
+        Qf = _extend(Q0, *terms.values())
         zf = zr - Qf @ (Qf.T @ zr)
         gt = [Test(name, _complement(Xw, Qf)) for name, Xw in generic_w.items()]
         _score(gt, zf, null)
@@ -328,7 +328,8 @@ def _linearise(ctx: Context, y: np.ndarray, nom: Nominal, eff: dict, noise: Nois
 
 
 def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.ndarray], eff: dict,
-             generic_w: dict[str, np.ndarray], dic: Dictionary, A0: np.ndarray, z: np.ndarray, zr: np.ndarray,
+             generic_w: dict[str, np.ndarray], dic: Dictionary, A0: np.ndarray, Q0: np.ndarray, z: np.ndarray,
+             zr: np.ndarray,
              null: np.ndarray | None, alpha: float, gated: set[str], say: Progress) -> list[dict[str, Any]]:
     """Forward selection (in place on ``selected`` catalogue effects and ``found`` discovered blocks);
     returns the test rows of every round.
@@ -344,10 +345,9 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
     # alpha is shared between the two families (weighted Bonferroni): each is held to its share, so the
     # round's false-alarm rate stays alpha
     a_cat, a_dic = alpha * CATALOGUE_SHARE, alpha * DICTIONARY_SHARE
-    Q0 = _orth(A0)
     for round_no in range(MAX_EFFECTS + MAX_BLOCKS):
         say(f"tests: round {round_no + 1}", min(0.55 + 0.03 * round_no, 0.69))
-        Q = _extend(Q0, np.column_stack([A0[:, :0]] + [candidates[s] for s in selected] + [f.Xw for f in found]))
+        Q = _extend(Q0, *[candidates[s] for s in selected], *[f.Xw for f in found])
         resid = z - Q @ (Q.T @ z)
         tests: dict[str, Test] = {}
         gtests: dict[str, Test] = {}
@@ -405,12 +405,12 @@ def _backward(terms: dict[str, np.ndarray], Q0: np.ndarray, z: np.ndarray, null:
         # every test's bases within the span of the whole model, in its orthonormal coordinates: the
         # same numbers as a tall decomposition per term (each term's columns lie in that span), at the
         # cost of one
-        Qf = _extend(Q0, np.column_stack(list(terms.values())))
+        Qf = _extend(Q0, *terms.values())
         coords = {name: Qf.T @ Xw for name, Xw in terms.items()}
         q0 = Q0.shape[1]
         for name in terms:
             others = [C for o, C in coords.items() if o != name]
-            Qo = _extend(np.eye(len(Qf.T), q0), np.column_stack([np.zeros((len(Qf.T), 0)), *others]))
+            Qo = _extend(np.eye(Qf.shape[1], q0), *others)
             t = Test(name, Qf @ _complement(coords[name], Qo))
             _score([t], z - Qf @ (Qo @ (Qo.T @ (Qf.T @ z))), null, extra=m - 1)
             final[name] = t

@@ -26,10 +26,11 @@ def _orth(A: np.ndarray, rcond: float = 1e-9) -> np.ndarray:
     return U[:, s > rcond * max(s[0], 1e-300)] if s.size else U[:, :0]
 
 
-def _extend(Q: np.ndarray, X: np.ndarray, rcond: float = 1e-9) -> np.ndarray:
-    """:func:`_orth` of ``[Q, X]`` for orthonormal Q: Q and the orthonormal basis of what X adds beyond
-    span(Q). Only X's projected part is decomposed (a tall SVD of a few columns, not of the whole model's:
-    on a long recording these SVDs had cost the analysis a sixth of its time)."""
+def _extend(Q: np.ndarray, *blocks: np.ndarray, rcond: float = 1e-9) -> np.ndarray:
+    """:func:`_orth` of ``[Q, *blocks]`` for orthonormal Q: Q and the orthonormal basis of what the blocks'
+    columns X add beyond span(Q). Only X's projected part is decomposed (a tall SVD of a few columns, not
+    of the whole model's: on a long recording these SVDs had cost the analysis a sixth of its time)."""
+    X = np.column_stack(blocks) if blocks else Q[:, :0]
     if X.shape[1] == 0:
         return Q
     Xp = X - Q @ (Q.T @ X)

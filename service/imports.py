@@ -41,6 +41,7 @@ import numpy as np
 from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, PrivateAttr, ValidationError, ValidationInfo,
                       create_model, field_validator, model_validator)
 from pydantic_core import ErrorDetails
+from scipy.spatial.transform import Rotation
 
 from physics.frames import yaw_pitch_roll
 from physics.recording import SKIPPED_KEY, Recording, RecordingError, parse_recording
@@ -457,6 +458,18 @@ def table_angles(C_Lb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return (np.degrees(np.unwrap(np.radians(psi))), theta, np.degrees(np.unwrap(np.radians(phi))))
 
 
+def _from_sequence(angles: tuple[np.ndarray, np.ndarray, np.ndarray], sequence: str) -> tuple[tuple[np.ndarray, ...], str]:
+    """Table angles (psi_t, theta_t, phi_t, deg) of attitudes given as angles about z, y and x (deg)
+    composed in ``sequence`` (scipy's convention: upper case intrinsic, lower case extrinsic), and a
+    note of the conversion for the metadata."""
+    about = dict(zip("zyx", angles))
+    C = Rotation.from_euler(sequence, np.column_stack([about[a] for a in sequence.lower()]), degrees=True).as_matrix()
+    kind = "intrinsic: C_Lb = " if sequence.isupper() else "extrinsic, about the lab's axes: C_Lb = "
+    product = " ".join(f"R{a}" for a in (sequence.lower() if sequence.isupper() else sequence.lower()[::-1]))
+    return table_angles(C), (f"the file's angles compose C_Lb in the sequence {sequence} ({kind}{product}); "
+                             "psi_t, theta_t, phi_t are its ZYX Euler angles, psi_t and phi_t unwrapped")
+
+
 def broad_attitude(quat_wxyz: np.ndarray) -> np.ndarray:
     """C_Lb (N, 3, 3) in our lab frame L = NED from BROAD's ``opt_quat`` ([w, x, y, z], IMU -> ENU).
 
@@ -673,9 +686,18 @@ class GyroTable(_Sensor):
     unit: Annotated[str, _one_of(GYRO_UNITS)] = "deg/s"
 
 
+def _tait_bryan(v: Any) -> bool:
+    return isinstance(v, str) and (v.isupper() or v.islower()) and sorted(v.lower()) == ["x", "y", "z"]
+
+
 class AnglesTable(_Strict):
     unit: Annotated[str, _one_of(ANGLE_UNITS)] = "deg"
     negate: list[Annotated[str, _one_of(_GROUP_COLUMNS["angles"])]] = []
+    # the order the angles compose the attitude in, as scipy's Rotation.from_euler: upper case intrinsic
+    # (C_Lb = R_1 R_2 R_3), lower case extrinsic (about the lab's axes, first letter first)
+    sequence: Annotated[str, _check(_tait_bryan, "{v!r} is not a rotation sequence of three different axes; e.g. "
+                                                 "ZYX (ours, the default), XYZ, ZXY, or in lower case about the "
+                                                 "lab's fixed axes (xyz = ZYX)")] = "ZYX"
     source: Text = "turntable"
 
 
@@ -1101,6 +1123,13 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
                           f"theta_t (middle, y) = {'-' if 'theta_t' in m.angles.negate else ''}column {tab.labels['theta_t']}, "
                           f"phi_t (inner, x) = {'-' if 'phi_t' in m.angles.negate else ''}column {tab.labels['phi_t']}, "
                           f"file unit {m.angles.unit}")
+        if m.angles.sequence not in ("ZYX", "xyz"):
+            angles, note = _from_sequence(angles, m.angles.sequence)
+            meta["angles"] += "; " + note
+            if m.angles.source == "turntable":
+                # ZYX angles computed from another nesting are no table's stages: the tests of iron or
+                # errors on a stage would be made in frames that do not exist
+                meta["attitude_source"] = f"turntable with its stages nested {m.angles.sequence}, not z, y, x"
     elif m.attitude is not None:
         q = np.column_stack([v[f"q{i}"] for i in range(4)])
         keep = np.isfinite(q).all(axis=1) & (np.linalg.norm(np.nan_to_num(q), axis=1) > 0.5)

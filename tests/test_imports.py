@@ -418,6 +418,44 @@ def test_mapping_dt_column_counts_and_quaternion(tmp_path):
     assert enu.psi_t[0] == pytest.approx(90.0) and abs(enu.phi_t[0]) == pytest.approx(180.0)
 
 
+@pytest.mark.parametrize("sequence", ["XYZ", "ZXY", "yxz"])
+def test_mapping_angles_in_another_rotation_sequence_give_the_same_attitudes_and_calibration(tmp_path, sequence):
+    """A logger whose three angles (about z, y and x) compose the attitude in another order: converted to
+    PHYSICS.md's ZYX table angles they give the same attitudes, and the fit the same calibration as the
+    recording written with ours; the stage-frame tests are then not run (no stage of a z, y, x table)."""
+    from scipy.spatial.transform import Rotation
+
+    from physics.fit import fit
+    from physics.sensor import reference_unit
+    from physics.simulate import simulate_recording
+    from procedures.calibrate import calibration_poses
+
+    rec = simulate_recording(reference_unit(), calibration_poses(), rng=np.random.default_rng(3))
+    C = Rotation.from_euler("ZYX", np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t]), degrees=True)
+    a = C.as_euler(sequence, degrees=True)
+    about = {ax: a[:, i] for i, ax in enumerate(sequence.lower())}
+    lines = ["t,mx,my,mz,ax,ay,az,yaw,pitch,roll"] + [
+        f"{t:.6f},{m[0]:.6f},{m[1]:.6f},{m[2]:.6f},{f[0]:.6f},{f[1]:.6f},{f[2]:.6f},{-z:.9f},{y:.9f},{x:.9f}"
+        for t, m, f, z, y, x in zip(rec.t, rec.mag, rec.acc, about["z"], about["y"], about["x"])]  # yaw counted the other way
+    p = _write(tmp_path, "log.csv", "\n".join(lines) + "\n")
+    m = {"columns": {"t": "t", "mx": "mx", "my": "my", "mz": "mz", "ax": "ax", "ay": "ay", "az": "az",
+                     "psi_t": "yaw", "theta_t": "pitch", "phi_t": "roll"},
+         "mag": {"unit": "counts"}, "acc": {"unit": "counts"}, "angles": {"sequence": sequence, "negate": ["psi_t"]}}
+    got = read_recording_file(p, mapping=m)
+    back = Rotation.from_euler("ZYX", np.column_stack([got.psi_t, got.theta_t, got.phi_t]), degrees=True)
+    assert np.degrees((back * C.inv()).magnitude()).max() < 1e-6
+    assert f"sequence {sequence}" in got.meta["angles"]
+    assert got.meta["attitude_source"] == f"turntable with its stages nested {sequence}, not z, y, x"
+    ours, theirs = fit(rec, "joint", bootstrap=0), fit(got, "joint", bootstrap=0)
+    assert np.abs(theirs.mag.M_o - ours.mag.M_o).max() < 1e-6 and np.abs(theirs.mag.k / ours.mag.k - 1).max() < 1e-6
+    assert np.abs(theirs.mag.bias - ours.mag.bias).max() < 1e-3
+    # ours, said outright or as the lab-axes (extrinsic) sequence x, y, z, is a table's: nothing converted
+    for same in ("ZYX", "xyz"):
+        m["angles"]["sequence"] = same
+        plain = read_recording_file(p, mapping=m)
+        assert plain.meta["attitude_source"] == "turntable" and "sequence" not in plain.meta["angles"]
+
+
 def test_mapping_mat_variables_and_radians(tmp_path):
     n = 30
     log = np.column_stack([np.arange(n) * 0.1, np.full(n, 0.3), np.full(n, -0.1), np.full(n, 0.5),
@@ -468,6 +506,10 @@ MAG_ABC = {"mx": "a", "my": "b", "mz": "c"}
     ({"columns": MAG_ABC, "time": {"rate_hz": -2}}, "time.rate_hz must be a number > 0, got -2"),
     ({"columns": {**MAG_ABC, "psi_t": "a", "theta_t": "b", "phi_t": "c"}, "time": {"rate_hz": 1},
       "attitude": {"columns": ["a", "b", "c", "a"]}}, "either angle columns"),
+    ({"columns": {**MAG_ABC, "psi_t": "a", "theta_t": "b", "phi_t": "c"}, "time": {"rate_hz": 1},
+      "angles": {"sequence": "ZXZ"}}, "angles.sequence 'ZXZ' is not a rotation sequence of three different axes"),
+    ({"columns": {**MAG_ABC, "psi_t": "a", "theta_t": "b", "phi_t": "c"}, "time": {"rate_hz": 1},
+      "angles": {"sequence": "Zyx"}}, "angles.sequence 'Zyx' is not a rotation sequence"),
     ({"columns": MAG_ABC, "time": {"rate_hz": 1}, "angles": {"negate": ["yaw"]}}, "[angles] is given but"),
     ({"file": {"format": "xlsx"}}, "file.format 'xlsx' is not known; accepted: csv, mat, hdf5"),
 ])

@@ -201,6 +201,57 @@ def test_too_short_a_recording_is_refused_with_the_reason() -> None:
         analyze(rec)
 
 
+@pytest.mark.parametrize("angles", [True, False])
+def test_a_recording_without_noise_is_refused_naming_the_axes(angles: bool) -> None:
+    """A simulation without noise (the readings repeat exactly at rest): every statistic would be infinite.
+    It used to crash the window search (an IndexError) or, without table angles, report findings against
+    a noise floor of 0; now it is refused, naming the axes, by the table and the attitude-free model alike."""
+    unit = random_unit(np.random.default_rng(0))
+    unit = replace(unit, mag=replace(unit.mag, noise_lsb=0.0))
+    rec = simulate_recording(unit, calibration_poses(), World(), rng=np.random.default_rng(1))
+    assert np.all(np.diff(rec.mag[:60], axis=0) == 0.0)  # one hold's readings repeat exactly
+    if not angles:
+        nan = np.full(len(rec), np.nan)
+        rec = Recording.from_arrays(rec.t, rec.step, nan, nan, nan, rec.mag, rec.acc, rec.temp_c, dict(rec.meta))
+    with pytest.raises(ValueError, match="no measurable noise on mx, my, mz"):
+        analyze(rec, null_sims=20)
+    # one quiet axis is enough to refuse, and it is the one named
+    noisy = rec.mag + np.column_stack([np.zeros(len(rec)), np.random.default_rng(2).normal(0.0, 3.0, (len(rec), 2))])
+    rec = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, noisy, rec.acc, rec.temp_c, dict(rec.meta))
+    with pytest.raises(ValueError, match=r"no measurable noise on mx \("):
+        analyze(rec, null_sims=20)
+
+
+def test_bad_samples_are_left_out_and_named_but_a_short_event_is_analysed() -> None:
+    """Brown-out rows (all axes 0) and lone garbage rows that passed the checksum are no physics: left in, they
+    were reported as unexplained structure. They are left out and listed; ten rows of a magnet brought near
+    within one hold are kept for the analysis to find."""
+    rng = np.random.default_rng(4)
+    rec = simulate_recording(random_unit(rng), calibration_poses(), World(), rng=rng)
+    mag = rec.mag.copy()
+    zeros, garbage = [130, 131, 611], [45, 402, 777, 1001]
+    mag[zeros] = 0.0
+    mag[garbage] = rng.integers(-32768, 32767, (len(garbage), 3))
+    bad = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, mag, rec.acc, rec.temp_c, dict(rec.meta))
+    r = analyze(bad, null_sims=50, rng=np.random.default_rng(0)).result
+    assert r["verdict"] == "consistent" and r["samples"] == len(rec) - 7
+    assert [row["index"] for row in r["rejected_rows"]] == sorted(zeros + garbage)
+    assert r["notes"][0].startswith("7 of 1080 rows left out as bad samples (3 with a sensor's three axes exactly 0; 4 alone")
+    # an axis clipped at the int16 limit for a whole hold: no reading there, said so with when
+    clipped = rec.mag.copy()
+    clipped[300:360, 2] = 32767.0
+    cl = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, clipped, rec.acc, rec.temp_c, dict(rec.meta))
+    r = analyze(cl, null_sims=50, rng=np.random.default_rng(0)).result
+    assert r["verdict"] == "consistent" and [row["index"] for row in r["rejected_rows"]] == list(range(300, 360))
+    assert f"60 saturated, at t {rec.t[300]:.1f}-{rec.t[359]:.1f} s" in r["notes"][0]
+    # a magnet near the unit for the last ten samples of one hold: an event, not bad samples
+    event = rec.mag.copy()
+    event[290:300] += [400.0, -300.0, 250.0]
+    ev = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, event, rec.acc, rec.temp_c, dict(rec.meta))
+    r = analyze(ev, null_sims=50, rng=np.random.default_rng(0)).result
+    assert "rejected_rows" not in r and r["verdict"] == "discrepancy"
+
+
 def test_hysteresis_signs_follow_the_concealed_effect_through_unsampled_moves() -> None:
     """The analyser's hysteresis regressor is the concealed effect's sign state: on a path sampled a
     tenth of a degree apart both agree sample by sample; sampled only at the holds (the moves between

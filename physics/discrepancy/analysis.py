@@ -12,10 +12,11 @@ from physics import effects as fx
 from physics.calibration import Calibration, json_safe
 from physics.discrepancy.discovery import MAX_BLOCKS, Dictionary, Found, discovered_finding, merge_windows, rebuild, rows_of
 from physics.discrepancy.lrt import Test, _complement, _extend, _null_residuals, _orth, _score, line_search
-from physics.discrepancy.noise import NoiseModel, estimate_noise, whiten_all
+from physics.discrepancy.noise import NoiseModel, estimate_noise, require_noise, whiten_all
 from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_of, parameters, where_extra
 from physics.discrepancy.schema import Analysis, summary, with_schema
 from physics.discrepancy.twin import Context, Nominal, context, decimate, fit_nominal, generic_columns, nominal_columns
+from physics.fit import rejected_rows, screen_rows
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording, RecordingError
@@ -60,6 +61,7 @@ def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: fl
     compared with this recording's fit ("parameter_shift"). ``null_sims`` simulated nulls calibrate
     the tests; ``alpha`` is the family-wise false-alarm rate of the verdict.
     """
+    rec, bad = _without_bad_samples(rec)
     # many small matrix products: several BLAS threads fight over the cores and run 5-10x slower
     with threadpool_limits(1):
         if not rec.has_angles:
@@ -67,9 +69,51 @@ def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: fl
             a = analyze_attitude_free(rec, alpha=alpha, null_sims=null_sims, rng=rng, progress=progress)
         else:
             a = _analyze_table(rec, calibration, alpha, null_sims, rng, progress)
+    if bad:
+        a.result["notes"] = [bad[0], *a.result.get("notes", [])]
+        a.result["rejected_rows"] = bad[1]
     a.result["findings"] = with_schema(a.result.get("findings", []))
     a.result.setdefault("summary", summary(a.result))
     return a
+
+
+#: Rows off their pose by more than the fit's gross limit (physics.fit.screen_rows) are bad samples when
+#: they come alone or in runs of at most this many; a longer run is something that happened (a magnet
+#: brought near for a moment, a knock), which is what the analysis is for.
+BAD_RUN = 3
+#: A magnetometer count at the int16 limit is a clipped reading (the compass sets its saturation bit there).
+SATURATED_LSB = 32767.0
+
+
+def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dict[str, Any]]] | None]:
+    """``rec`` without its bad samples, and the note and rows to report (None when there are none): rows
+    whose three axes of a sensor read exactly 0 (a brown-out, a dropped frame), and lone rows or short runs
+    far off their pose (garbage that passed the checksum). Left in, each would be "structure" that no
+    physics explains."""
+    screened = screen_rows(rec)
+    zero = {i for i, why in screened.items() if "read exactly 0" in why}
+    off = np.array(sorted(set(screened) - zero), dtype=int)
+    short: set[int] = set()
+    if len(off):
+        runs = np.split(off, np.flatnonzero(np.diff(off) > 1) + 1)
+        short = {int(i) for r in runs if len(r) <= BAD_RUN for i in r}
+    bad = {i: screened[i] for i in sorted(zero | short)}
+    clipped = np.flatnonzero(np.any(np.abs(np.asarray(rec.mag, float)) >= SATURATED_LSB, axis=1))
+    for i in clipped:
+        bad.setdefault(int(i), "a magnetometer axis reads the int16 limit (saturated: a field beyond the sensor's range)")
+    if not bad:
+        return rec, None
+    keep = np.ones(len(rec), bool)
+    keep[list(bad)] = False
+    idx = sorted(bad)
+    shown = ", ".join(map(str, idx[:20])) + (f" and {len(idx) - 20} more" if len(idx) > 20 else "")
+    kinds = [f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
+             f"{len(short)} alone or in runs of at most {BAD_RUN} far off their pose's median" if short else "",
+             (f"{len(clipped)} saturated, at t {rec.t[clipped[0]]:.1f}-{rec.t[clipped[-1]]:.1f} s (a field beyond the "
+              "sensor's range: a strong magnet near the unit?)") if len(clipped) else ""]
+    note = (f"{len(bad)} of {len(rec)} rows left out as bad samples ({'; '.join(k for k in kinds if k)}): "
+            f"sample indices {shown}")
+    return rec.select(keep), (note, rejected_rows(rec, bad))
 
 
 def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float, null_sims: int,
@@ -92,6 +136,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
 
     say("noise floor", 0.15)
     noise = estimate_noise(r0, ctx)
+    require_noise(noise.floor)
     eff = effect_columns(ctx, nom, temp)
     gen = generic_columns(ctx, nom, temp)
     untestable = [{"effect": name.split(":")[0], "reason": why} for name, (_, _, why) in eff.items() if why]

@@ -69,6 +69,7 @@ from physics.discrepancy.discovery import (AGAINST_TEXT, FOUND_BY_SEARCH, FRAME_
                                            N_BINS, SLOW_PREFERENCE, SLOW_SAME_EVIDENCE, Block, _cause, _experiment,
                                            _window_stats, search_bins, ut_per_count)
 from physics.discrepancy.lrt import _orth
+from physics.discrepancy.noise import require_noise
 from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
                                           needs_table_angles, raw_distortions)
 from physics.discrepancy.schema import Analysis
@@ -1793,6 +1794,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
 
     # ---- results --------------------------------------------------------------------------------------------
     noise = _noise_floor(full, resid_before[:, 0], notes)
+    require_noise(noise["sigma"])
     kb = shape.kbar
 
     def rms(a: np.ndarray) -> float | None:

@@ -372,7 +372,8 @@ def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray 
     lps[ok] = chi2_logsf(stat[ok] / c_scale, df[ok])
     # a window and its complement tie exactly where the model absorbs the block held constant: the
     # first of the tied windows (the earliest), not the sums' rounding, decides which is refined
-    i = int(np.flatnonzero(lps <= lps.min() + 1e-9 * max(1.0, abs(float(lps.min()))))[0])
+    lo = float(lps.min())
+    i = int(np.flatnonzero(lps <= lo + 1e-9 * max(1.0, abs(lo)))[0]) if np.isfinite(lo) else int(np.argmin(lps))
     single = WindowSearch(int(a_idx[i]), int(b_idx[i]), float(stat[i]), int(df[i]), float(lps[i]), m_eff,
                           _search_log_p(float(lps[i]), m_eff, stat[i] / c_scale, int(df[i]), p_ref, 2), scale=c_scale)
     # Two windows with the same parameters: something that came and went twice (a relay, a motor, a

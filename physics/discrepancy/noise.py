@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import signal
 
+from physics.recording import RecordingError
+
 if TYPE_CHECKING:
     from physics.discrepancy.twin import Context
 
@@ -16,6 +18,23 @@ if TYPE_CHECKING:
 # --------------------------------------------------------------------------------------------------
 # Noise: AR(1) per axis, whitening, simulation
 # --------------------------------------------------------------------------------------------------
+
+#: A noise floor below this (LSB, 0.01 nT at the nominal scale) is no sensor's: the readings repeat
+#: exactly, as a simulation without noise (or a saturated axis) gives them.
+MIN_FLOOR_LSB = 1e-3
+
+
+def require_noise(floor: np.ndarray) -> None:
+    """Refuse (RecordingError) a recording whose magnetometer axes (per-sample ``floor``, LSB) show no noise:
+    every test judges a departure against the noise, and against none the smallest rounding would be one."""
+    quiet = [axis for axis, f in zip(("mx", "my", "mz"), np.asarray(floor, float)) if not f >= MIN_FLOOR_LSB]
+    if quiet:
+        raise RecordingError(
+            f"no measurable noise on {', '.join(quiet)} (a noise floor under {MIN_FLOOR_LSB:g} LSB: the readings "
+            "repeat exactly, as a simulation without noise or a saturated axis gives them): the analysis judges "
+            "every departure against the sensor's noise, so it needs a recording that has it (a real one, or a "
+            "simulated one with noise, e.g. compasscal simulate --noise 3)")
+
 
 @dataclass
 class NoiseModel:

@@ -15,7 +15,8 @@ from physics.discrepancy.lrt import Test, _complement, _extend, _null_residuals,
 from physics.discrepancy.noise import NoiseModel, estimate_noise, require_noise, whiten_all
 from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_of, parameters, where_extra
 from physics.discrepancy.schema import Analysis, summary, with_schema
-from physics.discrepancy.twin import Context, Nominal, context, decimate, fit_nominal, generic_columns, nominal_columns
+from physics.discrepancy.twin import (ATTITUDE_SOURCE_KEY, Context, Nominal, context, decimate, fit_nominal, generic_columns,
+                                     nominal_columns)
 from physics.fit import rejected_rows, screen_rows
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
@@ -87,14 +88,16 @@ SATURATED_LSB = 32767.0
 
 def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dict[str, Any]]] | None]:
     """``rec`` without its bad samples, and the note and rows to report (None when there are none): rows
-    whose three axes of a sensor read exactly 0 (a brown-out, a dropped frame), and lone rows or short runs
-    far off their pose (garbage that passed the checksum). Left in, each would be "structure" that no
-    physics explains."""
+    whose three axes of a sensor read exactly 0 (a brown-out, a dropped frame), rows with a magnetometer
+    axis at the int16 limit (saturated), and, on a turntable, lone rows or short runs far off their hold
+    (garbage that passed the checksum). Left in, each would be "structure" that no physics explains."""
     screened = screen_rows(rec)
     zero = {i for i, why in screened.items() if "read exactly 0" in why}
     off = np.array(sorted(set(screened) - zero), dtype=int)
     short: set[int] = set()
-    if len(off):
+    # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
+    # (a stale reference), which says nothing of the magnetometer's rows
+    if len(off) and rec.meta.get(ATTITUDE_SOURCE_KEY, "turntable") == "turntable":
         runs = np.split(off, np.flatnonzero(np.diff(off) > 1) + 1)
         short = {int(i) for r in runs if len(r) <= BAD_RUN for i in r}
     bad = {i: screened[i] for i in sorted(zero | short)}
@@ -108,7 +111,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     idx = sorted(bad)
     shown = ", ".join(map(str, idx[:20])) + (f" and {len(idx) - 20} more" if len(idx) > 20 else "")
     kinds = [f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
-             f"{len(short)} alone or in runs of at most {BAD_RUN} far off their pose's median" if short else "",
+             f"{len(short)} alone or in runs of at most {BAD_RUN} far off their hold's median" if short else "",
              (f"{len(clipped)} saturated, at t {rec.t[clipped[0]]:.1f}-{rec.t[clipped[-1]]:.1f} s (a field beyond the "
               "sensor's range: a strong magnet near the unit?)") if len(clipped) else ""]
     note = (f"{len(bad)} of {len(rec)} rows left out as bad samples ({'; '.join(k for k in kinds if k)}): "

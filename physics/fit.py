@@ -165,7 +165,7 @@ def screen_rows(rec: Recording) -> dict[int, str]:
             out.setdefault(int(i), f"all three {name} axes read exactly 0 (a brown-out or a dropped reading)")
     if len(rec) == 0:
         return out
-    group = _pose_groups(rec)
+    group = pose_groups(rec)
     usable = np.ones(len(rec), bool)
     usable[list(out)] = False
     n = np.bincount(group[usable], minlength=group.max() + 1)
@@ -408,7 +408,7 @@ def quality(rec: Recording, cal: Calibration) -> dict[str, object]:
     return {"residual_rms_lsb": rms, "heading_error_deg": staged, "samples": len(rec), "poses": len(mean)}
 
 
-def _pose_groups(rec: Recording) -> np.ndarray:
+def pose_groups(rec: Recording) -> np.ndarray:
     """Pose index of each sample: a pose is a run of consecutive samples with one step and encoder angles."""
     key = np.round(es.table_angles(rec), 3)
     change = np.r_[True, np.any(key[1:] != key[:-1], axis=1) | (rec.step[1:] != rec.step[:-1])]
@@ -417,7 +417,7 @@ def _pose_groups(rec: Recording) -> np.ndarray:
 
 def pose_means(rec: Recording) -> Recording:
     """One row per pose (a run of consecutive samples with the same step and encoder angles), averaged."""
-    group = _pose_groups(rec)
+    group = pose_groups(rec)
     change = np.r_[True, group[1:] != group[:-1]]
     n = np.bincount(group)
 
@@ -458,7 +458,7 @@ def evaluate(rec: Recording, cal: Calibration, max_tilt_deg: float = 60.0) -> di
     h_mean = cal.heading(mean.mag, f_b)
     err = heading_error(h_mean, reference_heading(C, cal.declination_deg))
     # each sample's heading about its pose's mean, for the pose's standard error
-    group = _pose_groups(rec)
+    group = pose_groups(rec)
     h = cal.heading(rec.mag, es.specific_force(rec, cal.acc))
     dev = wrap180(h - h_mean[group])
     n = np.bincount(group)

@@ -250,6 +250,11 @@ def test_bad_samples_are_left_out_and_named_but_a_short_event_is_analysed() -> N
     ev = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, event, rec.acc, rec.temp_c, dict(rec.meta))
     r = analyze(ev, null_sims=50, rng=np.random.default_rng(0)).result
     assert "rejected_rows" not in r and r["verdict"] == "discrepancy"
+    # ... nor is one arriving in a hold's last row (a lone row off its hold, but where the hold ends)
+    event = rec.mag.copy()
+    event[299:] += [400.0, -300.0, 250.0]
+    ev = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, event, rec.acc, rec.temp_c, dict(rec.meta))
+    assert "rejected_rows" not in analyze(ev, null_sims=50, rng=np.random.default_rng(0)).result
 
 
 def test_hysteresis_signs_follow_the_concealed_effect_through_unsampled_moves() -> None:

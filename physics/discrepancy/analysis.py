@@ -17,7 +17,7 @@ from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_o
 from physics.discrepancy.schema import Analysis, summary, with_schema
 from physics.discrepancy.twin import (ATTITUDE_SOURCE_KEY, Context, Nominal, context, decimate, fit_nominal, generic_columns,
                                      nominal_columns)
-from physics.fit import rejected_rows, screen_rows
+from physics.fit import pose_groups, rejected_rows, screen_rows
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording, RecordingError
@@ -78,9 +78,10 @@ def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: fl
     return a
 
 
-#: Rows off their pose by more than the fit's gross limit (physics.fit.screen_rows) are bad samples when
-#: they come alone or in runs of at most this many; a longer run is something that happened (a magnet
-#: brought near for a moment, a knock), which is what the analysis is for.
+#: Rows off their hold by more than the fit's gross limit (physics.fit.screen_rows) are bad samples when
+#: they come alone or in runs of at most this many, with good rows of the hold on both sides; a longer
+#: run is something that happened (a magnet brought near for a moment, a knock), which is what the
+#: analysis is for.
 BAD_RUN = 3
 #: A magnetometer count at the int16 limit is a clipped reading (the compass sets its saturation bit there).
 SATURATED_LSB = 32767.0
@@ -98,8 +99,14 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
     # (a stale reference), which says nothing of the magnetometer's rows
     if len(off) and rec.meta.get(ATTITUDE_SOURCE_KEY, "turntable") == "turntable":
+        hold = pose_groups(rec)
+        inside = lambda i: 0 <= i < len(rec) and i not in screened  # noqa: E731  (a good row beside the run)
         runs = np.split(off, np.flatnonzero(np.diff(off) > 1) + 1)
-        short = {int(i) for r in runs if len(r) <= BAD_RUN for i in r}
+        # a run that reaches its hold's first or last row may be something arriving or leaving (a magnet
+        # brought near as the hold ends): only runs with good rows of their own hold on both sides go
+        short = {int(i) for r in runs if len(r) <= BAD_RUN
+                 and inside(r[0] - 1) and inside(r[-1] + 1) and hold[r[0] - 1] == hold[r[0]] == hold[r[-1] + 1]
+                 for i in r}
     bad = {i: screened[i] for i in sorted(zero | short)}
     clipped = np.flatnonzero(np.any(np.abs(np.asarray(rec.mag, float)) >= SATURATED_LSB, axis=1))
     for i in clipped:

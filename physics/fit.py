@@ -27,6 +27,7 @@ method needs, are refused with that reason.
 
 from __future__ import annotations
 
+from itertools import permutations, product
 from typing import Any, Callable
 
 import numpy as np
@@ -124,6 +125,13 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
     if spread > MAX_FIELD_SPREAD:
         message = (f"calibrated field magnitude varies by {100 * spread:.1f} % across the level turn (expected under "
                    f"{100 * MAX_FIELD_SPREAD:.0f} %)")
+        if work.has_angles:
+            means = pose_means(work)
+            found = better_reading(np.column_stack([means.psi_t, means.theta_t, means.phi_t]), means.mag)
+            if found is not None:
+                here, best, how = found
+                raise RecordingError(f"{message}: the table angles fit the nominal model far better read {how} (the "
+                                     f"pose means leave {here:.3g} LSB rms as given, {best:.3g} so read). {ANGLE_ADVICE}")
         if method in ROBUST_METHODS:
             # the nominal model fits any linear sensor: a misfit this large is the data's fault
             if too_many:
@@ -134,6 +142,73 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
                                  "the rows off the model)")
         cal.notes.append(message + f": a limitation of the {method} method on this recording")
     return cal
+
+
+# --------------------------------------------------------------------------------------------------
+# Table angles in another convention
+# --------------------------------------------------------------------------------------------------
+
+#: Another reading of the table angles must leave this many times less residual to be named the likely
+#: one: no physics is undone by negating, swapping or rescaling an angle column.
+CONVENTION_GAIN = 10.0
+#: What to do about it, said with every such refusal.
+ANGLE_ADVICE = ("PHYSICS.md's angles are degrees, psi_t about z (outer), theta_t about y (middle), phi_t about x "
+                "(inner), right-handed; re-export them so, or read the file through a mapping (--mapping: "
+                "[columns], [angles] unit, negate, sequence)")
+_ANGLE_NAMES = ("psi_t", "theta_t", "phi_t")
+
+
+def better_reading(ang: np.ndarray, mag: np.ndarray) -> tuple[float, float, str] | None:
+    """(rms residual as given, rms residual so read, the reading) when the table angles ``ang`` (N, 3:
+    psi_t, theta_t, phi_t in deg) of readings ``mag`` (N, 3) fit the nominal model ``raw = M R^T v + b``
+    :data:`CONVENTION_GAIN` times better read another way: in radians, in another column order, or with
+    signs flipped (95 readings, a joint fit each: give it hold means, not every sample). The simplest
+    reading is named, or the equally simple ones the attitudes cannot tell apart. None otherwise, or
+    when the angles as given cannot determine the fit."""
+    grid = np.array(es._sphere_starts(400))
+    one = np.ones((len(grid), len(mag), 1))
+
+    def misfit(a: np.ndarray) -> float:
+        R = platform_attitude(a[:, 0], a[:, 1], a[:, 2])
+        try:
+            es.check_identifiable(R, grid[0], "magnetometer", "")
+            # M and b are linear given the field's direction: every direction of a fine grid at once, then
+            # the joint fit from the best of them (one start instead of the fit's twelve: 95 readings to try)
+            X = np.concatenate([np.einsum("nji,kj->kni", R, grid), one], axis=2)
+            coef = np.linalg.solve(np.einsum("kni,knj->kij", X, X) + 1e-9 * np.eye(4), np.einsum("kni,nc->kic", X, mag))
+            sse = np.sum((mag[None] - X @ coef) ** 2, axis=(1, 2))
+            f = es.fit_vector_sensor(R, mag, [grid[int(np.argmin(sse))]])
+        except (es.InsufficientData, np.linalg.LinAlgError, ValueError):
+            return np.inf
+        return float(np.sqrt(np.mean((mag - np.einsum("nji,j->ni", R, f.v) @ f.M.T - f.b) ** 2)))
+
+    here = misfit(ang)
+    if not np.isfinite(here):
+        return None
+    tried: list[tuple[float, int, str]] = []  # (residual, how many changes, what they are)
+    for scale, unit in ((1.0, ""), (180.0 / np.pi, "in radians")):
+        for order in permutations(range(3)):
+            for signs in product((1.0, -1.0), repeat=3):
+                said = [unit] if unit else []
+                if order != (0, 1, 2):
+                    said.append("with the columns read as " + ", ".join(_ANGLE_NAMES[i] for i in order))
+                flipped = [_ANGLE_NAMES[order[k]] for k in range(3) if signs[k] < 0]
+                if flipped:
+                    said.append(", ".join(flipped) + " negated")
+                if said:
+                    changes = int(scale != 1.0) + int(order != (0, 1, 2)) + len(flipped)
+                    tried.append((misfit(ang[:, order] * np.array(signs) * scale), changes, "; ".join(said)))
+    least = min(m for m, _, _ in tried)
+    if not least * CONVENTION_GAIN < here:
+        return None
+    # the attitudes of a symmetric plan come out alike under several readings: name the simplest of those
+    alike = [t for t in tried if t[0] <= 1.1 * least]
+    fewest = min(c for _, c, _ in alike)
+    simplest = sorted((t for t in alike if t[1] == fewest), key=lambda t: t[0])
+    how = simplest[0][2] if len(simplest) == 1 else (
+        "in one of these ways, which this recording's attitudes cannot tell apart: "
+        + " | ".join(t[2] for t in simplest[:4]) + (f" | {len(simplest) - 4} more" if len(simplest) > 4 else ""))
+    return here, simplest[0][0], how
 
 
 # --------------------------------------------------------------------------------------------------

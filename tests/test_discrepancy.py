@@ -222,6 +222,28 @@ def test_a_recording_without_noise_is_refused_naming_the_axes(angles: bool) -> N
         analyze(rec, null_sims=20)
 
 
+def test_angles_in_the_wrong_convention_are_refused_naming_the_reading_that_fits() -> None:
+    """Angles in radians, or one counted the other way: the nominal fit leaves hundreds of times the noise,
+    and every effect fitted to that was invented (a 5,000-LSB offset "following the accelerometer", the
+    level heading error 3.9 -> 12 deg "improved"). The recording is refused, naming the reading of the
+    angles that fits; a large departure of real physics is analysed as before."""
+    rng = np.random.default_rng(6)
+    rec = simulate_recording(random_unit(rng), calibration_poses(), World(), rng=rng)
+
+    def with_angles(psi, theta, phi, mag=rec.mag) -> Recording:
+        return Recording.from_arrays(rec.t, rec.step, psi, theta, phi, mag, rec.acc, rec.temp_c, dict(rec.meta))
+
+    with pytest.raises(ValueError, match=r"fit the nominal twin far better read in radians \(the hold means leave"):
+        analyze(with_angles(*(np.radians(a) for a in (rec.psi_t, rec.theta_t, rec.phi_t))), null_sims=20)
+    with pytest.raises(ValueError, match=r"cannot tell apart: .*psi_t negated"):
+        analyze(with_angles(-rec.psi_t, rec.theta_t, rec.phi_t), null_sims=20)
+    # a magnet of 15 % of the field on the unit for 40 % of the run: hundreds of sigma, but physics
+    mag = rec.mag.copy()
+    mag[300:730] += 0.15 * np.abs(rec.mag).max(axis=0)
+    r = analyze(with_angles(rec.psi_t, rec.theta_t, rec.phi_t, mag), null_sims=20).result
+    assert r["verdict"] == "discrepancy" and r["findings"][0]["model"]["frame"] == "sensor"
+
+
 def test_bad_samples_are_left_out_and_named_but_a_short_event_is_analysed() -> None:
     """Brown-out rows (all axes 0) and lone garbage rows that passed the checksum are no physics: left in, they
     were reported as unexplained structure. They are left out and listed; ten rows of a magnet brought near

@@ -246,6 +246,22 @@ def test_angles_in_radians_are_refused() -> None:
         fit(rad)
 
 
+@pytest.mark.parametrize("method", ["joint", "error-separation"])
+def test_an_angle_counted_the_other_way_is_refused_naming_the_readings_that_fit(method: str) -> None:
+    """psi_t counted counter-clockwise (a file's convention): the field magnitude check refused it, but only
+    with "check that ... the table angles are degrees of the right axes". Now the refusal names the
+    readings of the angles that fit (several, where the plan's symmetric attitudes cannot tell them apart)."""
+    rec = recording(reference_unit(3.0, 4.0), samples=10)
+    flipped = Recording.from_arrays(rec.t, rec.step, -rec.psi_t, rec.theta_t, rec.phi_t, rec.mag, rec.acc)
+    with pytest.raises(RecordingError, match=r"field magnitude varies.*far better read .*psi_t negated"):
+        fit(flipped, method, bootstrap=0)
+    with pytest.raises(RecordingError, match="field magnitude varies") as broken:  # a broken channel: no reading helps
+        bent = rec.mag.copy()
+        bent[:, 1] = np.abs(bent[:, 1])
+        fit(Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, bent, rec.acc), method, bootstrap=0)
+    assert "far better read" not in str(broken.value)
+
+
 def test_readings_that_the_model_cannot_explain_are_refused() -> None:
     rec = recording(reference_unit(), samples=2)
     bent = rec.mag.copy()

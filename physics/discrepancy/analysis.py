@@ -17,7 +17,7 @@ from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_o
 from physics.discrepancy.schema import Analysis, summary, with_schema
 from physics.discrepancy.twin import (ATTITUDE_SOURCE_KEY, Context, Nominal, context, decimate, fit_nominal, generic_columns,
                                      nominal_columns)
-from physics.fit import pose_groups, rejected_rows, screen_rows
+from physics.fit import ANGLE_ADVICE, better_reading, pose_groups, rejected_rows, screen_rows
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording, RecordingError
@@ -76,6 +76,41 @@ def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: fl
     a.result["findings"] = with_schema(a.result.get("findings", []))
     a.result.setdefault("summary", summary(a.result))
     return a
+
+
+#: A nominal fit leaving less than this many times the noise floor is not checked for a wrong convention.
+CONVENTION_MISFIT = 20.0
+#: The convention check fits the hold means when there are this many holds, else this many samples at
+#: most (evenly spread): enough to tell the levels apart.
+CONVENTION_HOLDS = 8
+CONVENTION_SAMPLES = 300
+
+
+def check_conventions(ctx: Context, y: np.ndarray, r0: np.ndarray, floor: np.ndarray) -> None:
+    """Refuse (RecordingError) a recording whose table angles fit the nominal twin far better read
+    another way (physics.fit.better_reading). A residual of hundreds of times the noise floor that such a
+    reading removes is a mistake in the file, not physics, and every effect fitted to it would be
+    invented (a 5,000-LSB offset "following the accelerometer")."""
+    if not float(np.sqrt(np.mean(r0 ** 2))) > CONVENTION_MISFIT * float(np.mean(floor)):
+        return
+    held = ctx.hold >= 0
+    if len(np.unique(ctx.hold[held])) >= CONVENTION_HOLDS:  # hold means: a few dozen rows, fitted in milliseconds
+        g = ctx.hold[held]
+        n = np.bincount(g)
+        ok = n > 0
+        yy = np.column_stack([np.bincount(g, y[held][:, j])[ok] / n[ok] for j in range(3)])
+        ang = ctx.ang[held][[np.flatnonzero(g == i)[0] for i in np.flatnonzero(ok)]]
+        rows = "hold means"
+    else:
+        pick = np.unique(np.linspace(0, len(y) - 1, min(len(y), CONVENTION_SAMPLES)).astype(int))
+        ang, yy, rows = ctx.ang[pick], y[pick], "samples"
+    found = better_reading(ang, yy)
+    if found is not None:
+        here, best, how = found
+        raise RecordingError(
+            f"the table angles fit the nominal twin far better read {how} (the {rows} leave {here:.3g} LSB rms as "
+            f"given, {best:.3g} so read; the noise floor is {float(np.mean(floor)):.2g} per sample): that is a mistake "
+            f"in the file's convention, not physics, so nothing is analysed. {ANGLE_ADVICE}")
 
 
 #: Rows off their hold by more than the fit's gross limit (physics.fit.screen_rows) are bad samples when
@@ -147,6 +182,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     say("noise floor", 0.15)
     noise = estimate_noise(r0, ctx)
     require_noise(noise.floor)
+    check_conventions(ctx, y_raw, r0, noise.floor)
     eff = effect_columns(ctx, nom, temp)
     gen = generic_columns(ctx, nom, temp)
     untestable = [{"effect": name.split(":")[0], "reason": why} for name, (_, _, why) in eff.items() if why]

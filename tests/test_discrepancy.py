@@ -244,6 +244,17 @@ def test_angles_in_the_wrong_convention_are_refused_naming_the_reading_that_fits
     assert r["verdict"] == "discrepancy" and r["findings"][0]["model"]["frame"] == "sensor"
 
 
+def test_consistent_says_what_the_recording_could_not_show() -> None:
+    """One hold at one attitude is "consistent" with the twin, but it tests almost nothing: the summary says
+    which catalogue effects and how many of the dictionary's inputs it cannot show."""
+    rng = np.random.default_rng(2)
+    one = simulate_recording(random_unit(rng), [Pose("hold", 0.0, 0.0, 0.0, 400)], World(), rng=rng)
+    r = analyze(one, null_sims=20).result
+    assert r["verdict"] == "consistent"
+    assert "It cannot show 6 catalogue effect(s) (hysteresis, stage_hard_iron" in r["summary"]
+    assert "of the dictionary's inputs or frames: see untestable" in r["summary"]
+
+
 def test_bad_samples_are_left_out_and_named_but_a_short_event_is_analysed() -> None:
     """Brown-out rows (all axes 0) and lone garbage rows that passed the checksum are no physics: left in, they
     were reported as unexplained structure. They are left out and listed; ten rows of a magnet brought near

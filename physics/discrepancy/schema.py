@@ -85,7 +85,15 @@ def summary(result: dict[str, Any]) -> str:
     after = _mean(ho.get("rms_after_lsb"))
     modelled = [f for f in result.get("findings", []) if f.get("effect") not in ("unexplained", "parameter_shift")]
     if result.get("verdict") == "consistent":
-        return "The recording is consistent with the nominal model: nothing departs from it beyond the noise."
+        # what this recording cannot show is part of the answer: a hold at one attitude tests almost nothing
+        missing = sorted({u.get("effect", "") for u in result.get("untestable", []) if u.get("effect") != "discovered"})
+        inputs = sum(1 for u in result.get("untestable", []) if u.get("effect") == "discovered")
+        blind = ""
+        if missing or inputs:
+            parts = ([f"{len(missing)} catalogue effect(s) ({', '.join(missing)})"] if missing else []) + (
+                [f"{inputs} of the dictionary's inputs or frames"] if inputs else [])
+            blind = f" It cannot show {' and '.join(parts)}: see untestable for what each needs."
+        return "The recording is consistent with the nominal model: nothing departs from it beyond the noise." + blind
     if not modelled or not np.isfinite(before) or not after < before:
         return ("Nothing we can model improves the fit held-out: the departures are reported as unexplained "
                 "structure, and the nominal model stands.")

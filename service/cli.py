@@ -270,6 +270,23 @@ def fit(
         console.print(f"plot written to {plot}")
 
 
+@app.command(cls=_Command)
+def convert(
+    recording: Path = typer.Argument(..., exists=True, dir_okay=False, help="Recording: a foreign format the importers read (e.g. .mat, .hdf5), or any file with --mapping."),
+    output: Path = typer.Option(..., "-o", "--output", help="Recording CSV to write (RECORDING.md format)."),
+    mapping: Optional[Path] = typer.Option(None, "--mapping", exists=True, dir_okay=False, help=MAPPING_HELP),
+    skip_bad_rows: bool = typer.Option(False, help="Drop malformed rows instead of refusing the file."),
+) -> None:
+    """Write any recording the importers read as RECORDING.md CSV, with every conversion in its metadata:
+    to upload it to the service (POST /recordings), where it is fitted, analysed and kept with the unit's
+    history, or to hand it to another tool."""
+    _output_file(output, "--output")
+    rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
+    output.write_text(format_recording(rec))
+    console.print(f"wrote {output} ({len(rec)} samples{', table angles' if rec.has_angles else ', no table angles'}"
+                  f"{', accelerometer' if rec.acc is not None else ''}{', temperature' if rec.temp_c is not None else ''})")
+
+
 def print_calibration(cal: Calibration) -> None:
     """Print the paper's Table 1 and Table 2 with 1-sigma, the field, and the staged heading errors."""
     from service.web import calibration_tables, pm  # the same rows the web pages and certificates show

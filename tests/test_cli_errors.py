@@ -270,7 +270,7 @@ def test_sim_help_shows_the_toml_array_tables():
     assert "[[unit]]" in r.output and "[[fault]]" in r.output and "[]" not in r.output
 
 
-@pytest.mark.parametrize("command", [[], ["simulate"], ["fit"], ["analyze"], ["calibrate"], ["demo"], ["sim"], ["serve"],
+@pytest.mark.parametrize("command", [[], ["simulate"], ["fit"], ["convert"], ["analyze"], ["calibrate"], ["demo"], ["sim"], ["serve"],
                                      ["prove"], ["keys"], ["keys", "create"], ["db"], ["db", "upgrade"]])
 def test_help_has_no_type_placeholders_for_flags_or_lists(command: list[str]):
     r = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "200"})

@@ -120,7 +120,7 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
     cal.quality.update(rejected_rows=rejected_rows(rec, rejected), rejected=len(rejected), samples_total=len(rec))
     if rejected:
         cal.notes.append(f"dropped {len(rejected)} of {len(rec)} rows as bad samples ({_reason_counts(rejected)}): "
-                         f"sample indices {_index_list(sorted(rejected))}")
+                         f"sample indices {index_list(sorted(rejected))}")
     spread = field_spread(work, cal)
     if spread > MAX_FIELD_SPREAD:
         message = (f"calibrated field magnitude varies by {100 * spread:.1f} % across the level turn (expected under "
@@ -331,7 +331,7 @@ def _require_good(rec: Recording, rejected: dict[int, str]) -> None:
     good = len(rec) - len(rejected)
     if rejected and good < MIN_GOOD_FRACTION * len(rec):
         raise RecordingError(f"too few good samples remain: {len(rejected)} of {len(rec)} rows are bad "
-                             f"({_reason_counts(rejected)}; first at sample indices {_index_list(sorted(rejected))}), "
+                             f"({_reason_counts(rejected)}; first at sample indices {index_list(sorted(rejected))}), "
                              f"leaving {good}; the fit needs at least {100 * MIN_GOOD_FRACTION:.0f} % good rows. "
                              "Check the magnetometer's connection and supply, then record again")
 
@@ -342,7 +342,8 @@ def _too_few(rec: Recording, rejected: dict[int, str], e: Exception) -> Exceptio
                    f"({_reason_counts(rejected)}): {e}")
 
 
-def _reason_kind(reason: str) -> str:
+def reason_kind(reason: str) -> str:
+    """The kind of a dropped row's reason, as the notes count them: all zeros, off its pose, off the model."""
     if reason.startswith("all three"):
         return "all zeros"
     return "off their pose's median" if "median of its pose" in reason else "off the fitted model"
@@ -351,11 +352,12 @@ def _reason_kind(reason: str) -> str:
 def _reason_counts(rejected: dict[int, str]) -> str:
     kinds: dict[str, int] = {}
     for reason in rejected.values():
-        kinds[_reason_kind(reason)] = kinds.get(_reason_kind(reason), 0) + 1
+        kinds[reason_kind(reason)] = kinds.get(reason_kind(reason), 0) + 1
     return ", ".join(f"{n} {k}" for k, n in kinds.items())
 
 
-def _index_list(idx: list[int], limit: int = 20) -> str:
+def index_list(idx: list[int], limit: int = 20) -> str:
+    """Sample indices for a note: the first ``limit``, then how many more."""
     return ", ".join(map(str, idx[:limit])) + (f" and {len(idx) - limit} more" if len(idx) > limit else "")
 
 

@@ -17,7 +17,8 @@ from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_o
 from physics.discrepancy.schema import Analysis, summary, with_schema
 from physics.discrepancy.twin import (ATTITUDE_SOURCE_KEY, Context, Nominal, context, decimate, fit_nominal, generic_columns,
                                      nominal_columns)
-from physics.fit import ANGLE_ADVICE, better_reading, pose_groups, rejected_rows, screen_rows
+from physics.fit import (ANGLE_ADVICE, better_reading, index_list, pose_groups, reason_kind, rejected_rows,
+                         screen_rows)
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording, RecordingError
@@ -95,12 +96,8 @@ def check_conventions(ctx: Context, y: np.ndarray, r0: np.ndarray, floor: np.nda
         return
     held = ctx.hold >= 0
     if len(np.unique(ctx.hold[held])) >= CONVENTION_HOLDS:  # hold means: a few dozen rows, fitted in milliseconds
-        g = ctx.hold[held]
-        n = np.bincount(g)
-        ok = n > 0
-        yy = np.column_stack([np.bincount(g, y[held][:, j])[ok] / n[ok] for j in range(3)])
-        ang = ctx.ang[held][[np.flatnonzero(g == i)[0] for i in np.flatnonzero(ok)]]
-        rows = "hold means"
+        yy, first = _hold_means(ctx, y, held)
+        ang, rows = ctx.ang[first], "hold means"
     else:
         pick = np.unique(np.linspace(0, len(y) - 1, min(len(y), CONVENTION_SAMPLES)).astype(int))
         ang, yy, rows = ctx.ang[pick], y[pick], "samples"
@@ -128,7 +125,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     axis at the int16 limit (saturated), and, on a turntable, lone rows or short runs far off their hold
     (garbage that passed the checksum). Left in, each would be "structure" that no physics explains."""
     screened = screen_rows(rec)
-    zero = {i for i, why in screened.items() if "read exactly 0" in why}
+    zero = {i for i, why in screened.items() if reason_kind(why) == "all zeros"}
     off = np.array(sorted(set(screened) - zero), dtype=int)
     short: set[int] = set()
     # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
@@ -150,14 +147,12 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
         return rec, None
     keep = np.ones(len(rec), bool)
     keep[list(bad)] = False
-    idx = sorted(bad)
-    shown = ", ".join(map(str, idx[:20])) + (f" and {len(idx) - 20} more" if len(idx) > 20 else "")
     kinds = [f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
              f"{len(short)} alone or in runs of at most {BAD_RUN} far off their hold's median" if short else "",
              (f"{len(clipped)} saturated, at t {rec.t[clipped[0]]:.1f}-{rec.t[clipped[-1]]:.1f} s (a field beyond the "
               "sensor's range: a strong magnet near the unit?)") if len(clipped) else ""]
     note = (f"{len(bad)} of {len(rec)} rows left out as bad samples ({'; '.join(k for k in kinds if k)}): "
-            f"sample indices {shown}")
+            f"sample indices {index_list(sorted(bad))}")
     return rec.select(keep), (note, rejected_rows(rec, bad))
 
 
@@ -659,17 +654,22 @@ def _heading_impact(ctx: Context, y: np.ndarray, nom: Nominal, contrib: np.ndarr
     return float(np.max(np.abs(d))) if np.isfinite(d).all() else None
 
 
+def _hold_means(ctx: Context, y: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``y`` over each hold among ``rows`` (a mask of samples in holds), and each hold's first sample."""
+    g = ctx.hold[rows]
+    n = np.bincount(g)
+    keep = n > 0
+    mean = np.column_stack([np.bincount(g, y[rows][:, j])[keep] / n[keep] for j in range(3)])
+    return mean, np.flatnonzero(rows)[[np.flatnonzero(g == i)[0] for i in np.flatnonzero(keep)]]
+
+
 def _heading_error(ctx: Context, y: np.ndarray, nom: Nominal) -> tuple[float | None, float | None]:
     """Level heading error of hold means, with the nominal calibration, against the table: its maximum
     and its RMS over the level holds (PHYSICS.md reports both)."""
     lev = _level(ctx) & (ctx.hold >= 0)
     if not lev.any():
         return None, None
-    g = ctx.hold[lev]
-    n = np.bincount(g)
-    keep = n > 0
-    mean = np.column_stack([np.bincount(g, y[lev][:, j])[keep] / n[keep] for j in range(3)])
-    first = np.flatnonzero(lev)[[np.flatnonzero(g == i)[0] for i in np.flatnonzero(keep)]]
+    mean, first = _hold_means(ctx, y, lev)
     _, dec = field_angles(nom.v)
     err = wrap180(_corrected_heading(mean, nom, ctx.R[first]) - (ctx.ang[first, 0] - dec))
     if not np.isfinite(err).all():

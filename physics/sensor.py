@@ -70,10 +70,14 @@ class LinearSensor:
         """Angles between sensor and body axes, degrees."""
         return Mo_to_angles(self.M_o)
 
+    def expected(self, v_b: ArrayLike) -> np.ndarray:
+        """Noise-free, unquantised output (N, 3) for body vectors (N, 3): ``M_k M_o h_b + b``, the sensor model without ``n``."""
+        v = np.atleast_2d(np.asarray(v_b, dtype=float))
+        return v @ self.M.T + self.bias
+
     def measure(self, v_b: ArrayLike, rng: np.random.Generator | None = None) -> np.ndarray:
         """Raw output (N, 3) for body vectors (N, 3); noise needs an rng, else the output is noise-free."""
-        v = np.atleast_2d(np.asarray(v_b, dtype=float))
-        raw = v @ self.M.T + self.bias
+        raw = self.expected(v_b)
         if rng is not None and self.noise_lsb > 0:
             raw = raw + rng.normal(0.0, self.noise_lsb, raw.shape)
         if self.quantized:

@@ -37,6 +37,8 @@ class World:
 
     def temperature_at(self, t: ArrayLike) -> np.ndarray | float:
         """Temperature inside the unit (deg C) at run time ``t`` (s, from power-on); vectorised."""
+        if isinstance(t, (float, int)):  # one live sample (the simulated station): no arrays
+            return self.temperature_c + self.warmup_c * (1.0 - math.exp(-max(t, 0.0) / self.warmup_tau_s))
         t_arr = np.asarray(t, dtype=float)
         temp = self.temperature_c + self.warmup_c * (1.0 - np.exp(-np.maximum(t_arr, 0.0) / self.warmup_tau_s))
         return float(temp) if temp.ndim == 0 else temp

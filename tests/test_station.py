@@ -179,3 +179,37 @@ def test_sim_command_refuses_a_bad_config_on_stderr(tmp_path: Path):
                        cwd=Path(__file__).parent.parent, timeout=60, env={**os.environ, "COLUMNS": "200"})
     assert r.returncode == 2 and r.stdout == ""
     assert "mag_k" in r.stderr and "missing" in r.stderr
+
+
+def test_the_simulated_worlds_samples_are_the_sensor_model_plus_white_noise_at_every_attitude():
+    """SimWorld.read computes the noise-free output once per attitude and adds the noise per sample: the
+    samples' mean is the model's output at each attitude (held or moving) and their spread the unit's noise."""
+    from physics.frames import SPECIFIC_FORCE_L
+    from physics.table import platform_attitude
+    from drivers.sim.world import SimWorld
+
+    cfg = reference_config(seed=3)
+    world = cfg.world.world()
+    unit = cfg.unit[0].unit()
+    angles = [(0.0, 0.0, 0.0), (123.0, -40.0, 75.0)]
+    at = {"pose": angles[0]}
+    sim = SimWorld(world, [unit], lambda t: at["pose"], rng=np.random.default_rng(5))
+    for pose in angles:
+        at["pose"] = pose
+        C = platform_attitude(*pose, world.geometry)[0]
+        want_mag = unit.mag.expected(C.T @ world.field_L)[0]
+        want_acc = unit.acc.expected(C.T @ SPECIFIC_FORCE_L)[0]
+        reads = [sim.read(0, 0.05 * i) for i in range(4000)]
+        mag = np.array([r[0] for r in reads], float)
+        acc = np.array([r[1] for r in reads], float)
+        assert all(isinstance(v, int) for v in reads[0][0] + reads[0][1])
+        assert np.allclose(mag.mean(axis=0), want_mag, atol=5 * unit.mag.noise_lsb / np.sqrt(4000) + 0.05)
+        assert np.allclose(mag.std(axis=0), np.hypot(unit.mag.noise_lsb, 1 / np.sqrt(12)), rtol=0.08)
+        assert np.allclose(acc.mean(axis=0), want_acc, atol=5 * unit.acc.noise_lsb / np.sqrt(4000) + 0.05)
+        assert np.allclose(acc.std(axis=0), np.hypot(unit.acc.noise_lsb, 1 / np.sqrt(12)), rtol=0.08)
+    # a table in motion: each sample at its own attitude
+    sweep = iter(np.linspace(0.0, 90.0, 50))
+    moving = SimWorld(world, [unit.with_noise(0.0, 0.0)], lambda t: (next(sweep), 0.0, 0.0))
+    for psi in np.linspace(0.0, 90.0, 50):
+        C = platform_attitude(psi, 0.0, 0.0, world.geometry)[0]
+        assert moving.read(0, 0.0)[0] == [round(v) for v in unit.mag.expected(C.T @ world.field_L)[0]]

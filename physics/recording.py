@@ -302,21 +302,23 @@ def _full(v: float, decimals: int) -> str:
     return fixed if float(fixed) == v else short
 
 
-def format_recording(rec: Recording) -> str:
+def format_recording(rec: Recording, header: bool = True) -> str:
     """Format a Recording as recording CSV text (RECORDING.md); parse_recording reads it back.
+    ``header=False``: the data rows only, to append to a file of the same columns.
 
     Raises RecordingError for a Recording whose text could not be read back (non-finite required values,
     t decreasing, empty or multi-line step labels, bad metadata keys).
     """
     _validate(rec)
     out = io.StringIO()
-    out.write(f"# {VERSION_KEY}: {FORMAT_VERSION}\n")
-    for key, value in rec.meta.items():
-        if key not in (VERSION_KEY, SKIPPED_KEY):  # the version is ours to write; skipped_rows was a parse note
-            out.write(f"# {key}: {value}\n")
     writer = csv.writer(out, lineterminator="\n")
     extra_names = list(rec.extra)
-    writer.writerow([*KNOWN_COLUMNS, *extra_names])
+    if header:
+        out.write(f"# {VERSION_KEY}: {FORMAT_VERSION}\n")
+        for key, value in rec.meta.items():
+            if key not in (VERSION_KEY, SKIPPED_KEY):  # the version is ours to write; skipped_rows was a parse note
+                out.write(f"# {key}: {value}\n")
+        writer.writerow([*KNOWN_COLUMNS, *extra_names])
 
     def fmt(values: np.ndarray | None, decimals: int) -> list[str]:
         # every digit the value has (the shortest text that reads back to the same float), so that an

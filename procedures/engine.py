@@ -178,6 +178,8 @@ class Engine:
         self._replayed_until = 0.0  # table time of the last sample a replay took over
         self._kept: dict[int, list[Recording]] = {}  # per slot: every recording kept, in order (the fit's rows)
         self._flagged: dict[int, set[int]] = {}  # per slot: rows already flagged as bad
+        # per slot: labels of the samples kept in the step under way, screened once it ends (_flag_pending)
+        self._to_flag: dict[int, list[str]] = {}
         self._held: Any = None  # encoder angles where the table holds since the last move, if known
 
     # ---------------------------------------------------------------------------------- control
@@ -251,9 +253,13 @@ class Engine:
                 else:
                     began = self.table_time()
                     self.on_event(StepStarted(step, began))
-                    reply = await self._do(step)
-                    if isinstance(step, TIMED_STEPS):
-                        self._table_used += self.table_time() - began
+                    try:
+                        reply = await self._do(step)
+                        if isinstance(step, TIMED_STEPS):
+                            self._table_used += self.table_time() - began
+                    finally:
+                        # after the step's table time: host work, which a time scale would multiply
+                        self._flag_pending()
                 if isinstance(step, TIMED_STEPS):
                     elapsed = self._table_used
                     # a data-dependent tail beyond the plan spends the reserve by its steps' nominal seconds,
@@ -375,7 +381,8 @@ class Engine:
             recs = self.replay.take(step)
             for slot, rec in sorted(recs.items()):
                 self.sink.add(slot, rec)
-                self._flag_bad(slot, rec, step.step)
+                self._kept.setdefault(slot, []).append(rec)
+                self._flag_bad(slot, step.step)
                 self._samples += len(rec)
                 self._replayed_until = max(self._replayed_until, float(rec.t[-1]))
             return dict(recs)
@@ -536,19 +543,26 @@ class Engine:
             a = angles[slot] if isinstance(angles, dict) else np.tile(np.asarray(angles, dtype=float), (len(samples), 1))
             rec = self._recording(int(slot), samples, label, a, times[slot])
             self.sink.add(int(slot), rec)
-            self._flag_bad(int(slot), rec, label)
+            self._kept.setdefault(int(slot), []).append(rec)
+            self._to_flag.setdefault(int(slot), []).append(label)
             out[int(slot)] = rec
             self._samples += len(samples)
         self.on_event(SamplesStored(label, self._samples))
         return out
 
-    def _flag_bad(self, slot: int, rec: Recording, label: str) -> None:
-        """Screen the slot's samples so far as the fit will (physics.fit.screen_rows: a brown-out's zeros,
-        a reading far off its pose's median) and warn, as it happens, of each bad sample not flagged
-        before, by its row in the unit's recording (the fit lists the same rows in quality.rejected_rows).
-        The samples stay recorded: the fit drops them, the recording keeps what the compass said."""
-        kept = self._kept.setdefault(slot, [])
-        kept.append(rec)
+    def _flag_pending(self) -> None:
+        """`_flag_bad` for the samples the last step kept."""
+        for slot, labels in self._to_flag.items():
+            self._flag_bad(slot, labels[-1])
+        self._to_flag.clear()
+
+    def _flag_bad(self, slot: int, label: str) -> None:
+        """Screen the slot's samples so far (``_kept``) as the fit will (physics.fit.screen_rows: a
+        brown-out's zeros, a reading far off its pose's median) and warn, as it happens, of each bad
+        sample not flagged before, by its row in the unit's recording (the fit lists the same rows in
+        quality.rejected_rows). The samples stay recorded: the fit drops them, the recording keeps what
+        the compass said."""
+        kept = self._kept.get(slot, [])
         flagged = self._flagged.setdefault(slot, set())
         bad = {i: why for i, why in screen_rows(concat(kept)).items() if i not in flagged}
         if not bad:
@@ -816,7 +830,9 @@ def _lower_hull(n: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     first thinned to the least-delayed point of each stretch of 16, which keeps the hull's shape and
     its cost (a read's 4096 lines) near a millisecond."""
     if len(n) > 512:
-        low = [c[np.argmin(r[c])] for c in np.array_split(np.arange(len(n)), len(n) // 16)]
+        padded = np.full(-(-len(n) // 16) * 16, np.inf)
+        padded[:len(n)] = r
+        low = np.argmin(padded.reshape(-1, 16), axis=1) + 16 * np.arange(len(padded) // 16)
         n, r = n[low], r[low]
     hull: list[int] = []  # Andrew's monotone chain, lower half
     for i in range(len(n)):
@@ -834,7 +850,7 @@ def _reason(e: BaseException) -> str:
 
 
 class RecordingSink:
-    """Keeps each slot's samples and rewrites its recording file (RECORDING.md) after every
+    """Keeps each slot's samples and adds them to its recording file (RECORDING.md) after every
     acquisition, so a fault or a kill loses at most the acquisition in progress."""
 
     def __init__(self, directory: Path | None, names: dict[int, str], meta: dict[str, str] | None = None) -> None:
@@ -844,9 +860,18 @@ class RecordingSink:
         self.parts: dict[int, list[Recording]] = {}
 
     def add(self, slot: int, rec: Recording) -> None:
-        """Keep these samples and flush the slot's file."""
-        self.parts.setdefault(slot, []).append(rec)
-        if self.directory is not None:
+        """Keep these samples and flush the slot's file: their rows appended when the columns are the
+        file's (rewriting the whole file at every pose cost a run of 8 units at time scale 20 a fifth of
+        its event loop), else the file rewritten."""
+        parts = self.parts.setdefault(slot, [])
+        parts.append(rec)
+        if self.directory is None:
+            return
+        first = parts[0]
+        if len(parts) > 1 and list(rec.extra) == list(first.extra):  # (a missing column is written empty)
+            with self.path(slot).open("a") as f:
+                f.write(format_recording(rec, header=False))
+        else:
             self.path(slot).write_text(format_recording(self.recording(slot)))
 
     def path(self, slot: int) -> Path:

@@ -376,3 +376,27 @@ def test_lines_measured_while_the_table_moved_but_delivered_late_are_not_a_poses
         m = rec.mag[np.array(poses) == name]
         worst = float(np.max(np.abs(m - np.median(m, axis=0))))
         assert worst < 25.0, (name, worst)
+
+
+def test_the_recording_sink_appends_each_acquisition_and_the_file_reads_back_as_everything_kept(tmp_path: Path):
+    from physics.recording import Recording
+
+    def part(i: int, n: int, extra: dict | None = None) -> Recording:
+        t = 10.0 * i + 0.05 * np.arange(n)
+        return Recording.from_arrays(t=t, step=[f"pose{i}"] * n, psi_t=np.full(n, 45.0 * i), theta_t=np.zeros(n),
+                                     phi_t=np.zeros(n), mag=np.arange(3 * n).reshape(n, 3) + 1000.0 * i,
+                                     acc=np.ones((n, 3)) * 16384.0, temp_c=np.full(n, 23.5),
+                                     meta={"serial": "SN-1", "slot": "0"}, extra=extra)
+
+    sink = RecordingSink(tmp_path, {0: "SN-1"}, {"procedure": "calibrate"})
+    for i, n in enumerate([60, 1, 60]):
+        sink.add(0, part(i, n))
+        back = parse_recording(sink.path(0).read_text())
+        whole = sink.recording(0)
+        assert len(back) == len(whole) == sum([60, 1, 60][:i + 1])
+        assert np.array_equal(back.t, whole.t) and np.array_equal(back.mag, whole.mag) and list(back.step) == list(whole.step)
+        assert back.meta["procedure"] == "calibrate" and back.serial == "SN-1"
+    # a part with other columns cannot be appended under the file's header: the file is written anew
+    sink.add(0, part(3, 2, extra={"note": ["a", "b"]}))
+    back = parse_recording(sink.path(0).read_text())
+    assert len(back) == 123 and list(back.extra["note"][-2:]) == ["a", "b"]

@@ -21,12 +21,14 @@ from __future__ import annotations
 import asyncio
 import collections
 import itertools
+import os
 import logging
 import re
 import select
 import socket
 import threading
 import time
+import weakref
 from collections.abc import AsyncIterator, Callable, Hashable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any, NamedTuple, Union
@@ -476,6 +478,51 @@ _CLOSED, _OPEN, _RECONNECTING, _DEAD = "closed", "open", "reconnecting", "dead"
 _LINK_LOST = object()  # resolves a pending command when the port goes away
 
 
+class _LoopInbox:
+    """Calls from the compasses' reader threads to one event loop, in order. One wake-up of the loop
+    (a write to its self-pipe, a thread switch) carries every call posted before it runs: at a
+    simulated time scale of 20, eight compasses send 3200 lines a second, and a wake-up per line kept
+    the loop busy with its self-pipe."""
+
+    _by_loop: "weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, _LoopInbox]" = weakref.WeakKeyDictionary()
+    _lock = threading.Lock()
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.calls: collections.deque[tuple[Callable[..., None], tuple[Any, ...]]] = collections.deque()
+        self.posted = False
+
+    @classmethod
+    def of(cls, loop: asyncio.AbstractEventLoop) -> "_LoopInbox":
+        """The inbox of ``loop`` (made on first use)."""
+        with cls._lock:
+            inbox = cls._by_loop.get(loop)
+            if inbox is None:
+                inbox = cls._by_loop[loop] = cls(loop)
+            return inbox
+
+    def put(self, fn: Callable[..., None], args: tuple[Any, ...]) -> bool:
+        """Queue a call; False when the loop is closed."""
+        self.calls.append((fn, args))
+        if not self.posted:
+            self.posted = True
+            try:
+                self.loop.call_soon_threadsafe(self._drain)
+            except RuntimeError:
+                self.posted = False
+                return False
+        return True
+
+    def _drain(self) -> None:
+        self.posted = False  # first: a call queued from here on posts a new drain
+        while self.calls:
+            fn, args = self.calls.popleft()
+            try:
+                fn(*args)
+            except Exception as e:  # as the loop treats a failing callback: reported, the others still run
+                self.loop.call_exception_handler({"message": "compass reader callback failed", "exception": e})
+
+
 class Compass:
     """Async driver of one compass on a pyserial URL (``/dev/ttyUSB0``, ``/dev/pts/3``,
     ``socket://host:port``).
@@ -538,9 +585,6 @@ class Compass:
         self._stop = threading.Event()
         self._ser: serial.SerialBase | None = None
         self._tasks: set[asyncio.Task[None]] = set()
-        # parsed events on their way from the reader thread to the loop (see _deliver)
-        self._inbox: collections.deque[list[Event]] = collections.deque()
-        self._inbox_posted = False
         # readers waiting for the sample count to reach a target (see _wait_until)
         self._sample_waiters: list[tuple[int, asyncio.Future[None]]] = []
 
@@ -634,8 +678,18 @@ class Compass:
                     self._ser = ser
                     self._post(self._on_reconnected)
                 try:
-                    ready, _, _ = select.select([ser.fileno()], [], [], 0.05)
-                    data = ser.read(65536) if ready else b""
+                    # the descriptor itself, not Serial.read: pyserial's read selects before and after
+                    # its read, three system calls where one does, for every line
+                    fd = ser.fileno()
+                    ready, _, _ = select.select([fd], [], [], 0.05)
+                    if not ready:
+                        continue
+                    try:
+                        data = os.read(fd, 65536)
+                    except (BlockingIOError, InterruptedError):
+                        continue  # a spurious wake-up
+                    if not data:  # a closed socket or a hung-up pty
+                        raise serial.SerialException("device reports readiness to read but returned no data")
                 except (serial.SerialException, OSError, TypeError, AttributeError) as e:
                     # pty: EIO or "readiness to read but returned no data"; socket: "socket disconnected".
                     # (TypeError/AttributeError: the port object was closed under us.)
@@ -648,33 +702,18 @@ class Compass:
                 if data:
                     events = parser.feed(data)
                     if events:
-                        self._deliver(events)
+                        self._post(self._on_events, events)
         finally:
             if ser is not None:
                 _close_port(ser)
             self._ser = None
 
-    def _deliver(self, events: list[Event]) -> None:
-        """Hand parsed events to the loop (reader thread). One wake-up of the loop carries every batch
-        that arrives before it runs: each wake-up is a write to the loop's self-pipe and a thread
-        switch, and at a simulated time scale of 20 eight compasses send 3200 lines a second."""
-        self._inbox.append(events)
-        if not self._inbox_posted:
-            self._inbox_posted = True
-            self._post(self._drain_inbox)
-
-    def _drain_inbox(self) -> None:
-        self._inbox_posted = False  # first: a batch appended from here on posts a new drain
-        while self._inbox:
-            self._on_events(self._inbox.popleft())
-
     def _post(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run ``fn(*args)`` on the loop (from the reader thread), after everything posted before."""
         loop = self._loop
         if loop is None:
             return
-        try:
-            loop.call_soon_threadsafe(fn, *args)
-        except RuntimeError:
+        if not _LoopInbox.of(loop).put(fn, args):
             self._stop.set()  # the loop is closed (close() was never awaited): nobody is listening
 
     # -- loop-side handlers (run in the event loop) ---------------------------------------------

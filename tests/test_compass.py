@@ -670,6 +670,8 @@ def test_sim_silent_compass_times_out_and_keeps_the_samples(transport: str) -> N
     run(go())
 
 
+@pytest.mark.serial  # alone: a parallel test's new pty can take the vanished one's /dev/pts name, and the
+# driver then rightly reconnects to it instead of giving up (seen once in five parallel runs)
 def test_sim_vanished_pty_raises_compass_disconnected() -> None:
     async def go() -> None:
         sim = CompassSim(make_reader(), SimClock(10.0))

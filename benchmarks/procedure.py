@@ -7,7 +7,10 @@ error achieved, scored against the simulator's true units (max level, max over p
 0.05/-0.03 deg.
 
 Targets (issue 4): <= 0.02 deg level and <= 0.05 deg at +-60 deg within 2 minutes of table time,
-whatever the number of units; under 20 s of wall time at time scale 20.
+whatever the number of units; under 20 s of wall time at time scale 20. Issue 14: the table time
+within 5 % of the plan's nominal seconds at any time scale ("vs plan"); 8 units at time scale 20 run
+once with the simulator in this process (as `compasscal demo`) and once in its own (as `compasscal sim`
+beside `compasscal calibrate`).
 
 Load and time scale (issue 14): the same plan idle at time scale 2, idle at 20 and at 20 with every
 core taken by a busy loop, over several seeds: table time within 5 % of the idle time-scale-2 figure,
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import os
 import subprocess
 import sys
@@ -36,7 +40,11 @@ from drivers.station import open_station  # noqa: E402
 from physics.calibration import truth_summary  # noqa: E402
 from physics.sensor import angles_to_Mo  # noqa: E402
 from physics.simulate import truth_from_json  # noqa: E402
+from drivers import keep_drivers_responsive  # noqa: E402
+from physics.table import Motion  # noqa: E402
+from procedures.calibrate import PROCEDURES  # noqa: E402
 from procedures.engine import run_procedure  # noqa: E402
+from procedures.steps import Move, Scan, step_seconds  # noqa: E402
 
 
 def fixture(units: int, time_scale: float, seed: int = 1) -> StationConfig:
@@ -53,21 +61,56 @@ def fixture(units: int, time_scale: float, seed: int = 1) -> StationConfig:
 
 
 async def one(cfg: StationConfig, params: dict) -> dict[str, float]:
+    """One calibration run with the simulated station in this process (as `compasscal demo` has it)."""
     async with SimStation(cfg, control_port=None) as st:
-        d = st.describe()
-        async with open_station(d["modbus"], [c["url"] for c in d["compasses"]], time_scale=cfg.world.time_scale) as station:
-            t0 = time.monotonic()
-            result, serials, _ = await run_procedure(station, "calibrate", params)
-            wall = time.monotonic() - t0
-        if result.outcome is None:
-            raise RuntimeError(f"run {result.state.value}: {result.reason}")
-        level, tilted = [], []
-        for slot, r in result.outcome.results.items():
-            unit, world = truth_from_json(st.truth()[slot])
-            s = truth_summary(r["calibration"], unit, world)
-            level.append(s["level_max"])
-            tilted.append(s["tilted_max"])
+        return await _calibrate(st.describe(), st.truth(), cfg.world.time_scale, params)
+
+
+async def apart(units: int, scale: float, params: dict) -> dict[str, float]:
+    """One calibration run with the simulated station in a process of its own (as `compasscal sim` beside
+    `compasscal calibrate`)."""
+    proc = subprocess.Popen([sys.executable, __file__, "--serve-sim", str(units), str(scale)], stdout=subprocess.PIPE, text=True)
+    try:
+        line = await asyncio.to_thread(proc.stdout.readline)  # type: ignore[union-attr]
+        served = json.loads(line)
+        return await _calibrate(served["station"], served["truth"], scale, params)
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+async def _calibrate(station_urls: dict, truth: list, scale: float, params: dict) -> dict[str, float]:
+    async with open_station(station_urls["modbus"], [c["url"] for c in station_urls["compasses"]], time_scale=scale) as station:
+        t0 = time.monotonic()
+        result, serials, _ = await run_procedure(station, "calibrate", params)
+        wall = time.monotonic() - t0
+    if result.outcome is None:
+        raise RuntimeError(f"run {result.state.value}: {result.reason}")
+    level, tilted = [], []
+    for slot, r in result.outcome.results.items():
+        unit, world = truth_from_json(truth[slot])
+        s = truth_summary(r["calibration"], unit, world)
+        level.append(s["level_max"])
+        tilted.append(s["tilted_max"])
     return {"table_s": result.table_seconds, "wall_s": wall, "level": max(level), "tilted": max(tilted)}
+
+
+def serve_sim(units: int, scale: float) -> None:
+    """The simulated station of :func:`fixture` until killed; first prints its URLs and truth (JSON)."""
+    async def serve() -> None:
+        async with SimStation(fixture(units, scale), control_port=None) as st:
+            print(json.dumps({"station": st.describe(), "truth": st.truth()}), flush=True)
+            await asyncio.Event().wait()
+    asyncio.run(serve())
+
+
+def plan_seconds(params: dict) -> float:
+    """The plan's nominal table seconds on the fixture's station (30 deg/s, 60 deg/s^2, the servo's 0.2 s
+    settling, 20 Hz)."""
+    proc = PROCEDURES["calibrate"]
+    plan = proc.plan(proc.validate(params))
+    moves = sum(isinstance(s, (Move, Scan)) for s in plan)
+    return sum(step_seconds(plan, Motion(30.0, 60.0, 0.0, 20.0))) + 0.2 * moves  # (step_seconds leaves settling out)
 
 
 @contextmanager
@@ -111,20 +154,30 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="skip the runs at time scale 1 (they take 2 minutes each)")
     ap.add_argument("--load-seeds", type=int, default=4, help="simulator seeds of each load and time-scale condition")
+    ap.add_argument("--serve-sim", nargs=2, type=float, metavar=("UNITS", "SCALE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.serve_sim:
+        serve_sim(int(args.serve_sim[0]), args.serve_sim[1])
+        return
+    keep_drivers_responsive()  # as every command-line entry point
     published = {"method": "peak-picking", "z_step_deg": 5.0, "tilt_step_deg": 5.0, "samples": 10}
-    runs = [("joint (default plan)", {}, 1, 20.0), ("joint (default plan)", {}, 8, 20.0),
-            ("paper as published: peak-picking, 5 deg", published, 1, 20.0)]
+    default = "joint (default plan)"
+    runs = [(default, {}, 1, 20.0, False), (default, {}, 8, 20.0, False), (default, {}, 8, 20.0, True),
+            ("paper as published: peak-picking, 5 deg", published, 1, 20.0, False)]
     if not args.quick:
-        runs[:0] = [("joint (default plan)", {}, 1, 1.0), ("joint (default plan)", {}, 8, 1.0)]
-    print(f"{'procedure':<42} {'units':>5} {'scale':>5} {'table s':>8} {'wall s':>7} {'level max':>10} {'+-60 max':>9}  verdict")
-    for name, params, units, scale in runs:
-        r = asyncio.run(one(fixture(units, scale), params))
-        # Table time is judged at time scale 1: at 20 the simulator, the drivers and the engine share one
-        # process and two cores, and the simulated clock runs on while they wait for the CPU.
-        ok = r["level"] <= 0.02 and r["tilted"] <= 0.05 and (r["table_s"] <= 120.0 if scale == 1 else r["wall_s"] < 20)
-        print(f"{name:<42} {units:>5} {scale:>5g} {r['table_s']:>8.1f} {r['wall_s']:>7.1f} {r['level']:>10.4f} "
-              f"{r['tilted']:>9.4f}  {'meets target' if ok else 'misses target'}")
+        runs[:0] = [(default, {}, 1, 1.0, False), (default, {}, 8, 1.0, False)]
+    print(f"{'procedure':<42} {'units':>5} {'scale':>5} {'simulator':>12} {'table s':>8} {'vs plan':>8} {'wall s':>7} "
+          f"{'level max':>10} {'+-60 max':>9}  verdict")
+    for name, params, units, scale, separate in runs:
+        r = asyncio.run(apart(units, scale, params) if separate else one(fixture(units, scale), params))
+        plan = plan_seconds(params)
+        # table time within 5 % of the plan's nominal seconds whatever the time scale (issue 14); the wall
+        # time under 20 s at time scale 20 (issue 4)
+        ok = (r["level"] <= 0.02 and r["tilted"] <= 0.05 and r["table_s"] <= 1.05 * plan
+              and (scale == 1 or r["wall_s"] < 20))
+        print(f"{name:<42} {units:>5} {scale:>5g} {'own process' if separate else 'in process':>12} {r['table_s']:>8.1f} "
+              f"{100 * (r['table_s'] / plan - 1):>+7.1f}% {r['wall_s']:>7.1f} {r['level']:>10.4f} {r['tilted']:>9.4f}  "
+              f"{'meets target' if ok else 'misses target'}")
     load_and_scale(list(range(1, args.load_seeds + 1)), slow=not args.quick)
     # the simulator alone, as the blind proof's generator uses it: a 10-minute plan in under a second
     from physics.effects import Hysteresis, StageHardIron

@@ -1,9 +1,10 @@
 """The simulated world behind a simulated station: lab field, table geometry, the mounted units with
 their true parameters, and any extra physics concealed in it.
 
-The forward model is physics/ (``World.body_vectors`` and ``LinearSensor.measure``); this module only
-adds what a live device needs on top: time, the table's current true angles, integer raw counts with
-saturation, temperature, and the hook for concealed effects.
+The forward model is physics/ (``platform_attitude`` for the body's field and gravity,
+``LinearSensor.expected`` for the sensor's output, plus its white noise); this module only adds what a
+live device needs on top: time, the table's current true angles, integer raw counts with saturation,
+temperature, and the hook for concealed effects.
 """
 
 from __future__ import annotations

@@ -58,6 +58,9 @@ GROSS_FRACTION = 0.05
 MODEL_BREAKDOWN = 0.2
 #: Refuse when fewer than this fraction of the rows remain good.
 MIN_GOOD_FRACTION = 0.5
+#: A magnetometer count at the int16 limit is a clipped reading (the compass sets its saturation bit
+#: there): the field was beyond the sensor's range, and the reading says only "at least this".
+SATURATED_LSB = 32767.0
 #: Rounds of the model-based rejection (fit, reject, refit); it usually settles in two.
 MAX_REJECT_ROUNDS = 6
 #: Methods that reject rows inconsistent with their own fitted model (stage 2 above).
@@ -225,7 +228,8 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     ones to drop (a row goes as a whole: its attitude and its field were read together).
 
     A row is dropped when all three axes of either sensor read exactly 0 (no sensor in a field or under
-    gravity does; a brown-out or a dropped frame does), or when one axis is more than REJECT_SIGMA
+    gravity does; a brown-out or a dropped frame does), when a magnetometer axis reads the int16 limit
+    (:data:`SATURATED_LSB`: a clipped reading, which a whole pose shares), or when one axis is more than REJECT_SIGMA
     robust sigmas and GROSS_FRACTION of its amplitude (half the span of the pose medians, about k)
     from the median of its pose (poses of at least 3 samples; sigma is the recording's MAD about the
     pose medians). One corrupted accelerometer row in a hundred moves the levelling, and with it the
@@ -238,6 +242,10 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     for _, name, x in sensors:
         for i in np.flatnonzero(np.all(x == 0.0, axis=1)):
             out.setdefault(int(i), f"all three {name} axes read exactly 0 (a brown-out or a dropped reading)")
+    for i in np.flatnonzero(np.any(np.abs(rec.mag) >= SATURATED_LSB, axis=1)):
+        a = int(np.argmax(np.abs(rec.mag[i])))
+        out.setdefault(int(i), f"saturated: m{'xyz'[a]} = {rec.mag[i, a]:g} is at the int16 limit "
+                               "(a field beyond the sensor's range: a strong magnet near the unit?)")
     if len(rec) == 0:
         return out
     group = pose_groups(rec)
@@ -343,9 +351,12 @@ def _too_few(rec: Recording, rejected: dict[int, str], e: Exception) -> Exceptio
 
 
 def reason_kind(reason: str) -> str:
-    """The kind of a dropped row's reason, as the notes count them: all zeros, off its pose, off the model."""
+    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, off its pose,
+    off the model."""
     if reason.startswith("all three"):
         return "all zeros"
+    if reason.startswith("saturated"):
+        return "saturated"
     return "off their pose's median" if "median of its pose" in reason else "off the fitted model"
 
 

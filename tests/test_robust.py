@@ -186,3 +186,23 @@ def test_the_live_engine_flags_the_rows_the_fit_drops() -> None:
     med = np.array([np.median(rec.mag[(pose == p) & ok], axis=0) for p in pose])
     wild = set(np.flatnonzero(np.any(np.abs(rec.mag - med) > 500, axis=1)).tolist()) - zeros
     assert flagged == zeros | wild and 1 <= len(zeros) <= 8 and 1 <= len(wild) <= 6, (zeros, wild, flagged)
+
+
+@pytest.mark.parametrize("method", ["joint", "error-separation"])
+def test_a_saturated_pose_is_dropped_as_saturated_and_the_fit_stands_on_the_others(method: str, clean: dict[str, float]) -> None:
+    """A magnet near the unit drives one axis beyond its range for a whole pose: every reading there is
+    the int16 limit (the pose's median too, so the pose screen alone cannot see it). The rows go, named
+    as saturated, and the calibration is that of the other poses."""
+    from physics.fit import pose_groups
+
+    rec = _recording()
+    pose = pose_groups(rec)
+    rows = np.flatnonzero(pose == pose[len(rec) // 3])
+    clipped = rec.select(np.arange(len(rec)))
+    clipped.mag[rows, 1] = 32767.0
+    cal = fit(clipped, method, bootstrap=0)
+    got = {r["index"]: r["reason"] for r in cal.quality["rejected_rows"]}
+    assert set(rows.tolist()) <= set(got)
+    assert all(got[i].startswith("saturated: my = 32767 is at the int16 limit") for i in rows), got
+    assert any(f"({len(rows)} saturated)" in n for n in cal.notes), cal.notes
+    assert truth_summary(cal, UNIT, WORLD)["level_max"] <= 1.5 * clean[method]

@@ -115,8 +115,6 @@ def check_conventions(ctx: Context, y: np.ndarray, r0: np.ndarray, floor: np.nda
 #: run is something that happened (a magnet brought near for a moment, a knock), which is what the
 #: analysis is for.
 BAD_RUN = 3
-#: A magnetometer count at the int16 limit is a clipped reading (the compass sets its saturation bit there).
-SATURATED_LSB = 32767.0
 
 
 def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dict[str, Any]]] | None]:
@@ -126,7 +124,8 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     (garbage that passed the checksum). Left in, each would be "structure" that no physics explains."""
     screened = screen_rows(rec)
     zero = {i for i, why in screened.items() if reason_kind(why) == "all zeros"}
-    off = np.array(sorted(set(screened) - zero), dtype=int)
+    clipped = np.array(sorted(i for i, why in screened.items() if reason_kind(why) == "saturated"), dtype=int)
+    off = np.array(sorted(set(screened) - zero - set(clipped.tolist())), dtype=int)
     short: set[int] = set()
     # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
     # (a stale reference), which says nothing of the magnetometer's rows
@@ -139,10 +138,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
         short = {int(i) for r in runs if len(r) <= BAD_RUN
                  and inside(r[0] - 1) and inside(r[-1] + 1) and hold[r[0] - 1] == hold[r[0]] == hold[r[-1] + 1]
                  for i in r}
-    bad = {i: screened[i] for i in sorted(zero | short)}
-    clipped = np.flatnonzero(np.any(np.abs(np.asarray(rec.mag, float)) >= SATURATED_LSB, axis=1))
-    for i in clipped:
-        bad.setdefault(int(i), "a magnetometer axis reads the int16 limit (saturated: a field beyond the sensor's range)")
+    bad = {i: screened[i] for i in sorted(zero | short | set(clipped.tolist()))}
     if not bad:
         return rec, None
     keep = np.ones(len(rec), bool)

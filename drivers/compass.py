@@ -503,6 +503,8 @@ class _LoopInbox:
 
     def put(self, fn: Callable[..., None], args: tuple[Any, ...]) -> bool:
         """Queue a call; False when the loop is closed."""
+        if self.loop.is_closed():  # (a drain posted before it closed never ran: ``posted`` stays set)
+            return False
         self.calls.append((fn, args))
         if not self.posted:
             self.posted = True

@@ -834,3 +834,41 @@ def test_device_averaging_rounds_the_mean_and_flags_saturation() -> None:
     p = fresh()
     (s,) = p.feed(d.raw_line(0.0))
     assert s.mag == (2, 2, 32767) and s.acc == (0, 0, 1000) and s.temp_c == 20.5 and s.status == 1
+
+
+def test_a_compass_whose_loop_closed_without_close_stops_its_reader_thread() -> None:
+    """The reader thread posts every line to the loop; once the loop is closed (a program that never
+    awaited close()) the next post says so and the thread ends instead of reading forever."""
+    import threading
+
+    ready: dict[str, Any] = {}
+    stop_sim = threading.Event()
+
+    def serve() -> None:  # the device streams on in a loop of its own
+        async def main() -> None:
+            sim = CompassSim(make_reader(), SimClock(10.0))
+            ready["url"] = await sim.start("tcp")
+            while not stop_sim.is_set():
+                await asyncio.sleep(0.02)
+            await sim.stop()
+        asyncio.run(main())
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    try:
+        deadline = time.monotonic() + 5.0
+        while "url" not in ready and time.monotonic() < deadline:
+            time.sleep(0.01)
+        c = Compass(ready["url"], rate_hz=50)
+
+        async def use() -> None:
+            await c.open()
+            assert len(await c.read(5, 2.0)) == 5  # and then the program ends without c.close()
+        asyncio.run(use())
+        thread = c._thread
+        assert thread is not None
+        thread.join(2.0)
+        assert not thread.is_alive()
+    finally:
+        stop_sim.set()
+        server.join(5.0)

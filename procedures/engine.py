@@ -178,8 +178,8 @@ class Engine:
         self._replayed_until = 0.0  # table time of the last sample a replay took over
         self._kept: dict[int, list[Recording]] = {}  # per slot: every recording kept, in order (the fit's rows)
         self._flagged: dict[int, set[int]] = {}  # per slot: rows already flagged as bad
-        # per slot: labels of the samples kept in the step under way, screened once it ends (_flag_pending)
-        self._to_flag: dict[int, list[str]] = {}
+        # per slot: the label of the samples kept in the step under way, screened once it ends (_flag_pending)
+        self._to_flag: dict[int, str] = {}
         self._held: Any = None  # encoder angles where the table holds since the last move, if known
 
     # ---------------------------------------------------------------------------------- control
@@ -544,7 +544,7 @@ class Engine:
             rec = self._recording(int(slot), samples, label, a, times[slot])
             self.sink.add(int(slot), rec)
             self._kept.setdefault(int(slot), []).append(rec)
-            self._to_flag.setdefault(int(slot), []).append(label)
+            self._to_flag[int(slot)] = label
             out[int(slot)] = rec
             self._samples += len(samples)
         self.on_event(SamplesStored(label, self._samples))
@@ -552,8 +552,8 @@ class Engine:
 
     def _flag_pending(self) -> None:
         """`_flag_bad` for the samples the last step kept."""
-        for slot, labels in self._to_flag.items():
-            self._flag_bad(slot, labels[-1])
+        for slot, label in self._to_flag.items():
+            self._flag_bad(slot, label)
         self._to_flag.clear()
 
     def _flag_bad(self, slot: int, label: str) -> None:
@@ -858,21 +858,22 @@ class RecordingSink:
         self.names = names
         self.meta = meta or {}
         self.parts: dict[int, list[Recording]] = {}
+        self._columns: dict[int, list[str]] = {}  # per slot: the extra columns of the file as written
 
     def add(self, slot: int, rec: Recording) -> None:
-        """Keep these samples and flush the slot's file: their rows appended when the columns are the
-        file's (rewriting the whole file at every pose cost a run of 8 units at time scale 20 a fifth of
-        its event loop), else the file rewritten."""
-        parts = self.parts.setdefault(slot, [])
-        parts.append(rec)
+        """Keep these samples and flush the slot's file: their rows appended when their extra columns
+        are the file's (rewriting the whole file at every pose cost a run of 8 units at time scale 20 a
+        fifth of its event loop), else the file rewritten with every part."""
+        self.parts.setdefault(slot, []).append(rec)
         if self.directory is None:
             return
-        first = parts[0]
-        if len(parts) > 1 and list(rec.extra) == list(first.extra):  # (a missing column is written empty)
+        if self._columns.get(slot) == list(rec.extra):  # (a missing acc or temp_c is written empty either way)
             with self.path(slot).open("a") as f:
                 f.write(format_recording(rec, header=False))
         else:
-            self.path(slot).write_text(format_recording(self.recording(slot)))
+            whole = self.recording(slot)
+            self.path(slot).write_text(format_recording(whole))
+            self._columns[slot] = list(whole.extra)
 
     def path(self, slot: int) -> Path:
         """The slot's recording file."""

@@ -400,3 +400,7 @@ def test_the_recording_sink_appends_each_acquisition_and_the_file_reads_back_as_
     sink.add(0, part(3, 2, extra={"note": ["a", "b"]}))
     back = parse_recording(sink.path(0).read_text())
     assert len(back) == 123 and list(back.extra["note"][-2:]) == ["a", "b"]
+    # and a part without it, under the file's header that now has it: written anew again
+    sink.add(0, part(4, 3))
+    back = parse_recording(sink.path(0).read_text())
+    assert len(back) == 126 and np.array_equal(back.mag, sink.recording(0).mag) and list(back.step[-3:]) == ["pose4"] * 3

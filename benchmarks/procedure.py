@@ -104,13 +104,17 @@ def serve_sim(units: int, scale: float) -> None:
     asyncio.run(serve())
 
 
+#: The simulated servo's settling after each move (drivers/sim/turntable.py, SERVO_WN: into 5 mdeg in ~0.2 s).
+SERVO_SETTLE_S = 0.2
+
+
 def plan_seconds(params: dict) -> float:
-    """The plan's nominal table seconds on the fixture's station (30 deg/s, 60 deg/s^2, the servo's 0.2 s
-    settling, 20 Hz)."""
+    """The plan's nominal table seconds on the fixture's station (30 deg/s, 60 deg/s^2, 20 Hz): the
+    engine's `step_seconds`, which leaves the servo's settling out, plus that settling per move."""
     proc = PROCEDURES["calibrate"]
     plan = proc.plan(proc.validate(params))
     moves = sum(isinstance(s, (Move, Scan)) for s in plan)
-    return sum(step_seconds(plan, Motion(30.0, 60.0, 0.0, 20.0))) + 0.2 * moves  # (step_seconds leaves settling out)
+    return sum(step_seconds(plan, Motion(30.0, 60.0, 0.0, 20.0))) + SERVO_SETTLE_S * moves
 
 
 @contextmanager

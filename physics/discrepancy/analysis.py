@@ -124,8 +124,8 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     (garbage that passed the checksum). Left in, each would be "structure" that no physics explains."""
     screened = screen_rows(rec)
     zero = {i for i, why in screened.items() if reason_kind(why) == "all zeros"}
-    clipped = np.array(sorted(i for i, why in screened.items() if reason_kind(why) == "saturated"), dtype=int)
-    off = np.array(sorted(set(screened) - zero - set(clipped.tolist())), dtype=int)
+    clipped = {i for i, why in screened.items() if reason_kind(why) == "saturated"}
+    off = np.array(sorted(set(screened) - zero - clipped), dtype=int)
     short: set[int] = set()
     # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
     # (a stale reference), which says nothing of the magnetometer's rows
@@ -138,15 +138,15 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
         short = {int(i) for r in runs if len(r) <= BAD_RUN
                  and inside(r[0] - 1) and inside(r[-1] + 1) and hold[r[0] - 1] == hold[r[0]] == hold[r[-1] + 1]
                  for i in r}
-    bad = {i: screened[i] for i in sorted(zero | short | set(clipped.tolist()))}
+    bad = {i: screened[i] for i in sorted(zero | short | clipped)}
     if not bad:
         return rec, None
     keep = np.ones(len(rec), bool)
     keep[list(bad)] = False
     kinds = [f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
              f"{len(short)} alone or in runs of at most {BAD_RUN} far off their hold's median" if short else "",
-             (f"{len(clipped)} saturated, at t {rec.t[clipped[0]]:.1f}-{rec.t[clipped[-1]]:.1f} s (a field beyond the "
-              "sensor's range: a strong magnet near the unit?)") if len(clipped) else ""]
+             (f"{len(clipped)} saturated, at t {rec.t[min(clipped)]:.1f}-{rec.t[max(clipped)]:.1f} s (a field beyond the "
+              "sensor's range: a strong magnet near the unit?)") if clipped else ""]
     note = (f"{len(bad)} of {len(rec)} rows left out as bad samples ({'; '.join(k for k in kinds if k)}): "
             f"sample indices {index_list(sorted(bad))}")
     return rec.select(keep), (note, rejected_rows(rec, bad))

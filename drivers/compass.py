@@ -5,9 +5,9 @@ Three layers:
 - `SentenceParser`: a pure, incremental byte parser (no I/O) that turns whatever arrives on the wire
   into events (`CompassSample`, `Ack`, `NakReply`, `IdReply`, `CfgReply`, `TextLine`) and counts
   everything it had to throw away in a `CompassStats`.
-- `Compass`: the async driver. Plain pyserial in a reader thread (works with every URL: device paths,
-  ``/dev/pts/N``, ``socket://host:port``) feeds the parser and hands events to the asyncio loop.
-  Commands are matched to their replies by command name, with a timeout and one retry.
+- `Compass`: the async driver. pyserial opens the port (device paths, ``/dev/pts/N``,
+  ``socket://host:port``); the event loop watches its descriptor and feeds the parser as bytes
+  arrive. Commands are matched to their replies by command name, with a timeout and one retry.
 - `SerialFixture`: several compasses (the slots of a batch-calibration fixture) driven concurrently.
 
 Error policy, so that no received sample is ever lost: every sample is kept in the driver's history.
@@ -24,11 +24,8 @@ import itertools
 import os
 import logging
 import re
-import select
 import socket
-import threading
 import time
-import weakref
 from collections.abc import AsyncIterator, Callable, Hashable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any, NamedTuple, Union
@@ -457,7 +454,7 @@ class SentenceParser:
 
 def _close_port(ser: serial.SerialBase) -> None:
     """Close a port quickly. pyserial's ``socket://`` close() sleeps 0.3 s ("give the server some
-    time"), which would stall the reader thread's exit and every reconnect, so close its socket here."""
+    time"), which would stall every close and reconnect, so close its socket here."""
     sock = getattr(ser, "_socket", None)
     try:
         if sock is not None:
@@ -470,7 +467,7 @@ def _close_port(ser: serial.SerialBase) -> None:
             sock.close()
         else:
             ser.close()
-    except Exception:  # closing a port that is already gone must not kill the reader thread
+    except Exception:  # closing a port that is already gone is not an error
         pass
 
 
@@ -478,59 +475,15 @@ _CLOSED, _OPEN, _RECONNECTING, _DEAD = "closed", "open", "reconnecting", "dead"
 _LINK_LOST = object()  # resolves a pending command when the port goes away
 
 
-class _LoopInbox:
-    """Calls from the compasses' reader threads to one event loop, in order. One wake-up of the loop
-    (a write to its self-pipe, a thread switch) carries every call posted before it runs: at a
-    simulated time scale of 20, eight compasses send 3200 lines a second, and a wake-up per line kept
-    the loop busy with its self-pipe."""
-
-    _by_loop: "weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, _LoopInbox]" = weakref.WeakKeyDictionary()
-    _lock = threading.Lock()
-
-    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
-        self.loop = loop
-        self.calls: collections.deque[tuple[Callable[..., None], tuple[Any, ...]]] = collections.deque()
-        self.posted = False
-
-    @classmethod
-    def of(cls, loop: asyncio.AbstractEventLoop) -> "_LoopInbox":
-        """The inbox of ``loop`` (made on first use)."""
-        with cls._lock:
-            inbox = cls._by_loop.get(loop)
-            if inbox is None:
-                inbox = cls._by_loop[loop] = cls(loop)
-            return inbox
-
-    def put(self, fn: Callable[..., None], args: tuple[Any, ...]) -> bool:
-        """Queue a call; False when the loop is closed."""
-        if self.loop.is_closed():  # (a drain posted before it closed never ran: ``posted`` stays set)
-            return False
-        self.calls.append((fn, args))
-        if not self.posted:
-            self.posted = True
-            try:
-                self.loop.call_soon_threadsafe(self._drain)
-            except RuntimeError:
-                self.posted = False
-                return False
-        return True
-
-    def _drain(self) -> None:
-        self.posted = False  # first: a call queued from here on posts a new drain
-        while self.calls:
-            fn, args = self.calls.popleft()
-            try:
-                fn(*args)
-            except Exception as e:  # as the loop treats a failing callback: reported, the others still run
-                self.loop.call_exception_handler({"message": "compass reader callback failed", "exception": e})
-
-
 class Compass:
     """Async driver of one compass on a pyserial URL (``/dev/ttyUSB0``, ``/dev/pts/3``,
     ``socket://host:port``).
 
-    A reader thread owns the port: it reads with a short timeout (so `close` returns within ~0.1 s),
-    parses, and posts events to the asyncio loop. If the port vanishes it reopens it with back-off
+    The event loop reads the port (``add_reader`` on its descriptor: everything that is there in one
+    read, parsed on the spot), so there is no reader thread to hand lines over: at a simulated time
+    scale of 20, eight compasses send 3200 lines a second, and reader threads handing them to the loop
+    fought it and the fits for the interpreter (8 units: 9 % less table time at scale 20, a third less
+    wall time; benchmarks/procedure.py). If the port vanishes it reopens it with back-off
     (0.1, 0.2, 0.4 ... capped at 2 s) for up to ``give_up_s`` seconds and re-applies RATE and AVG;
     after that every call raises `CompassDisconnected`. A device reset (boot banner or other text seen)
     also re-applies RATE and AVG (the ones set through this driver; baud is not re-applied).
@@ -583,9 +536,8 @@ class Compass:
         self._cmd_lock = asyncio.Lock()
         self._changed = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
         self._ser: serial.SerialBase | None = None
+        self._fd: int | None = None  # the descriptor the loop watches (None: not watching)
         self._tasks: set[asyncio.Task[None]] = set()
         # readers waiting for the sample count to reach a target (see _wait_until)
         self._sample_waiters: list[tuple[int, asyncio.Future[None]]] = []
@@ -593,10 +545,7 @@ class Compass:
     # -- life cycle ----------------------------------------------------------------------------
 
     def _open_port(self) -> serial.SerialBase:
-        # Short read timeout: the thread polls its stop flag between reads.
-        # Non-blocking reads: the reader thread waits in select() and then takes everything that is
-        # there in one read. (A blocking read of in_waiting bytes reads socket:// one byte at a time,
-        # since its in_waiting is only 0 or 1, and falls behind a fast stream.)
+        # Non-blocking: the loop reads the descriptor when it is readable, never waits in a read.
         return serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0, write_timeout=0.5)
 
     async def open(self) -> None:
@@ -608,14 +557,11 @@ class Compass:
             ser = await asyncio.to_thread(self._open_port)
         except (serial.SerialException, OSError, ValueError) as e:
             raise CompassDisconnected(f"{self.name}: cannot open {self.url}: {e}") from e
-        self._ser = ser
         self._parser.reset_stream()
-        self._stop = threading.Event()
         self._state = _OPEN
         self._error = None
         self._stream_since = time.monotonic()
-        self._thread = threading.Thread(target=self._run, args=(ser, self._stop), name=f"compass {self.name}", daemon=True)
-        self._thread.start()
+        self._attach(ser)
         try:
             if self._want_avg is not None:
                 await self.set_averaging(self._want_avg)
@@ -626,18 +572,15 @@ class Compass:
             raise
 
     async def close(self) -> None:
-        """Stop the reader thread (within ~0.1 s), close the port, fail pending commands and reads."""
-        if self._state == _CLOSED and self._thread is None:
+        """Stop reading (and reconnecting), close the port, fail pending commands and reads."""
+        if self._state == _CLOSED and self._ser is None:
             return
         self._state = _CLOSED
-        self._stop.set()
         for t in list(self._tasks):
             t.cancel()
+        self._detach()
         self._fail_pending()
         self._pulse()
-        th, self._thread = self._thread, None
-        if th is not None:
-            await asyncio.to_thread(th.join, 1.0)
 
     async def __aenter__(self) -> Compass:
         await self.open()
@@ -656,67 +599,70 @@ class Compass:
         """The stream rate the driver believes the device runs at (None: unknown)."""
         return self._rate
 
-    # -- the reader thread ---------------------------------------------------------------------
+    # -- reading the port (on the loop) -----------------------------------------------------------
 
-    def _run(self, ser: serial.SerialBase | None, stop: threading.Event) -> None:
-        """Read, parse, post; on a lost port reopen it with back-off until ``give_up_s``."""
-        backoff, lost_at = 0.1, 0.0
-        parser = self._parser
-        try:
-            while not stop.is_set():
-                if ser is None:
-                    left = self.give_up_s - (time.monotonic() - lost_at)
-                    if left <= 0:
-                        self._post(self._on_gave_up)
-                        return
-                    try:
-                        ser = self._open_port()
-                    except (serial.SerialException, OSError, ValueError):
-                        stop.wait(min(backoff, left))
-                        backoff = min(backoff * 2, 2.0)
-                        continue
-                    backoff = 0.1
-                    parser.reset_stream()
-                    self._ser = ser
-                    self._post(self._on_reconnected)
-                try:
-                    # the descriptor itself, not Serial.read: pyserial's read selects before and after
-                    # its read, three system calls where one does, for every line
-                    fd = ser.fileno()
-                    ready, _, _ = select.select([fd], [], [], 0.05)
-                    if not ready:
-                        continue
-                    try:
-                        data = os.read(fd, 65536)
-                    except (BlockingIOError, InterruptedError):
-                        continue  # a spurious wake-up
-                    if not data:  # a closed socket or a hung-up pty
-                        raise serial.SerialException("device reports readiness to read but returned no data")
-                except (serial.SerialException, OSError, TypeError, AttributeError) as e:
-                    # pty: EIO or "readiness to read but returned no data"; socket: "socket disconnected".
-                    # (TypeError/AttributeError: the port object was closed under us.)
-                    self._ser = None
-                    if not stop.is_set():
-                        self._post(self._on_lost, e)
-                    _close_port(ser)
-                    ser, lost_at = None, time.monotonic()
-                    continue
-                if data:
-                    events = parser.feed(data)
-                    if events:
-                        self._post(self._on_events, events)
-        finally:
-            if ser is not None:
-                _close_port(ser)
-            self._ser = None
+    def _attach(self, ser: serial.SerialBase) -> None:
+        """Watch ``ser``'s descriptor on the loop; each readiness reads it."""
+        self._ser = ser
+        self._fd = ser.fileno()
+        asyncio.get_running_loop().add_reader(self._fd, self._on_readable)
 
-    def _post(self, fn: Callable[..., None], *args: Any) -> None:
-        """Run ``fn(*args)`` on the loop (from the reader thread), after everything posted before."""
-        loop = self._loop
-        if loop is None:
+    def _detach(self) -> None:
+        """Stop watching the port and close it."""
+        ser, fd, self._ser, self._fd = self._ser, self._fd, None, None
+        if fd is not None and self._loop is not None and not self._loop.is_closed():
+            self._loop.remove_reader(fd)
+        if ser is not None:
+            _close_port(ser)
+
+    def _on_readable(self) -> None:
+        """Read everything that is there (the descriptor itself: pyserial's read selects before and
+        after its read, three system calls where one does, for every line), parse, handle."""
+        fd = self._fd
+        if fd is None:
             return
-        if not _LoopInbox.of(loop).put(fn, args):
-            self._stop.set()  # the loop is closed (close() was never awaited): nobody is listening
+        try:
+            data = os.read(fd, 65536)
+        except (BlockingIOError, InterruptedError):
+            return  # a spurious wake-up
+        except OSError as e:  # pty: EIO once the device side is gone
+            self._lost(e)
+            return
+        if not data:  # a closed socket or a hung-up pty
+            self._lost(serial.SerialException("device reports readiness to read but returned no data"))
+            return
+        events = self._parser.feed(data)
+        if events:
+            self._on_events(events)
+
+    def _lost(self, exc: BaseException) -> None:
+        """The port went away: stop reading it and reconnect in the background."""
+        self._detach()
+        if self._state != _OPEN:
+            return
+        self._on_lost(exc)
+        self._spawn(self._reconnect())
+
+    async def _reconnect(self) -> None:
+        """Reopen the port with back-off (0.1 s doubling to 2 s) for up to ``give_up_s``."""
+        backoff, lost_at = 0.1, time.monotonic()
+        while self._state == _RECONNECTING:
+            left = self.give_up_s - (time.monotonic() - lost_at)
+            if left <= 0:
+                self._on_gave_up()
+                return
+            try:
+                ser = await asyncio.to_thread(self._open_port)
+            except (serial.SerialException, OSError, ValueError):
+                await asyncio.sleep(min(backoff, left))
+                backoff = min(backoff * 2, 2.0)
+                continue
+            if self._state != _RECONNECTING:  # closed meanwhile
+                _close_port(ser)
+                return
+            self._parser.reset_stream()
+            self._attach(ser)
+            self._on_reconnected()
 
     # -- loop-side handlers (run in the event loop) ---------------------------------------------
 
@@ -781,8 +727,6 @@ class Compass:
         self._spawn(self._reapply())
 
     def _on_lost(self, exc: BaseException) -> None:
-        if self._state != _OPEN:
-            return
         log.warning("%s: port lost (%s); reconnecting", self.name, exc)
         self._state = _RECONNECTING
         self._error = exc
@@ -873,7 +817,7 @@ class Compass:
                     await asyncio.to_thread(self._write_sync, line)
                 except (serial.SerialException, OSError) as e:
                     reason = f"write failed: {e}"
-                    await asyncio.sleep(min(0.05, timeout))  # let the reader thread notice
+                    await asyncio.sleep(min(0.05, timeout))  # let the loop's read notice a lost port
                     continue
                 try:
                     ev = await asyncio.wait_for(fut, timeout)
@@ -993,7 +937,9 @@ class Compass:
         return 2.0 * n / rate + 1.0
 
     async def read(self, n: int, timeout: float | None = None) -> list[CompassSample]:
-        """The next ``n`` samples received after the call (by the host clock, not by delivery).
+        """The next ``n`` samples read from the port after the call (lines the port held while the
+        loop was busy count as read when the loop gets to them; the engine tells a pose's own lines
+        by the compass's sample clock).
 
         Raises `CompassTimeout` (stale stream or deadline) or `CompassDisconnected`; the exception's
         ``samples`` holds the samples that did arrive. Default timeout: twice the time ``n`` samples
@@ -1001,15 +947,8 @@ class Compass:
         """
         start, now = self._n, time.monotonic()
         deadline = now + (self._default_timeout(n) if timeout is None else timeout)
-        while True:
-            await self._wait_until(start, n, deadline, now)
-            got = self._slice(start, start + n)
-            # Lines the reader thread received before the call but a busy event loop delivered after
-            # it are older than the caller asked for (e.g. from while the table was still moving).
-            early = sum(1 for s in got if s.t_host < now)
-            if not early:
-                return got
-            start += early
+        await self._wait_until(start, n, deadline, now)
+        return self._slice(start, start + n)
 
     async def samples(self, timeout: float = 1.0) -> AsyncIterator[CompassSample]:
         """Iterate samples as they arrive (from the call on). Every sample received is yielded before

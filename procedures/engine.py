@@ -53,8 +53,12 @@ HOLD_TOLERANCE_DEG = 0.01
 #: An acquisition reads again at most this many times for lines measured before it began (then keeps
 #: what it reads, so a compass whose clock the estimate misjudges cannot stall a pose).
 STALE_REREADS = 3
-#: How many of a compass's latest lines are searched for a read's first line (its delivery burst).
-HISTORY_SCAN = 4096
+#: A read's samples are placed on the compass's sample clock through them and up to this many of the
+#: compass's lines around them (those on time before a late burst anchor the numbering: 51 s at
+#: 20 Hz, 2.6 s at time scale 20, longer than the simulator or a serial stack holds lines back). Each
+#: read of 8 units computes it per unit, so its cost counts time-scale-fold in table time: 4096
+#: lines cost a run of 8 units at time scale 20 about 4 % of its table time.
+ANCHOR_LINES = 1024
 
 
 #: Wall seconds an identification of the fixture's compasses may take.
@@ -175,6 +179,10 @@ class Engine:
         self._clock: dict[Any, tuple[float, int]] = {}  # per slot: the last kept sample's (host time, seq)
         self._streaming = False
         self._table_used = 0.0  # table seconds of the moves, settles, acquisitions and scans so far
+        # when the table's part of the current step ended, where host work follows it (a hold ends
+        # with its last line; placing the lines on the sample clock and the check that the table held
+        # are host work, which a time scale would multiply): None for the step's end
+        self._table_done: float | None = None
         self._replayed_until = 0.0  # table time of the last sample a replay took over
         self._kept: dict[int, list[Recording]] = {}  # per slot: every recording kept, in order (the fit's rows)
         self._flagged: dict[int, set[int]] = {}  # per slot: rows already flagged as bad
@@ -252,11 +260,13 @@ class Engine:
                             self._go_live(step.label)
                 else:
                     began = self.table_time()
+                    self._table_done = None
                     self.on_event(StepStarted(step, began))
                     try:
                         reply = await self._do(step)
                         if isinstance(step, TIMED_STEPS):
-                            self._table_used += self.table_time() - began
+                            done_at = self._table_done if self._table_done is not None else self.table_time()
+                            self._table_used += done_at - began
                     finally:
                         # after the step's table time: host work, which a time scale would multiply
                         self._flag_pending()
@@ -452,6 +462,7 @@ class Engine:
                 got.update({slot: err.samples for slot, err in e.errors.items() if isinstance(err, CompassError)})
                 timeouts = all(isinstance(err, CompassTimeout) for err in e.errors.values())
                 error = CompassTimeout(str(e)) if timeouts else e
+            self._table_done = self.table_time()
             keep: dict[Any, list[Sample]] = {}
             times: dict[Any, np.ndarray] = {}
             for slot, samples in got.items():
@@ -501,6 +512,7 @@ class Engine:
                     error = task.exception()
         finally:
             await _cancel_all([motion, aborted, *collectors])
+        self._table_done = self.table_time()
         out = self._keep_scan(step, got, t_begin, trace, before)
         if error is not None:
             raise error
@@ -581,7 +593,7 @@ class Engine:
         before a late burst anchor the steady numbering, so the burst's lines show their true age,
         which the burst alone (its lines sharing one arrival time) cannot. None when the samples are
         no longer in the compass's history."""
-        latest = self.station.fixture.compasses[slot].recent(HISTORY_SCAN)
+        latest = self.station.fixture.compasses[slot].recent(len(samples) + ANCHOR_LINES)
         first = next((i for i in range(len(latest) - 1, -1, -1) if latest[i] is samples[0]), None)
         if first is None or first + len(samples) > len(latest) or latest[first + len(samples) - 1] is not samples[-1]:
             return None
@@ -778,7 +790,7 @@ def sample_clock(t_host: np.ndarray, seq: np.ndarray, rate_hz: float,
                  after: tuple[float, int] | None = None) -> np.ndarray:
     """Each sample's time on the compass's own sample clock, in host seconds.
 
-    A sample's arrival time carries the jitter of the serial link, the reader thread and the event
+    A sample's arrival time carries the jitter of the serial link, the kernel and the event
     loop (milliseconds: 0.03 deg each at 30 deg/s; several lines read at once share one arrival
     time; a busy host delivers late bursts). The device samples on a steady clock numbered by
     ``seq``, so within a run of consecutive sequence numbers the times are put on a line in ``seq``

@@ -272,6 +272,37 @@ def test_the_procedures_own_work_does_not_stall_the_engines_loop():
     assert result.table_seconds < 10.0, result.table_seconds
 
 
+def test_host_work_after_a_holds_last_line_is_not_table_time(monkeypatch):
+    """A hold ends with its last line. What the host does with the lines after it (placing them on
+    the sample clock, sending them to the sink, the check that the table held) is host work: at time
+    scale 20 its 50 ms per hold would count a second each. Here it takes 50 ms per hold, and the table
+    time stays the moves' and holds' own."""
+    def plan(params) -> object:
+        for k in range(4):
+            yield Move(10.0 * (k + 1))
+            yield Acquire(20, f"hold {k}")
+        return Outcome({})
+    proc = Procedure("holds", "1", PROCEDURES["rotate_z"].params, plan)
+    keep = Engine._keep
+
+    def slow_keep(self, *args, **kwargs):
+        time.sleep(0.05)  # the host busy with the lines it got (holding the loop, as a CPU-bound step does)
+        return keep(self, *args, **kwargs)
+
+    async def main(slow: bool) -> float:
+        if slow:
+            monkeypatch.setattr(Engine, "_keep", slow_keep)
+        async with on_sim(reference_config(seed=3, time_scale=20)) as (st, station):
+            result = await Engine(station, proc, proc.validate({}), RecordingSink(None, {})).run()
+        monkeypatch.setattr(Engine, "_keep", keep)
+        assert result.state is RunState.completed, result.reason
+        return result.table_seconds
+    quick = asyncio.run(asyncio.wait_for(main(False), 60))
+    slow = asyncio.run(asyncio.wait_for(main(True), 60))
+    # four 1-s holds of 20 lines and four 10-deg moves (0.9 s each): ~8 s; 50 ms x 20 per hold would add 4 s
+    assert slow < quick + 1.0, (quick, slow)
+
+
 def test_an_abort_while_the_procedure_computes_ends_the_run_at_once():
     """The operator's abort does not wait for a fit or an analysis to finish: the run is aborted, its
     samples kept, while the computation ends on its own in its thread."""

@@ -1,4 +1,5 @@
-"""The compass driver: `$PXDC` ASCII sentences (PROTOCOLS.md) over any pyserial URL.
+"""The compass driver: `$PXDC` ASCII sentences (PROTOCOLS.md) over a serial device, a pty or a TCP port
+(pyserial URLs whose port has a file descriptor: ``/dev/ttyUSB0``, ``/dev/pts/N``, ``socket://host:port``).
 
 Three layers:
 
@@ -557,11 +558,11 @@ class Compass:
             ser = await asyncio.to_thread(self._open_port)
         except (serial.SerialException, OSError, ValueError) as e:
             raise CompassDisconnected(f"{self.name}: cannot open {self.url}: {e}") from e
+        self._attach(ser)
         self._parser.reset_stream()
         self._state = _OPEN
         self._error = None
         self._stream_since = time.monotonic()
-        self._attach(ser)
         try:
             if self._want_avg is not None:
                 await self.set_averaging(self._want_avg)
@@ -602,10 +603,16 @@ class Compass:
     # -- reading the port (on the loop) -----------------------------------------------------------
 
     def _attach(self, ser: serial.SerialBase) -> None:
-        """Watch ``ser``'s descriptor on the loop; each readiness reads it."""
-        self._ser = ser
-        self._fd = ser.fileno()
-        asyncio.get_running_loop().add_reader(self._fd, self._on_readable)
+        """Watch ``ser``'s descriptor on the loop; each readiness reads it. Raises `CompassDisconnected`
+        (the port closed) for a port without a descriptor (``loop://``, ``rfc2217://``)."""
+        try:
+            fd = ser.fileno()
+        except (AttributeError, OSError, ValueError) as e:  # io.UnsupportedOperation is both of the last
+            _close_port(ser)
+            raise CompassDisconnected(f"{self.name}: {self.url} has no file descriptor to read ({e}); use a "
+                                      "device path, /dev/pts/N or socket://host:port") from e
+        self._ser, self._fd = ser, fd
+        asyncio.get_running_loop().add_reader(fd, self._on_readable)
 
     def _detach(self) -> None:
         """Stop watching the port and close it."""
@@ -661,7 +668,11 @@ class Compass:
                 _close_port(ser)
                 return
             self._parser.reset_stream()
-            self._attach(ser)
+            try:
+                self._attach(ser)
+            except CompassDisconnected:
+                await asyncio.sleep(min(backoff, left))
+                continue
             self._on_reconnected()
 
     # -- loop-side handlers (run in the event loop) ---------------------------------------------

@@ -846,11 +846,12 @@ def _lower_hull(n: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         padded[:len(n)] = r
         low = np.argmin(padded.reshape(-1, 16), axis=1) + 16 * np.arange(len(padded) // 16)
         n, r = n[low], r[low]
-    hull: list[int] = []  # Andrew's monotone chain, lower half
-    for i in range(len(n)):
+    hull: list[int] = []  # Andrew's monotone chain, lower half (on Python floats: numpy scalars cost 5x)
+    nl, rl = n.tolist(), r.tolist()
+    for i in range(len(nl)):
         while len(hull) >= 2:
             a, b = hull[-2], hull[-1]
-            if (n[b] - n[a]) * (r[i] - r[a]) - (r[b] - r[a]) * (n[i] - n[a]) > 0:
+            if (nl[b] - nl[a]) * (rl[i] - rl[a]) - (rl[b] - rl[a]) * (nl[i] - nl[a]) > 0:
                 break
             hull.pop()
         hull.append(i)

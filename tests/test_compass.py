@@ -536,6 +536,11 @@ def test_open_a_port_that_is_not_there() -> None:
             await Compass("/dev/pts/does-not-exist").open()
         with pytest.raises(CompassDisconnected):
             await Compass("socket://127.0.0.1:1").open()
+        # the loop reads the port's descriptor: a pyserial URL without one is refused by name
+        c = Compass("loop://")
+        with pytest.raises(CompassDisconnected, match="loop:// has no file descriptor to read"):
+            await c.open()
+        assert not c.connected
 
     run(go())
 

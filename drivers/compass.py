@@ -483,8 +483,8 @@ class Compass:
     The event loop reads the port (``add_reader`` on its descriptor: everything that is there in one
     read, parsed on the spot), so there is no reader thread to hand lines over: at a simulated time
     scale of 20, eight compasses send 3200 lines a second, and reader threads handing them to the loop
-    fought it and the fits for the interpreter (8 units: 9 % less table time at scale 20, a third less
-    wall time; benchmarks/procedure.py). If the port vanishes it reopens it with back-off
+    fought it and the fits for the interpreter (8 units at scale 20, paired runs: 121-124 -> 117-119 s
+    of table time, 16-18 -> 11-14 s wall; benchmarks/procedure.py). If the port vanishes it reopens it with back-off
     (0.1, 0.2, 0.4 ... capped at 2 s) for up to ``give_up_s`` seconds and re-applies RATE and AVG;
     after that every call raises `CompassDisconnected`. A device reset (boot banner or other text seen)
     also re-applies RATE and AVG (the ones set through this driver; baud is not re-applied).

@@ -660,19 +660,15 @@ class Compass:
                 return
             try:
                 ser = await asyncio.to_thread(self._open_port)
-            except (serial.SerialException, OSError, ValueError):
+                if self._state != _RECONNECTING:  # closed meanwhile
+                    _close_port(ser)
+                    return
+                self._attach(ser)
+            except (serial.SerialException, OSError, ValueError, CompassDisconnected):
                 await asyncio.sleep(min(backoff, left))
                 backoff = min(backoff * 2, 2.0)
                 continue
-            if self._state != _RECONNECTING:  # closed meanwhile
-                _close_port(ser)
-                return
-            self._parser.reset_stream()
-            try:
-                self._attach(ser)
-            except CompassDisconnected:
-                await asyncio.sleep(min(backoff, left))
-                continue
+            self._parser.reset_stream()  # (nothing is read before this callback returns)
             self._on_reconnected()
 
     # -- loop-side handlers (run in the event loop) ---------------------------------------------

@@ -855,7 +855,6 @@ def test_a_loop_busy_for_a_while_loses_no_line(transport: str) -> None:
         async def main() -> None:
             sim = CompassSim(make_reader(), SimClock(10.0))
             ready["url"] = await sim.start(transport)
-            ready["sim"] = sim
             while not stop_sim.is_set():
                 await asyncio.sleep(0.02)
             await sim.stop()

@@ -40,11 +40,11 @@ from drivers.station import open_station  # noqa: E402
 from physics.calibration import truth_summary  # noqa: E402
 from physics.sensor import angles_to_Mo  # noqa: E402
 from physics.simulate import truth_from_json  # noqa: E402
-from drivers import keep_drivers_responsive  # noqa: E402
+from drivers import Station, keep_drivers_responsive  # noqa: E402
 from physics.table import Motion  # noqa: E402
 from procedures.calibrate import PROCEDURES  # noqa: E402
 from procedures.engine import run_procedure  # noqa: E402
-from procedures.steps import Move, Scan, step_seconds  # noqa: E402
+from procedures.steps import step_seconds  # noqa: E402
 
 
 def fixture(units: int, time_scale: float, seed: int = 1) -> StationConfig:
@@ -104,17 +104,12 @@ def serve_sim(units: int, scale: float) -> None:
     asyncio.run(serve())
 
 
-#: The simulated servo's settling after each move (drivers/sim/turntable.py, SERVO_WN: into 5 mdeg in ~0.2 s).
-SERVO_SETTLE_S = 0.2
-
-
 def plan_seconds(params: dict) -> float:
-    """The plan's nominal table seconds on the fixture's station (30 deg/s, 60 deg/s^2, 20 Hz): the
-    engine's `step_seconds`, which leaves the servo's settling out, plus that settling per move."""
+    """The plan's nominal table seconds on the fixture's station (30 deg/s, 60 deg/s^2, the servo's
+    settling, 20 Hz), from home: the engine's `step_seconds`, as a run's ``plan_seconds`` says."""
     proc = PROCEDURES["calibrate"]
     plan = proc.plan(proc.validate(params))
-    moves = sum(isinstance(s, (Move, Scan)) for s in plan)
-    return sum(step_seconds(plan, Motion(30.0, 60.0, 0.0, 20.0))) + SERVO_SETTLE_S * moves
+    return sum(step_seconds(plan, Motion(30.0, 60.0, Station.settle_s, 20.0)))
 
 
 @contextmanager

@@ -198,3 +198,6 @@ class Station:
     accel_dps2: float = 60.0
     sample_rate_hz: int = 20
     name: str = "station"
+    #: the drives' settling into position after a move (the simulated servo's ~0.2 s; for the plan's
+    #: nominal seconds, progress and time left, not for control: the engine waits for IN_POSITION)
+    settle_s: float = 0.2

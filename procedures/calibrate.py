@@ -668,6 +668,12 @@ def characterize(p: CharacterizeParams) -> ProcedureGen:
     return out
 
 
+#: Where the table waits while the operator swaps units (level, at home: the calibration's first pose).
+LOAD_POSE = (0.0, 0.0, 0.0)
+#: The id of a batch unit's mount prompt: its unit is on the fixture only after it is answered.
+MOUNT_PROMPT = "mount"
+
+
 class BatchCalibrateParams(CalibrateParams):
     """The calibration of one unit of a batch: the operator is asked to mount it first."""
 
@@ -684,7 +690,10 @@ def batch_calibrate(p: BatchCalibrateParams) -> ProcedureGen:
     text = f"mount unit {p.serial} in slot 0"
     if p.unmount:
         text = f"unmount unit {p.unmount}, then {text}"
-    yield Prompt(text, id="mount")
+    # the last unit's plan left the platform rolled (the x sweep ends at phi 300): the operator swaps
+    # units on a level platform at home, where the next plan starts anyway
+    yield Move(*LOAD_POSE)
+    yield Prompt(text, id=MOUNT_PROMPT)
     return (yield from calibrate(p))
 
 
@@ -702,7 +711,7 @@ PROCEDURES: dict[str, Procedure] = {
         Procedure("evaluate", "1", EvaluateParams, evaluate, "heading error of given calibrations, level and tilted"),
         Procedure("characterize", "1", CharacterizeParams, characterize,
                   "holds from both sides, tilts, turns both ways at two speeds: the discrepancy analysis's run"),
-        Procedure(BATCH, "1", BatchCalibrateParams, batch_calibrate,
+        Procedure(BATCH, "2", BatchCalibrateParams, batch_calibrate,
                   "one unit of a batch: mount prompt, then the error-separation calibration", reserve=adaptive_reserve),
     )
 }

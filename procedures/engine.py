@@ -100,6 +100,9 @@ class RunResult:
     # prompts and pauses between them (under a time scale those would count time-scale times their
     # wall seconds: an adaptive run's refits at scale 20 once added 120 s to a 150-s plan)
     table_seconds: float
+    # the plan's nominal table seconds from where the table stood when the run began (an adaptive
+    # run's extension and other data-dependent tails not included): what table_seconds compares with
+    plan_seconds: float = 0.0
 
 
 class Aborted(Exception):
@@ -224,12 +227,7 @@ class Engine:
     async def run(self) -> RunResult:
         """Run the procedure to its end, an abort or a fault."""
         plan = self.procedure.plan(self.params)
-        # progress weighs each step by its nominal table time (a scan lasts far longer than a move)
-        nominal = [w for s, w in zip(plan, step_seconds(plan, self._motion())) if isinstance(s, TIMED_STEPS)]
-        reserve = self.procedure.reserve(self.params) if self.procedure.reserve else 0.0
-        total = max(sum(nominal) + reserve, 1e-9)
-        # the last commanded pose (for a tail step's nominal seconds); self._held is what the encoders said
-        left_nominal, done, commanded = total, 0, (0.0, 0.0, 0.0)
+        nominal: list[float] = []
         self._t0 = time.monotonic()
         self._set_state(RunState.running)
         outcome: Outcome | None = None
@@ -238,7 +236,15 @@ class Engine:
         reply: Any = None
         replaying, passed = self.replay is not None and self.replay.checkpoints > 0, 0
         try:
-            await self._prepare()
+            start = await self._prepare()
+            # progress weighs each step by its nominal table time (a scan lasts far longer than a move),
+            # from where the table stands: a run after another starts where that one ended (its first
+            # move back from psi 315 takes 11 s that a plan laid out from home would not count)
+            nominal = [w for s, w in zip(plan, step_seconds(plan, self._motion(), start)) if isinstance(s, TIMED_STEPS)]
+            reserve = self.procedure.reserve(self.params) if self.procedure.reserve else 0.0
+            total = max(sum(nominal) + reserve, 1e-9)
+            # the last commanded pose (for a tail step's nominal seconds); self._held is what the encoders said
+            left_nominal, done, commanded = total, 0, start
             while True:
                 self._check_abort()
                 # the procedure's own work between steps (its fits; a characterize run's analysis takes
@@ -310,15 +316,16 @@ class Engine:
                 gen.close()
             else:  # cancelled while the procedure computes: close it once its thread is done with it
                 computing.add_done_callback(lambda _: gen.close())
-        return RunResult(self.state, self.reason, outcome, self._samples, self._table_used)
+        return RunResult(self.state, self.reason, outcome, self._samples, self._table_used, sum(nominal))
 
     def _motion(self) -> Motion:
         st = self.station
-        return Motion(st.speed_dps, st.accel_dps2, 0.0, float(st.sample_rate_hz))
+        return Motion(st.speed_dps, st.accel_dps2, st.settle_s, float(st.sample_rate_hz))
 
-    async def _prepare(self) -> None:
-        """Enable and home the axes if needed. (The compasses are set streaming at the first
-        acquisition, and again after a prompt: the operator may have mounted another unit.)
+    async def _prepare(self) -> tuple[float, float, float]:
+        """Enable and home the axes if needed, and return where the table stands then. (The compasses
+        are set streaming at the first acquisition, and again after a prompt: the operator may have
+        mounted another unit.)
 
         An axis already in fault is not reset behind the operator's back: the run fails saying so."""
         table = self.station.table
@@ -330,6 +337,7 @@ class Engine:
             await table.enable_all()
         if not all(s.homed for s in status.values()):
             await table.home_all(vel_dps=self.station.speed_dps, acc_dps2=self.station.accel_dps2)
+        return await table.positions()
 
     async def _do(self, step: Step) -> Any:
         if isinstance(step, Compute):  # the table holds where it is

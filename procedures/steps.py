@@ -135,15 +135,16 @@ def _empty_reply(step: Step) -> Reply:
 
 def step_seconds(steps: list[Step], motion: Motion = Motion(),
                  start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> list[float]:
-    """Nominal table seconds of each step under ``motion`` (speed, acceleration, sample rate), from
-    ``start``: moves as trapezoids, settles as given, acquisitions at the sample rate, scans as the
+    """Nominal table seconds of each step under ``motion`` (speed, acceleration, the drives' settling,
+    sample rate), from ``start``: moves as trapezoids plus ``motion.settle_s`` (the servos settling into
+    position before the axes report it), settles as given, acquisitions at the sample rate, scans as the
     move to their start plus the turn at their own speed. Prompts, identifications and checkpoints take none."""
     here = list(start)
     out: list[float] = []
     for s in steps:
         if isinstance(s, Move):
             there = [s.psi, s.theta, s.phi]
-            out.append(move_seconds([b - a for a, b in zip(here, there)], motion))
+            out.append(move_seconds([b - a for a, b in zip(here, there)], motion) + motion.settle_s)
             here = there
         elif isinstance(s, Settle):
             out.append(float(s.seconds))
@@ -152,7 +153,7 @@ def step_seconds(steps: list[Step], motion: Motion = Motion(),
         elif isinstance(s, Scan):
             first = list(s.start_angles)
             turn = Motion(s.speed_dps, motion.max_accel_dps2, motion.settle_s, motion.sample_rate_hz)
-            out.append(move_seconds([b - a for a, b in zip(here, first)], motion)
+            out.append(move_seconds([b - a for a, b in zip(here, first)], motion) + motion.settle_s
                        + move_seconds([s.stop_deg - s.start_deg], turn))
             here = list(s.stop_angles)
         else:

@@ -530,7 +530,9 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
 
                     check, _, _ = await run_procedure(station, "evaluate", {"calibrations": cals}, on_event=on_evaluate_event)
     console.print(f"run {result.state.value}" + (f": {escape(str(result.reason))}" if result.reason else "")
-                  + f" after {result.table_seconds:.1f} s of table time, {result.samples} samples kept")
+                  + f" after {result.table_seconds:.1f} s of table time (the plan's nominal {result.plan_seconds:.1f} s "
+                  + f"from where the table stood{', before the adaptive poses' if params.get('adaptive') else ''}), "
+                  + f"{result.samples} samples kept")
     for slot in sorted(serials):
         if slot in sink.parts:
             console.print(f"slot {slot} ({serials[slot]}): recording {sink.path(slot)}")

@@ -1,7 +1,7 @@
 """Which unit is on the fixture: the serial number a unit reports against the one typed.
 
-A run names its units once they are mounted, before the table's first step (a calibration right
-away, a batch's unit after its mount prompt). For each slot:
+A run names its units once they are mounted, before the table's first step with them (a calibration
+right away; a batch's unit after its mount prompt, which the table awaits at its load pose). For each slot:
 
 - the unit reports no serial number (an empty one, or it refuses the ID command): ``not identified``;
   the typed serial is used as before, and the result and the certificate say so;
@@ -86,7 +86,8 @@ class _Checked(Procedure):
 
 @dataclass
 class UnitCheck:
-    """The identity check of one run's units, decided slot by slot before the table's first step.
+    """The identity check of one run's units, decided slot by slot before the table's first step
+    (a batch unit's: its first after the mount prompt ``mounted_after``).
 
     ``idents`` None: the units are identified in the run (a batch's unit is mounted only after its
     prompt). ``seen``: serials already certified in the run's batch (identified serial -> which unit,
@@ -97,6 +98,9 @@ class UnitCheck:
     policy: str = DEFAULT_POLICY
     idents: dict[int, tuple[str, str, str]] | None = None
     seen: dict[str, str] = field(default_factory=dict)
+    #: the id of the prompt after which the units are mounted (a batch unit's), None when they are
+    #: mounted before the run: the check waits for it (the table may go to its load pose before it)
+    mounted_after: str | None = None
     identities: dict[int, Identity] = field(default_factory=dict)
     done: bool = False
 
@@ -116,13 +120,18 @@ class UnitCheck:
 
     def _run(self, gen: ProcedureGen) -> ProcedureGen:
         self.identities, self.done = {}, False
+        mounting = self.mounted_after is not None
         reply: Reply = None
         while True:
             try:
                 step = gen.send(reply)
             except StopIteration as stop:
                 return stop.value
-            if not self.done and isinstance(step, TIMED_STEPS):
+            if mounting and isinstance(step, Prompt) and step.id == self.mounted_after:
+                mounting = False
+                reply = yield step
+                continue
+            if not self.done and not mounting and isinstance(step, TIMED_STEPS):
                 # the units are mounted now (any mount prompt is behind): name them before the table moves
                 if self.idents is None:
                     got = yield Identify()

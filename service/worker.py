@@ -43,7 +43,7 @@ from drivers.station import open_station
 from drivers.turntable import AxisError, Turntable
 from physics.calibration import Calibration as PhysCalibration, json_safe
 from physics.recording import Recording
-from procedures.calibrate import BATCH, PROCEDURES
+from procedures.calibrate import BATCH, MOUNT_PROMPT, PROCEDURES
 from procedures.engine import IDENTIFY_TIMEOUT_S, Engine, Replay, identify_units
 from procedures.events import Event, PromptAnswered, Result, StateChanged
 from procedures.states import ACTIVE, FINAL, RunState
@@ -291,7 +291,8 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     proc = PROCEDURES[name]
     params = proc.validate(parameters)
     check = UnitCheck(typed={int(k): str(v) for k, v in given.items()}, slots=list(range(len(snapshot["compasses"]))),
-                      policy=str(meta.get("serial_policy") or DEFAULT_POLICY), seen=seen)
+                      policy=str(meta.get("serial_policy") or DEFAULT_POLICY), seen=seen,
+                      mounted_after=MOUNT_PROMPT if name == BATCH else None)
     control = RunControl(ctx, run_id)
     ctx.executing[run_id] = control
     follower = asyncio.create_task(control.follow())

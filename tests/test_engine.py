@@ -21,6 +21,7 @@ from physics.calibration import truth_summary
 from physics.recording import parse_recording
 from physics.sensor import random_unit
 from physics.simulate import truth_from_json
+from physics.table import Motion, move_seconds
 from procedures.calibrate import PROCEDURES
 from procedures.engine import Engine, RecordingSink, RunState, run_procedure
 from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, PromptAnswered, PromptAsked, Result, SamplesStored, StateChanged, StepRetried,
@@ -301,6 +302,38 @@ def test_host_work_after_a_holds_last_line_is_not_table_time(monkeypatch):
     slow = asyncio.run(asyncio.wait_for(main(True), 60))
     # four 1-s holds of 20 lines and four 10-deg moves (0.9 s each): ~8 s; 50 ms x 20 per hold would add 4 s
     assert slow < quick + 1.0, (quick, slow)
+
+
+def test_a_runs_plan_seconds_start_where_the_table_stands():
+    """A run after another starts where that one left the table: its first move back is table time
+    the plan's nominal seconds count too (laid out from home they would not), so the table time, the
+    progress and the time left agree with the plan from there."""
+    def plan(params) -> object:
+        yield Move(0.0)
+        yield Acquire(20, "home")
+        yield Move(240.0)
+        yield Acquire(20, "away")
+        return Outcome({})
+    proc = Procedure("there and back", "1", PROCEDURES["rotate_z"].params, plan)
+
+    async def main():
+        async with on_sim(reference_config(seed=4, time_scale=20)) as (st, station):
+            out = []
+            for _ in range(2):
+                events: list[Event] = []
+                result = await Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append).run()
+                assert result.state is RunState.completed, result.reason
+                out.append((result, [e for e in events if isinstance(e, Progress)]))
+            return out, Motion(station.speed_dps, station.accel_dps2, station.settle_s)
+    ((first, p1), (second, p2)), motion = asyncio.run(asyncio.wait_for(main(), 60))
+    back = move_seconds([240.0], motion)  # the second run's first move: 8.5 s at 30 deg/s (and the settling)
+    assert abs(second.plan_seconds - first.plan_seconds - back) < 1e-6, (first.plan_seconds, second.plan_seconds)
+    for result in (first, second):
+        assert abs(result.table_seconds / result.plan_seconds - 1.0) < 0.1, (result.table_seconds, result.plan_seconds)
+    # the first move is nearly half of the second run's plan (none of the first's), and its progress says so
+    settle = 100.0 * motion.settle_s
+    assert abs(p1[0].percent - settle / first.plan_seconds) < 0.1, p1[0]
+    assert abs(p2[0].percent - (100.0 * back + settle) / second.plan_seconds) < 0.1, p2[0]
 
 
 def test_an_abort_while_the_procedure_computes_ends_the_run_at_once():

@@ -257,6 +257,9 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
             if b["prompt"]:
                 run_id, text = b["prompt"]["run_id"], b["prompt"]["text"]
                 assert b["prompt"]["id"] == "mount"
+                # the operator swaps units on a level platform at home, not where the last plan ended (rolled)
+                axes = info["station"].table.axes
+                assert all(abs(axes[a].position_deg()) < 0.01 for a in "zyx"), {a: axes[a].position_deg() for a in "zyx"}
                 assert api.post(f"/runs/{run_id}/prompts/unmount", role="operator", json={"answer": "x"}).status_code == 404
                 mount(info, ["SN-A", "SN-B"][len(answered)])  # the unit it names, which reports its own serial
                 r = api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": "mounted"})

@@ -313,7 +313,9 @@ def model_text(finding: Mapping[str, Any]) -> str:
         parts.append(f"against {m['against']}")
     segs = m.get("segments") or []
     if segs:
-        parts.append("during " + ", ".join(f"{num(a, 4)}-{num(b, 4)} s" for a, b in segs))
+        # in the recording's own t, to 0.1 s (an epoch-based t reads 1700000018.8, not 1.7e+09)
+        t = lambda x: f"{x:.1f}" if isinstance(x, (int, float)) else num(x)  # noqa: E731
+        parts.append("during " + ", ".join(f"{t(a)}-{t(b)} s" for a, b in segs))
     if finding.get("plausible") is False:
         parts.append("(implausible size)")
     return " ".join(p for p in parts if p)

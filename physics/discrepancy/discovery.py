@@ -1225,8 +1225,8 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
         explanation += " " + IMPLAUSIBLE
     experiment = _experiment(blk, segs)
     if f.alike:
-        explanation += (f" This recording cannot tell it from a {' or a '.join(f.alike)}; the one named is the "
-                        "likelier cause.")
+        named = " or ".join(("an " if a[0] in "aeiou" else "a ") + a for a in f.alike)
+        explanation += f" This recording cannot tell it from {named}; the one named is the likelier cause."
         experiment += ("; to tell them apart, turn about every table axis during that time (a stage-fixed part turns "
                        "with its stage, one fixed to the unit with the unit, a lab-fixed one with neither), and hold "
                        "the temperature steady or change it out of step with time")

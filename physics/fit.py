@@ -8,13 +8,16 @@ Bad samples (a checksummed but wrong reading, a brown-out's zeros) are rejected 
 the fit, in two stages, and every dropped row is listed in ``quality["rejected_rows"]``:
 
 1. Model-free screen (every method): a row whose three axes read exactly 0, or whose reading is
-   more than :data:`REJECT_SIGMA` robust sigmas (and :data:`GROSS_FRACTION` of the field amplitude)
-   from the median of its pose (the consecutive samples at one set of encoder angles). Breakdown point: half the samples of each pose (the median and the
-   MAD break down at 50 %); sigma is pooled over the recording by the MAD.
+   more than :data:`REJECT_SIGMA` robust sigmas from the median of its pose (the consecutive samples
+   at one set of encoder angles) and either :data:`GROSS_FRACTION` of the field amplitude or alone
+   there (a run of at most :data:`BAD_RUN` rows with good rows of the pose on both sides: a flipped
+   bit). Breakdown point: half the samples of each pose (the median and the MAD break down at 50 %);
+   sigma is pooled over the recording by the MAD.
 2. Model-based rejection (``joint`` and ``error-separation``): iteratively reweighted least squares
    with 0/1 weights on the whitened residuals (a hard-redescending, "skipped" estimator): fit, drop
    every row whose residual on any axis is more than :data:`REJECT_SIGMA` robust sigmas (MAD of the
-   kept rows' residuals) and GROSS_FRACTION of that axis's k, refit, until the kept set no longer
+   kept rows' residuals) and GROSS_FRACTION of that axis's k (or alone in its pose, as above), refit,
+   until the kept set no longer
    changes; dropped rows are re-tested each round, so a row wrongly dropped early comes back. When more than :data:`MODEL_BREAKDOWN` of
    the rows look bad the fit is restarted once from its best (1 - MODEL_BREAKDOWN) of rows (a
    least-trimmed-squares concentration step); if that still leaves more than MODEL_BREAKDOWN bad,
@@ -54,6 +57,12 @@ MAX_FIELD_SPREAD = 0.03
 #: the discrepancy analysis looks for (a settling lag, mains pickup: tens of LSB) in the data.
 REJECT_SIGMA = 8.0
 GROSS_FRACTION = 0.05
+#: ... except a row off by REJECT_SIGMA that comes alone or in a run of at most this many, with rows of
+#: its own pose on both sides that are not: physics changes over a hold (a settling lag at its start,
+#: mains pickup in every row), while a flipped bit garbles one reading (64 LSB is 20 sigma and under 5 %
+#: of most units' k, and one such row in a hold moves the hold's mean by more than its noise). A longer
+#: run is something that happened (a magnet brought near for a moment), which the analysis looks at.
+BAD_RUN = 3
 #: The model-based rejection may drop at most this fraction of the rows: its breakdown point.
 MODEL_BREAKDOWN = 0.2
 #: Refuse when fewer than this fraction of the rows remain good.
@@ -263,11 +272,28 @@ def screen_rows(rec: Recording) -> dict[int, str]:
         amplitude = 0.5 * (np.nanmax(med, axis=0) - np.nanmin(med, axis=0))
         sigma = _robust_sigma(dev[multi], np.maximum(2e-4 * amplitude, 1e-12))
         z = np.abs(dev) / sigma
-        gross = (z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude)
-        for i in np.flatnonzero(multi & np.any(gross, axis=1)):
+        gross = np.any((z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude), axis=1)
+        off = multi & np.any(z > REJECT_SIGMA, axis=1)
+        done = np.zeros(len(rec), bool)
+        done[list(out)] = True
+        lone = off & isolated_runs(off | done, group)
+        for i in np.flatnonzero(multi & (gross | lone)):
             a = int(np.argmax(z[i]))
             out.setdefault(int(i), f"{prefix + 'xyz'[a]} = {x[i, a]:g} is {abs(dev[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) "
                                    f"from the median of its pose's samples ({med[group[i], a]:g})")
+    return out
+
+
+def isolated_runs(off: np.ndarray, group: np.ndarray, longest: int = BAD_RUN) -> np.ndarray:
+    """The rows of mask ``off`` that come alone or in runs of at most ``longest``, with a row of their own
+    group (pose) on both sides that is not off (a mask)."""
+    out = np.zeros(len(off), bool)
+    idx = np.flatnonzero(off)
+    for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if len(idx) else []:
+        a, b = int(run[0]) - 1, int(run[-1]) + 1
+        if (len(run) <= longest and a >= 0 and b < len(off) and not off[a] and not off[b]
+                and group[a] == group[run[0]] == group[run[-1]] == group[b]):
+            out[run] = True
     return out
 
 
@@ -287,13 +313,17 @@ def _fit_rejecting(rec: Recording, screened: dict[int, str], run: Callable[[Reco
     candidates = _good(rec, screened)
     keep = candidates.copy()
     trimmed = False
+    group = pose_groups(rec)
     cal = run(rec.select(keep))
     for _ in range(MAX_REJECT_ROUNDS):
         r = model_residuals(rec, cal)
         sigma = _robust_sigma(r[keep], 1e-4 * np.abs(cal.mag.k))
         z = np.abs(r) / sigma
-        # whitened distance, counted only where the error is also gross (module docstring)
-        d = np.where(np.abs(r) > GROSS_FRACTION * np.abs(cal.mag.k), z, np.minimum(z, REJECT_SIGMA)).max(axis=1)
+        # whitened distance, counted only where the error is also gross or the row off alone in its
+        # pose (module docstring)
+        lone = isolated_runs(~candidates | np.any(z > REJECT_SIGMA, axis=1), group)
+        counted = (np.abs(r) > GROSS_FRACTION * np.abs(cal.mag.k)) | lone[:, None]
+        d = np.where(counted, z, np.minimum(z, REJECT_SIGMA)).max(axis=1)
         bad = candidates & (d > REJECT_SIGMA)
         if bad.sum() > MODEL_BREAKDOWN * candidates.sum():
             if trimmed:

@@ -494,3 +494,29 @@ def truth_from_json(d: dict[str, Any]) -> tuple[Unit, World]:
                              encoder_zero_deg=tuple(d.get("encoder_zero_deg", (0.0, 0.0, 0.0))))  # type: ignore[arg-type]
     world = World(d["field"]["inclination_deg"], d["field"]["declination_deg"], geometry)
     return Unit(str(d.get("serial")), mag, sensor(d.get("accelerometer")), model=str(d.get("model", "simulated"))), world
+
+
+#: Kinds of bad readings :func:`garble` makes: random int16 triples, a brown-out's zeros, one bit flipped.
+GARBLE_KINDS = ("int16", "zeros", "bitflip")
+#: The bits a ``bitflip`` flips: one axis off by 64 LSB (20 sigma of 3-LSB noise, under 5 % of most units'
+#: k) to 16384 (a reading of the wrong sign); lower bits are lost in the noise.
+BITFLIP_BITS = (6, 15)
+
+
+def garble(x: np.ndarray, fraction: float, kind: str, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A copy of readings ``x`` (N, 3, counts) with ``fraction`` of its rows (at least one) garbled as a
+    compass that passes its checksum can garble them, and the garbled rows' indices: replaced by random
+    int16 triples (``int16``) or zeros (``zeros``), or one axis with one bit of its int16 count flipped
+    (``bitflip``, :data:`BITFLIP_BITS`)."""
+    if kind not in GARBLE_KINDS:
+        raise ValueError(f"kind: expected one of {', '.join(GARBLE_KINDS)}, got {kind!r}")
+    bad = rng.choice(len(x), max(1, round(fraction * len(x))), replace=False)
+    out = np.array(x, dtype=float)
+    if kind == "bitflip":
+        axis = rng.integers(0, 3, bad.size)
+        counts = np.round(out[bad, axis]).astype(np.int64) & 0xFFFF
+        flipped = counts ^ (1 << rng.integers(*BITFLIP_BITS, bad.size))
+        out[bad, axis] = np.where(flipped >= 0x8000, flipped - 0x10000, flipped)
+    else:
+        out[bad] = rng.integers(-32768, 32768, (bad.size, 3)) if kind == "int16" else 0.0
+    return out, bad

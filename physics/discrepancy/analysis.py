@@ -17,8 +17,8 @@ from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_o
 from physics.discrepancy.schema import Analysis, summary, with_schema
 from physics.discrepancy.twin import (ATTITUDE_SOURCE_KEY, Context, Nominal, context, decimate, fit_nominal, generic_columns,
                                      nominal_columns)
-from physics.fit import (ANGLE_ADVICE, better_reading, index_list, pose_groups, reason_kind, rejected_rows,
-                         screen_rows)
+from physics.fit import (ANGLE_ADVICE, BAD_RUN, better_reading, index_list, isolated_runs, pose_groups, reason_kind,
+                         rejected_rows, screen_rows)
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording, RecordingError
@@ -110,13 +110,6 @@ def check_conventions(ctx: Context, y: np.ndarray, r0: np.ndarray, floor: np.nda
             f"in the file's convention, not physics, so nothing is analysed. {ANGLE_ADVICE}")
 
 
-#: Rows off their hold by more than the fit's gross limit (physics.fit.screen_rows) are bad samples when
-#: they come alone or in runs of at most this many, with good rows of the hold on both sides; a longer
-#: run is something that happened (a magnet brought near for a moment, a knock), which is what the
-#: analysis is for.
-BAD_RUN = 3
-
-
 def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dict[str, Any]]] | None]:
     """``rec`` without its bad samples, and the note and rows to report (None when there are none): rows
     whose three axes of a sensor read exactly 0 (a brown-out, a dropped frame), rows with a magnetometer
@@ -130,14 +123,14 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
     # (a stale reference), which says nothing of the magnetometer's rows
     if len(off) and rec.meta.get(ATTITUDE_SOURCE_KEY, "turntable") == "turntable":
-        hold = pose_groups(rec)
-        inside = lambda i: 0 <= i < len(rec) and i not in screened  # noqa: E731  (a good row beside the run)
-        runs = np.split(off, np.flatnonzero(np.diff(off) > 1) + 1)
-        # a run that reaches its hold's first or last row may be something arriving or leaving (a magnet
-        # brought near as the hold ends): only runs with good rows of their own hold on both sides go
-        short = {int(i) for r in runs if len(r) <= BAD_RUN
-                 and inside(r[0] - 1) and inside(r[-1] + 1) and hold[r[0] - 1] == hold[r[0]] == hold[r[-1] + 1]
-                 for i in r}
+        # rows off their hold (physics.fit.screen_rows) are bad samples when they come alone or in runs of
+        # at most BAD_RUN with good rows of their own hold on both sides; a longer run, or one that reaches
+        # its hold's first or last row, is something that happened (a magnet brought near for a moment,
+        # as the hold ends), which is what the analysis is for
+        bad_rows = np.zeros(len(rec), bool)
+        bad_rows[list(screened)] = True
+        lone = isolated_runs(bad_rows, pose_groups(rec))
+        short = {int(i) for i in off if lone[i]}
     bad = {i: screened[i] for i in sorted(zero | short | clipped)}
     if not bad:
         return rec, None

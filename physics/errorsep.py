@@ -204,8 +204,9 @@ def solve_geometry(phases: list[PeakPhase]) -> tuple[np.ndarray, np.ndarray, flo
     i.e. ``w_a g_a + cos(angle) (w.g - w_a g_a) + sin(angle) (w x g)_a``: its phase is predicted exactly.
     Eight unknowns (two per axis, two for the field), one phase per sensor axis per sweep. Solved by
     weighted least squares on wrapped phase differences, started from the fixture's nominal axes and a
-    few dips, without and with a weak prior on the axes (:data:`AXIS_PRIOR_DEG`, :data:`AXIS_LIMIT_DEG`);
-    returns (M_o, v_base, the phases' chi2 per degree of freedom).
+    few dips; a solution with an implausible axis (:data:`AXIS_LIMIT_DEG`) sends the search again with a
+    weak prior on the axes (:data:`AXIS_PRIOR_DEG`). Returns (M_o, v_base, the phases' chi2 per degree
+    of freedom).
     """
     frames = [_sweep_frames(ph.sweep) for ph in phases]
     Q = np.array([f[0] for f in frames])
@@ -229,15 +230,15 @@ def solve_geometry(phases: list[PeakPhase]) -> tuple[np.ndarray, np.ndarray, flo
 
     # The sensor axes are near the body axes: nine phases for eight unknowns leave the three weak ones (an
     # axis along the turning one) to tell the true geometry from axes and field turned together by tens of
-    # degrees, and in their noise the turned one can fit the phases better. So the solutions are searched
-    # without and with a weak prior on the axes (AXIS_PRIOR_DEG: each path finds basins the other
-    # misses), and of those whose axes are all within AXIS_LIMIT_DEG of the body's the one that fits the
-    # phases best is kept (the prior does not pull a plausible solution); failing that, the likeliest
-    # with the prior.
+    # degrees, and in their noise the turned one can fit the phases better. So of the solutions found,
+    # those whose axes are all within AXIS_LIMIT_DEG of the body's are kept, and the one that fits the
+    # phases best is the answer (the prior does not pull a plausible solution). When none is, the search
+    # is made again with a weak prior on the axes (AXIS_PRIOR_DEG), which leads it into the basins the
+    # phases alone miss; failing that, the likeliest with the prior.
     prior = 1.0 / np.tan(np.radians(AXIS_PRIOR_DEG))
     z_x = [ph for ph in phases if ph.sweep.axis == 2 and ph.sensor == 0]
     az_starts = [z_x[0].phase] if z_x else list(np.radians(np.arange(0, 360, 60)))
-    found = []
+    found: list[np.ndarray] = []
     for weight in (0.0, prior):
         for el0 in np.radians([-70.0, -35.0, 0.0, 35.0, 70.0]):
             for az0 in az_starts:
@@ -248,8 +249,10 @@ def solve_geometry(phases: list[PeakPhase]) -> tuple[np.ndarray, np.ndarray, flo
                 sol = least_squares(residual, np.r_[np.zeros(6), el0, az0], args=(np.maximum(sigma, 1e-2), weight),
                                     method="lm", x_scale=1.0)
                 found.append(least_squares(residual, sol.x, args=(sigma, weight), method="lm", x_scale=1.0).x)
-    tilt = [np.degrees(np.arctan(np.max(np.linalg.norm(x[:6].reshape(3, 2), axis=1)))) for x in found]
-    plausible = [x for x, t in zip(found, tilt) if t <= AXIS_LIMIT_DEG]
+        plausible = [x for x in found if np.degrees(np.arctan(np.linalg.norm(x[:6].reshape(3, 2), axis=1).max()))
+                     <= AXIS_LIMIT_DEG]
+        if plausible:
+            break
     cost = lambda x, w: float(np.sum(residual(x, sigma, w) ** 2))  # noqa: E731
     best = min(plausible, key=lambda x: cost(x, 0.0)) if plausible else min(found, key=lambda x: cost(x, prior))
     dof = max(len(phases) - 8, 1)

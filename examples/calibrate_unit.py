@@ -87,6 +87,9 @@ run = call("POST", "/runs", {"station": station, "procedure": "calibrate", "seri
 print(f"run {run['id']} started on {station} for {serial}")
 state = follow(run["id"])
 print(f"run {run['id']}: {state}")
+if state != "completed":  # say why, as the run page does
+    reason = call("GET", f"/runs/{run['id']}").get("reason")
+    print(f"  reason: {reason or 'none given'}")
 if state == "completed":
     cal = call("GET", f"/devices/{serial}/calibrations/current")
     print(f"verdict {cal['verdict']}; sensitivities {cal['magnetometer']['k']}; bias {cal['magnetometer']['bias']}")

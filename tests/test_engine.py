@@ -276,7 +276,7 @@ def test_the_procedures_own_work_does_not_stall_the_engines_loop():
 def test_host_work_after_a_holds_last_line_is_not_table_time(monkeypatch):
     """A hold ends with its last line. What the host does with the lines after it (placing them on
     the sample clock, sending them to the sink, the check that the table held) is host work: at time
-    scale 20 its 50 ms per hold would count a second each. Here it takes 50 ms per hold, and the table
+    scale 20 its 100 ms per hold would count two seconds each. Here it takes 100 ms per hold, and the table
     time stays the moves' and holds' own."""
     def plan(params) -> object:
         for k in range(4):
@@ -287,7 +287,7 @@ def test_host_work_after_a_holds_last_line_is_not_table_time(monkeypatch):
     keep = Engine._keep
 
     def slow_keep(self, *args, **kwargs):
-        time.sleep(0.05)  # the host busy with the lines it got (holding the loop, as a CPU-bound step does)
+        time.sleep(0.1)  # the host busy with the lines it got (holding the loop, as a CPU-bound step does)
         return keep(self, *args, **kwargs)
 
     async def main(slow: bool) -> float:
@@ -298,10 +298,11 @@ def test_host_work_after_a_holds_last_line_is_not_table_time(monkeypatch):
         monkeypatch.setattr(Engine, "_keep", keep)
         assert result.state is RunState.completed, result.reason
         return result.table_seconds
-    quick = asyncio.run(asyncio.wait_for(main(False), 60))
-    slow = asyncio.run(asyncio.wait_for(main(True), 60))
-    # four 1-s holds of 20 lines and four 10-deg moves (0.9 s each): ~8 s; 50 ms x 20 per hold would add 4 s
-    assert slow < quick + 1.0, (quick, slow)
+    # the best of two each: a loaded machine (CI's three test processes on two cores) only adds
+    quick = min(asyncio.run(asyncio.wait_for(main(False), 60)) for _ in range(2))
+    slow = min(asyncio.run(asyncio.wait_for(main(True), 60)) for _ in range(2))
+    # four 1-s holds of 20 lines and four 10-deg moves (0.9 s each): ~8 s; 100 ms x 20 per hold would add 8 s
+    assert slow < quick + 3.0, (quick, slow)
 
 
 def test_a_runs_plan_seconds_start_where_the_table_stands():

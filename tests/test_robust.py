@@ -234,3 +234,41 @@ def test_a_saturated_pose_is_dropped_as_saturated_and_the_fit_stands_on_the_othe
     assert all(got[i].startswith("saturated: my = 32767 is at the int16 limit") for i in rows), got
     assert any(f"({len(rows)} saturated)" in n for n in cal.notes), cal.notes
     assert truth_summary(cal, UNIT, WORLD)["level_max"] <= 1.5 * clean[method]
+
+
+def test_the_live_engine_drops_flipped_bits_from_a_simulated_compass() -> None:
+    """A simulated compass flips one bit of one axis in two consecutive lines mid-hold, twice in a
+    run (the sim's ``bad_readings`` fault, pattern ``bitflip``: 64-16384 LSB, under the gross limit of
+    5 % of k): the engine flags those rows and the calibration drops exactly the rows it flagged."""
+    import re
+
+    from drivers.sim.config import FaultConfig, reference_config
+    from procedures.events import StepStarted, StepWarning
+    from procedures.steps import Acquire
+    from test_characterize import _sim_run
+
+    def control(engine, st) -> None:  # flip bits ~0.6 s (12 lines) into the 4th and 9th holds
+        inner, seen = engine.on_event, []
+
+        def on_event(e) -> None:
+            inner(e)
+            if isinstance(e, StepStarted) and isinstance(e.step, Acquire):
+                seen.append(e)
+                if len(seen) in (4, 9):
+                    st.inject(FaultConfig(kind="bad_readings", slot=0, count=2, pattern="bitflip",
+                                          at_s=st.clock.now() + 0.6))
+        engine.on_event = on_event
+
+    result, sink, *_, events, _status, _ = _sim_run(reference_config(seed=7, time_scale=10), "calibrate",
+                                                     {"samples": 30}, control=control)
+    assert result.state.value == "completed", result.reason
+    said = [e.warning for e in events if isinstance(e, StepWarning) and "bad sample" in e.warning]
+    flagged = {int(i) for w in said for i in re.search(r"rows ([\d, ]+) \(", w).group(1).split(", ")}
+    dropped = {r["index"] for r in result.outcome.results[0]["quality"]["rejected_rows"]}
+    assert dropped == flagged
+    rec = sink.recording(0)
+    pose = np.cumsum(np.r_[True, np.any(np.diff(np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t]), axis=0) != 0, axis=1)
+                            | (rec.step[1:] != rec.step[:-1])])
+    med = np.array([np.median(rec.mag[pose == p], axis=0) for p in pose])
+    flipped = set(np.flatnonzero(np.any(np.abs(rec.mag - med) > 40, axis=1)).tolist())  # 64 LSB at least; noise 3
+    assert 2 <= len(flipped) <= 4 and flipped <= dropped, (flipped, dropped)

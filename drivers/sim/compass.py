@@ -33,6 +33,7 @@ from collections.abc import Callable, Sequence
 
 from drivers.protocol import AVG_RANGE, BAUDS, DEFAULT_BAUD, MAX_LINE, RATES_HZ, TALKER, Nak, banner, checksum, sentence
 from drivers.sim.clock import SimClock
+from physics.simulate import BITFLIP_BITS
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +61,7 @@ class CompassDevice:
         self.avg = DEFAULT_AVG
         self.baud = DEFAULT_BAUD
         self.seq = 0
-        #: patterns of the next RAW lines to corrupt (fault ``bad_readings``): "zeros" or "random"
+        #: patterns of the next RAW lines to corrupt (fault ``bad_readings``): "zeros", "random" or "bitflip"
         self.bad: list[str] = []
         self._bad_rng = random.Random(serial)
         self._inbuf = b""
@@ -89,8 +90,16 @@ class CompassDevice:
                     sa[i] += a[i]
                 st += temp
             mag, acc, temp = [round(v / n) for v in sm], [round(v / n) for v in sa], st / n
-        if self.bad:  # a checksummed but wrong reading: a brown-out's zeros, or a corrupted value
-            mag = [0, 0, 0] if self.bad.pop(0) == "zeros" else [self._bad_rng.randint(-32767, 32767) for _ in range(3)]
+        if self.bad:  # a checksummed but wrong reading: a brown-out's zeros, a corrupted value, a flipped bit
+            pattern = self.bad.pop(0)
+            if pattern == "zeros":
+                mag = [0, 0, 0]
+            elif pattern == "bitflip":  # one bit of one axis's int16 count (as physics.simulate.garble)
+                axis = self._bad_rng.randrange(3)
+                flipped = (mag[axis] & 0xFFFF) ^ (1 << self._bad_rng.randrange(*BITFLIP_BITS))
+                mag[axis] = flipped - 0x10000 if flipped >= 0x8000 else flipped
+            else:
+                mag = [self._bad_rng.randint(-32767, 32767) for _ in range(3)]
         status = 0
         mag = [max(-32767, min(32767, v)) for v in mag]
         acc = [max(-32767, min(32767, v)) for v in acc]
@@ -501,7 +510,8 @@ class CompassSim:
 
     def bad_readings(self, count: int, pattern: str = "zeros") -> None:
         """The next ``count`` RAW lines carry a wrong magnetometer reading with a valid checksum: all
-        zeros (a brown-out) or random int16 values (``pattern="random"``)."""
+        zeros (a brown-out), random int16 values (``pattern="random"``) or one bit of one axis flipped
+        (``pattern="bitflip"``, a bit from 6 to 14: 64-16384 LSB)."""
         self.device.bad.extend([pattern] * count)
 
     def fuse_next(self) -> None:

@@ -48,7 +48,7 @@ FORMS: dict[str, str] = {
         ["axis_alarm", "axis_silent", "stuck_encoder", "estop", "compass_silent", "garbage",
          "fused_line", "truncated_line", "compass_reset", "port_vanish", "bad_readings"]),
     "count": "bad_readings: how many consecutive readings are wrong, >= 1",
-    "pattern": "bad_readings: \"zeros\" (a brown-out) or \"random\" (corrupted values)",
+    "pattern": "bad_readings: \"zeros\" (a brown-out), \"random\" (corrupted values) or \"bitflip\" (one bit of one axis)",
 }
 
 
@@ -146,7 +146,7 @@ class FaultConfig(_Strict):
     code: int = Field(0x20, ge=1, le=0xFFFF)
     nbytes: int = Field(40, ge=1)
     count: int = Field(1, ge=1)
-    pattern: Literal["zeros", "random"] = "zeros"
+    pattern: Literal["zeros", "random", "bitflip"] = "zeros"
 
     @model_validator(mode="after")
     def _target(self) -> "FaultConfig":

@@ -242,7 +242,8 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     (:data:`SATURATED_LSB`: a clipped reading, which a whole pose shares), or when one axis is more than REJECT_SIGMA
     robust sigmas and GROSS_FRACTION of its amplitude (half the span of the pose medians, about k)
     from the median of its pose (poses of at least 3 samples; sigma is the recording's MAD about the
-    pose medians). One corrupted accelerometer row in a hundred moves the levelling, and with it the
+    pose medians, at least a count where the readings are whole counts; one pose alone has no amplitude,
+    so only lone rows and short runs go there). One corrupted accelerometer row in a hundred moves the levelling, and with it the
     heading, by tenths of a degree.
     """
     out: dict[int, str] = {}
@@ -271,9 +272,13 @@ def screen_rows(rec: Recording) -> dict[int, str]:
             med[g] = np.median(x[multi & (group == g)], axis=0)
         dev = x - med[group]
         amplitude = 0.5 * (np.nanmax(med, axis=0) - np.nanmin(med, axis=0))
-        sigma = _robust_sigma(dev[multi], np.maximum(2e-4 * amplitude, 1e-12))
+        # whole counts resolve nothing under a count: when half of a hold's readings sit on the two
+        # counts by its median, their MAD says 0.7 LSB and ordinary noise would look 9 sigma off
+        counts = np.all(x[multi] == np.round(x[multi]), axis=0)
+        sigma = _robust_sigma(dev[multi], np.maximum(2e-4 * amplitude, np.where(counts, 1.0, 1e-12)))
         z = np.abs(dev) / sigma
-        gross = np.any((z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude), axis=1)
+        # gross needs an amplitude, i.e. two poses (a run's first hold alone has none: lone rows only)
+        gross = np.any((z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude) & (amplitude > 0), axis=1)
         off = multi & np.any(z > REJECT_SIGMA, axis=1)
         done = np.zeros(len(rec), bool)
         done[list(out)] = True

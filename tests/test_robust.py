@@ -7,6 +7,8 @@ one of them was refused with the wrong reason ("field magnitude varies ... check
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +104,24 @@ def test_a_lone_reading_off_its_hold_by_less_than_the_gross_limit_is_dropped_a_r
         assert got == (set(rows) if dropped else set()), (rows, got)
 
 
+def test_a_runs_first_hold_alone_flags_no_ordinary_noise_but_a_flipped_bit() -> None:
+    """What the live engine screens after the first hold: one pose of whole counts, nothing to take an
+    amplitude from. Quantized noise of 1 LSB puts half a hold's readings on the two counts by its
+    median, whose MAD then said 0.7 LSB: 19 % of such holds had a reading flagged as 8 sigma off
+    (a warning the fit at the end took back). A flipped bit (64 LSB) there is still flagged."""
+    from physics.fit import screen_rows
+
+    rng = np.random.default_rng(3)
+    n, flagged = 30, 0
+    zeros = np.zeros(n)
+    for _ in range(300):
+        mag = np.round(np.array([2156.3, 180.0, 2910.0]) + rng.standard_normal((n, 3)))
+        flagged += bool(screen_rows(Recording(np.arange(n) * 0.05, np.array(["level"] * n), zeros, zeros, zeros, mag)))
+    assert flagged <= 3, flagged
+    mag[12, 1] += 64.0
+    assert set(screen_rows(Recording(np.arange(n) * 0.05, np.array(["level"] * n), zeros, zeros, zeros, mag))) == {12}
+
+
 @pytest.mark.parametrize("method", ["joint", "error-separation"])
 def test_the_model_rejects_garbage_that_the_pose_screen_cannot_see(method: str) -> None:
     """One sample per pose: no pose median to compare with, so the fitted model must find the bad rows."""
@@ -167,52 +187,63 @@ def test_cli_fit_prints_the_dropped_rows(tmp_path: Path) -> None:
         assert f"sample {i} " in r.output
 
 
-def test_the_live_engine_flags_the_rows_the_fit_drops() -> None:
-    """A simulated compass sends checksummed but wrong readings mid-run (a brown-out's zeros, then
-    corrupted values): the engine warns of each as it arrives, by its row in the unit's recording, and
-    the calibration at the end drops exactly those rows; the recording keeps what the compass said."""
+def _live_run(seed: int, faults: Callable[[Any], dict[int, Any]]) -> tuple[Any, Any, set[int], set[int]]:
+    """A calibrate run (30 samples a pose) on a simulated station whose compass gets the fault
+    ``faults(station)[k]`` as the k-th acquisition starts. Returns the result, the sink, the rows the
+    engine flagged as bad as they came, and the rows the calibration dropped."""
     import re
 
     from drivers.sim.config import reference_config
-    from procedures.events import StepWarning
+    from procedures.events import StepStarted, StepWarning
+    from procedures.steps import Acquire
     from test_characterize import _sim_run
 
-    from drivers.sim.config import FaultConfig
-    from procedures.events import StepStarted
-    from procedures.steps import Acquire
-
-    faults = {3: FaultConfig(kind="bad_readings", slot=0, count=8, pattern="zeros"),
-              8: FaultConfig(kind="bad_readings", slot=0, count=6, pattern="random")}
-
-    def control(engine, st) -> None:  # corrupt readings as the 3rd and 8th acquisitions start
+    def control(engine, st) -> None:
         inner, seen = engine.on_event, []
 
         def on_event(e) -> None:
             inner(e)
             if isinstance(e, StepStarted) and isinstance(e.step, Acquire):
                 seen.append(e)
-                if len(seen) in faults:
-                    st.inject(faults[len(seen)])
+                fault = faults(st).get(len(seen))
+                if fault is not None:
+                    st.inject(fault)
         engine.on_event = on_event
 
-    result, sink, *_, events, _status, _ = _sim_run(reference_config(seed=6, time_scale=10), "calibrate",
+    result, sink, *_, events, _status, _ = _sim_run(reference_config(seed=seed, time_scale=10), "calibrate",
                                                      {"samples": 30}, control=control)
     assert result.state.value == "completed", result.reason
     said = [e.warning for e in events if isinstance(e, StepWarning) and "bad sample" in e.warning]
+    assert all("(the fit drops them)" in w for w in said), said
     flagged = {int(i) for w in said for i in re.search(r"rows ([\d, ]+) \(", w).group(1).split(", ")}
-    assert said and all("(the fit drops them)" in w for w in said), said
     dropped = {r["index"] for r in result.outcome.results[0]["quality"]["rejected_rows"]}
-    assert dropped == flagged
+    return result, sink, flagged, dropped
+
+
+def _hold_medians(rec: Any) -> np.ndarray:
+    """Each row's hold's median reading (rows of all zeros left out of the median)."""
+    pose = np.cumsum(np.r_[True, np.any(np.diff(np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t]), axis=0) != 0, axis=1)
+                            | (rec.step[1:] != rec.step[:-1])])
+    ok = ~np.all(rec.mag == 0, axis=1)
+    return np.array([np.median(rec.mag[(pose == p) & ok], axis=0) for p in pose])
+
+
+def test_the_live_engine_flags_the_rows_the_fit_drops() -> None:
+    """A simulated compass sends checksummed but wrong readings mid-run (a brown-out's zeros, then
+    corrupted values): the engine warns of each as it arrives, by its row in the unit's recording, and
+    the calibration at the end drops exactly those rows; the recording keeps what the compass said."""
+    from drivers.sim.config import FaultConfig
+
+    # corrupt readings as the 3rd and 8th acquisitions start
+    _, sink, flagged, dropped = _live_run(6, lambda st: {3: FaultConfig(kind="bad_readings", slot=0, count=8, pattern="zeros"),
+                                                         8: FaultConfig(kind="bad_readings", slot=0, count=6, pattern="random")})
+    assert flagged and dropped == flagged
     # the recording keeps what the compass said: the wrong readings are those rows, and only those
     # (a corrupted line sent before the acquisition began reading is not in the recording: up to 8 + 6)
     rec = sink.recording(0)
     zeros = set(np.flatnonzero(np.all(rec.mag == 0, axis=1)).tolist())
     # far (500 LSB: noise is 3) from the median of its pose's non-zero readings
-    pose = np.cumsum(np.r_[True, np.any(np.diff(np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t]), axis=0) != 0, axis=1)
-                            | (rec.step[1:] != rec.step[:-1])])
-    ok = ~np.all(rec.mag == 0, axis=1)
-    med = np.array([np.median(rec.mag[(pose == p) & ok], axis=0) for p in pose])
-    wild = set(np.flatnonzero(np.any(np.abs(rec.mag - med) > 500, axis=1)).tolist()) - zeros
+    wild = set(np.flatnonzero(np.any(np.abs(rec.mag - _hold_medians(rec)) > 500, axis=1)).tolist()) - zeros
     assert flagged == zeros | wild and 1 <= len(zeros) <= 8 and 1 <= len(wild) <= 6, (zeros, wild, flagged)
 
 
@@ -240,35 +271,13 @@ def test_the_live_engine_drops_flipped_bits_from_a_simulated_compass() -> None:
     """A simulated compass flips one bit of one axis in two consecutive lines mid-hold, twice in a
     run (the sim's ``bad_readings`` fault, pattern ``bitflip``: 64-16384 LSB, under the gross limit of
     5 % of k): the engine flags those rows and the calibration drops exactly the rows it flagged."""
-    import re
+    from drivers.sim.config import FaultConfig
 
-    from drivers.sim.config import FaultConfig, reference_config
-    from procedures.events import StepStarted, StepWarning
-    from procedures.steps import Acquire
-    from test_characterize import _sim_run
-
-    def control(engine, st) -> None:  # flip bits ~0.6 s (12 lines) into the 4th and 9th holds
-        inner, seen = engine.on_event, []
-
-        def on_event(e) -> None:
-            inner(e)
-            if isinstance(e, StepStarted) and isinstance(e.step, Acquire):
-                seen.append(e)
-                if len(seen) in (4, 9):
-                    st.inject(FaultConfig(kind="bad_readings", slot=0, count=2, pattern="bitflip",
-                                          at_s=st.clock.now() + 0.6))
-        engine.on_event = on_event
-
-    result, sink, *_, events, _status, _ = _sim_run(reference_config(seed=7, time_scale=10), "calibrate",
-                                                     {"samples": 30}, control=control)
-    assert result.state.value == "completed", result.reason
-    said = [e.warning for e in events if isinstance(e, StepWarning) and "bad sample" in e.warning]
-    flagged = {int(i) for w in said for i in re.search(r"rows ([\d, ]+) \(", w).group(1).split(", ")}
-    dropped = {r["index"] for r in result.outcome.results[0]["quality"]["rejected_rows"]}
+    def faults(st) -> dict[int, FaultConfig]:  # ~0.6 s (12 lines) into the 4th and 9th holds
+        flip = FaultConfig(kind="bad_readings", slot=0, count=2, pattern="bitflip", at_s=st.clock.now() + 0.6)
+        return {4: flip, 9: flip}
+    _, sink, flagged, dropped = _live_run(7, faults)
     assert dropped == flagged
     rec = sink.recording(0)
-    pose = np.cumsum(np.r_[True, np.any(np.diff(np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t]), axis=0) != 0, axis=1)
-                            | (rec.step[1:] != rec.step[:-1])])
-    med = np.array([np.median(rec.mag[pose == p], axis=0) for p in pose])
-    flipped = set(np.flatnonzero(np.any(np.abs(rec.mag - med) > 40, axis=1)).tolist())  # 64 LSB at least; noise 3
+    flipped = set(np.flatnonzero(np.any(np.abs(rec.mag - _hold_medians(rec)) > 40, axis=1)).tolist())  # 64 LSB at least; noise 3
     assert 2 <= len(flipped) <= 4 and flipped <= dropped, (flipped, dropped)

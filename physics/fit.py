@@ -290,15 +290,23 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     return out
 
 
-def isolated_runs(off: np.ndarray, group: np.ndarray, longest: int = BAD_RUN) -> np.ndarray:
+def isolated_runs(off: np.ndarray, group: np.ndarray, longest: int = BAD_RUN, at_edges: bool = False) -> np.ndarray:
     """The rows of mask ``off`` that come alone or in runs of at most ``longest``, with a row of their own
-    group (pose) on both sides that is not off (a mask)."""
+    group (pose) on both sides that is not off (a mask). ``at_edges``: a run at its group's first or last
+    row counts too, with a row of its group that is not off on its other side."""
     out = np.zeros(len(off), bool)
     idx = np.flatnonzero(off)
+    n = len(off)
     for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if len(idx) else []:
         a, b = int(run[0]) - 1, int(run[-1]) + 1
-        if (len(run) <= longest and a >= 0 and b < len(off) and not off[a] and not off[b]
-                and group[a] == group[run[0]] == group[run[-1]] == group[b]):
+        g = group[run[0]]
+        if len(run) > longest or group[run[-1]] != g:
+            continue
+        good_a = a >= 0 and group[a] == g and not off[a]
+        good_b = b < n and group[b] == g and not off[b]
+        edge_a = a < 0 or group[a] != g  # the run starts its group
+        edge_b = b >= n or group[b] != g  # the run ends its group
+        if (good_a and good_b) or (at_edges and ((edge_a and good_b) or (good_a and edge_b))):
             out[run] = True
     return out
 

@@ -17,8 +17,8 @@ from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_o
 from physics.discrepancy.schema import Analysis, summary, with_schema
 from physics.discrepancy.twin import (ATTITUDE_SOURCE_KEY, Context, Nominal, context, decimate, fit_nominal, generic_columns,
                                      nominal_columns)
-from physics.fit import (ANGLE_ADVICE, BAD_RUN, better_reading, index_list, isolated_runs, pose_groups, reason_kind,
-                         rejected_rows, screen_rows)
+from physics.fit import (ANGLE_ADVICE, BAD_RUN, better_reading, fit, index_list, isolated_runs, model_residuals, pose_groups,
+                         reason_kind, rejected_rows, screen_rows)
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording, RecordingError
@@ -110,6 +110,33 @@ def check_conventions(ctx: Context, y: np.ndarray, r0: np.ndarray, floor: np.nda
             f"in the file's convention, not physics, so nothing is analysed. {ANGLE_ADVICE}")
 
 
+#: At most this share of a recording's holds may have a gross reading at their first or last rows for
+#: those readings to count as garbage (a pattern over more holds is physics: `_without_bad_samples`).
+EDGE_GARBAGE_SHARE = 0.25
+
+
+def _ends_at_its_edge(rec: Recording, edge: np.ndarray, group: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """The rows of ``edge`` (runs at a hold's first or last rows) whose departure stops at the hold's edge:
+    against the joint fit without the ``bad`` rows, the neighbouring hold across the edge does not share
+    it (at most half of it, along the run's own departure from its hold). A recording the fit refuses
+    keeps them all (nothing to judge by)."""
+    out = np.zeros(len(rec), bool)
+    try:
+        r = model_residuals(rec, fit(rec.select(~bad), "joint", bootstrap=0))
+    except ValueError:
+        return out
+    idx = np.flatnonzero(edge)
+    for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+        g = group[run[0]]
+        own = (group == g) & ~bad
+        across = g - 1 if run[0] == 0 or group[run[0] - 1] != g else g + 1
+        near = (group == across) & ~bad
+        d = np.median(r[run], axis=0) - np.median(r[own], axis=0)
+        carried = float((np.median(r[near], axis=0) - np.median(r[own], axis=0)) @ d / (d @ d)) if near.any() else 0.0
+        out[run] = carried <= 0.5
+    return out
+
+
 def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dict[str, Any]]] | None]:
     """``rec`` without its bad samples, and the note and rows to report (None when there are none): rows
     whose three axes of a sensor read exactly 0 (a brown-out, a dropped frame), rows with a magnetometer
@@ -124,12 +151,19 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     # (a stale reference), which says nothing of the magnetometer's rows
     if len(off) and rec.meta.get(ATTITUDE_SOURCE_KEY, "turntable") == "turntable":
         # rows off their hold (physics.fit.screen_rows) are bad samples when they come alone or in runs of
-        # at most BAD_RUN with good rows of their own hold on both sides; a longer run, or one that reaches
-        # its hold's first or last row, is something that happened (a magnet brought near for a moment,
-        # as the hold ends), which is what the analysis is for
+        # at most BAD_RUN with good rows of their own hold on both sides; a longer run is something that
+        # happened, which is what the analysis is for. At a hold's first or last row the screen flags only
+        # gross ones (5 % of k): garbage too (a flipped bit lands there one time in fifteen) unless the
+        # departure carries on into the next hold (a magnet set down as the hold ends), or the pattern
+        # comes at many holds (physics: a lag, a clock skew between samples and encoders)
         bad_rows = np.zeros(len(rec), bool)
         bad_rows[list(screened)] = True
-        lone = isolated_runs(bad_rows, pose_groups(rec))
+        group = pose_groups(rec)
+        lone = isolated_runs(bad_rows, group)
+        edge = isolated_runs(bad_rows, group, at_edges=True) & ~lone
+        holds = np.count_nonzero(np.bincount(group) >= 3)
+        if edge.any() and len(np.unique(group[edge])) <= EDGE_GARBAGE_SHARE * holds:
+            lone |= _ends_at_its_edge(rec, edge, group, bad_rows)
         short = {int(i) for i in off if lone[i]}
     bad = {i: screened[i] for i in sorted(zero | short | clipped)}
     if not bad:
@@ -137,7 +171,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     keep = np.ones(len(rec), bool)
     keep[list(bad)] = False
     kinds = [f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
-             f"{len(short)} alone or in runs of at most {BAD_RUN} far off their hold's median" if short else "",
+             f"{len(short)} far off their hold's median, alone or in runs of at most {BAD_RUN}" if short else "",
              (f"{len(clipped)} saturated, at t {rec.t[min(clipped)]:.1f}-{rec.t[max(clipped)]:.1f} s (a field beyond the "
               "sensor's range: a strong magnet near the unit?)") if clipped else ""]
     note = (f"{len(bad)} of {len(rec)} rows left out as bad samples ({'; '.join(k for k in kinds if k)}): "

@@ -290,14 +290,19 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     return out
 
 
+def consecutive_runs(mask: np.ndarray) -> list[np.ndarray]:
+    """The indices of ``mask``'s True rows, split into runs of consecutive rows."""
+    idx = np.flatnonzero(mask)
+    return np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if len(idx) else []
+
+
 def isolated_runs(off: np.ndarray, group: np.ndarray, longest: int = BAD_RUN, at_edges: bool = False) -> np.ndarray:
     """The rows of mask ``off`` that come alone or in runs of at most ``longest``, with a row of their own
     group (pose) on both sides that is not off (a mask). ``at_edges``: a run at its group's first or last
     row counts too, with a row of its group that is not off on its other side."""
     out = np.zeros(len(off), bool)
-    idx = np.flatnonzero(off)
     n = len(off)
-    for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if len(idx) else []:
+    for run in consecutive_runs(off):
         a, b = int(run[0]) - 1, int(run[-1]) + 1
         g = group[run[0]]
         if len(run) > longest or group[run[-1]] != g:

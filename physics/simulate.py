@@ -503,6 +503,12 @@ GARBLE_KINDS = ("int16", "zeros", "bitflip")
 BITFLIP_BITS = (6, 15)
 
 
+def flip_bit(counts: ArrayLike, bit: ArrayLike) -> np.ndarray:
+    """int16 ``counts`` with bit ``bit`` flipped in their two's complement (each count its own bit)."""
+    flipped = (np.asarray(counts, dtype=np.int64) & 0xFFFF) ^ (1 << np.asarray(bit, dtype=np.int64))
+    return np.where(flipped >= 0x8000, flipped - 0x10000, flipped)
+
+
 def garble(x: np.ndarray, fraction: float, kind: str, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """A copy of readings ``x`` (N, 3, counts) with ``fraction`` of its rows (at least one) garbled as a
     compass that passes its checksum can garble them, and the garbled rows' indices: replaced by random
@@ -514,9 +520,7 @@ def garble(x: np.ndarray, fraction: float, kind: str, rng: np.random.Generator) 
     out = np.array(x, dtype=float)
     if kind == "bitflip":
         axis = rng.integers(0, 3, bad.size)
-        counts = np.round(out[bad, axis]).astype(np.int64) & 0xFFFF
-        flipped = counts ^ (1 << rng.integers(*BITFLIP_BITS, bad.size))
-        out[bad, axis] = np.where(flipped >= 0x8000, flipped - 0x10000, flipped)
+        out[bad, axis] = flip_bit(np.round(out[bad, axis]), rng.integers(*BITFLIP_BITS, bad.size))
     else:
         out[bad] = rng.integers(-32768, 32768, (bad.size, 3)) if kind == "int16" else 0.0
     return out, bad

@@ -222,8 +222,9 @@ def _live_run(seed: int, faults: Callable[[Any], dict[int, Any]]) -> tuple[Any, 
 
 def _hold_medians(rec: Any) -> np.ndarray:
     """Each row's hold's median reading (rows of all zeros left out of the median)."""
-    pose = np.cumsum(np.r_[True, np.any(np.diff(np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t]), axis=0) != 0, axis=1)
-                            | (rec.step[1:] != rec.step[:-1])])
+    from physics.fit import pose_groups
+
+    pose = pose_groups(rec)
     ok = ~np.all(rec.mag == 0, axis=1)
     return np.array([np.median(rec.mag[(pose == p) & ok], axis=0) for p in pose])
 

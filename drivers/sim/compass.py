@@ -33,7 +33,7 @@ from collections.abc import Callable, Sequence
 
 from drivers.protocol import AVG_RANGE, BAUDS, DEFAULT_BAUD, MAX_LINE, RATES_HZ, TALKER, Nak, banner, checksum, sentence
 from drivers.sim.clock import SimClock
-from physics.simulate import BITFLIP_BITS
+from physics.simulate import BITFLIP_BITS, flip_bit
 
 log = logging.getLogger(__name__)
 
@@ -96,8 +96,7 @@ class CompassDevice:
                 mag = [0, 0, 0]
             elif pattern == "bitflip":  # one bit of one axis's int16 count (as physics.simulate.garble)
                 axis = self._bad_rng.randrange(3)
-                flipped = (mag[axis] & 0xFFFF) ^ (1 << self._bad_rng.randrange(*BITFLIP_BITS))
-                mag[axis] = flipped - 0x10000 if flipped >= 0x8000 else flipped
+                mag[axis] = int(flip_bit(mag[axis], self._bad_rng.randrange(*BITFLIP_BITS)))
             else:
                 mag = [self._bad_rng.randint(-32767, 32767) for _ in range(3)]
         status = 0

@@ -17,8 +17,8 @@ from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_o
 from physics.discrepancy.schema import Analysis, summary, with_schema
 from physics.discrepancy.twin import (ATTITUDE_SOURCE_KEY, Context, Nominal, context, decimate, fit_nominal, generic_columns,
                                      nominal_columns)
-from physics.fit import (ANGLE_ADVICE, BAD_RUN, better_reading, fit, index_list, isolated_runs, model_residuals, pose_groups,
-                         reason_kind, rejected_rows, screen_rows)
+from physics.fit import (ANGLE_ADVICE, BAD_RUN, better_reading, consecutive_runs, fit, index_list, isolated_runs,
+                         model_residuals, pose_groups, reason_kind, rejected_rows, screen_rows)
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
 from physics.recording import Recording, RecordingError
@@ -125,8 +125,7 @@ def _ends_at_its_edge(rec: Recording, edge: np.ndarray, group: np.ndarray, bad: 
         r = model_residuals(rec, fit(rec.select(~bad), "joint", bootstrap=0))
     except ValueError:
         return out
-    idx = np.flatnonzero(edge)
-    for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+    for run in consecutive_runs(edge):
         g = group[run[0]]
         own = (group == g) & ~bad
         across = g - 1 if run[0] == 0 or group[run[0] - 1] != g else g + 1

@@ -15,6 +15,8 @@ from collections.abc import AsyncIterator, Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
+from physics.table import DRIVE_SETTLE_S
+
 
 class DriverError(Exception):
     """Base of every driver error."""
@@ -198,6 +200,6 @@ class Station:
     accel_dps2: float = 60.0
     sample_rate_hz: int = 20
     name: str = "station"
-    #: the drives' settling into position after a move (the simulated servo's ~0.2 s; for the plan's
-    #: nominal seconds, progress and time left, not for control: the engine waits for IN_POSITION)
-    settle_s: float = 0.2
+    #: the drives' settling into position after a move (for the plan's nominal seconds, progress and
+    #: time left, not for control: the engine waits for IN_POSITION)
+    settle_s: float = DRIVE_SETTLE_S

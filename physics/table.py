@@ -57,13 +57,24 @@ def platform_attitude(
     return base_rotation(geometry.base_tilt_deg) @ C
 
 
+#: A drive's settling into position after a move (the simulated servo's; a station's own is its
+#: ``Station.settle_s``): nominal seconds for plans and progress, never for control.
+DRIVE_SETTLE_S = 0.2
+#: The calibration's own wait after each move is in position (``CalibrateParams.settle_s``).
+PROCEDURE_SETTLE_S = 0.1
+
+
 @dataclass(frozen=True)
 class Motion:
-    """Axis motion limits and timing of a station (defaults: the issue's realistic station)."""
+    """Axis motion limits and timing of a station (defaults: the issue's realistic station).
+
+    ``settle_s`` is the whole wait at each pose before its samples: offline plans (physics.simulate)
+    have no separate settle steps, so by default the drive's settling plus the calibration's own
+    wait; the engine, which runs those waits as steps, passes the drive's alone."""
 
     max_speed_dps: float = 30.0
     max_accel_dps2: float = 60.0
-    settle_s: float = 0.3
+    settle_s: float = DRIVE_SETTLE_S + PROCEDURE_SETTLE_S
     sample_rate_hz: float = 20.0
 
 

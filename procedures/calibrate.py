@@ -22,7 +22,7 @@ from physics.methods import TWELVE_POSITIONS
 from physics.precision import CONFIDENCE, TARGET_LEVEL_DEG, TARGET_TILTED_DEG, UnitPrecision, unit_precision
 from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_cost, plan_timeline
-from physics.table import Motion
+from physics.table import DRIVE_SETTLE_S, PROCEDURE_SETTLE_S, Motion
 from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Procedure, ProcedureGen, Prompt, Scan, Settle
 
 NAME = "calibrate"
@@ -35,7 +35,7 @@ class _Params(BaseModel):
     samples: int = Field(60, ge=1, le=10_000, description="samples averaged at each pose")
     # The drive reports IN_POSITION only once the axis has settled in its window; this is extra
     # margin for the unit's own output filter (none at AVG 1).
-    settle_s: float = Field(0.1, ge=0, le=60, description="wait after each move is in position, table seconds")
+    settle_s: float = Field(PROCEDURE_SETTLE_S, ge=0, le=60, description="wait after each move is in position, table seconds")
 
 
 def _turn(step_deg: float) -> np.ndarray:
@@ -227,8 +227,9 @@ ROUND_S = 20.0
 
 def _plan_seconds(poses: list[Pose], p: CalibrateParams, start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> float:
     """Nominal table seconds of poses from ``start`` (moves, the drive's settling, the procedure's settle,
-    samples), as the adaptive extension counts its budget."""
-    return plan_cost(poses, start=start).total_s + p.settle_s * len(poses)
+    samples), as the adaptive extension counts its budget: as the engine counts them on a station whose
+    drives settle in :data:`DRIVE_SETTLE_S` (the default; the simulated servo's)."""
+    return plan_cost(poses, Motion(settle_s=DRIVE_SETTLE_S + p.settle_s), start=start).total_s
 
 
 def adaptive_reserve(p: CalibrateParams) -> float:

@@ -42,6 +42,7 @@ from scipy import special
 from physics.discrepancy.lrt import Test, _complement, _extend, _orth, _score, chi2_logsf, complement_statistic
 from physics.discrepancy.noise import NoiseModel, whiten_adjoint, whiten_all
 from physics.discrepancy.twin import ATTITUDE_SOURCE_KEY, Context, Nominal, _stage_Q
+from physics.fit import consecutive_runs
 
 FRAMES = ("sensor", "platform", "outer", "middle", "lab")
 FORMS = ("offset", "gain", "rotation", "linear")
@@ -760,8 +761,9 @@ def place_edge(ctx: Context, lo_t: float, hi_t: float, stats_of: Callable[[np.nd
     near: set[int] = set()
     for k in (int(np.argmax(stat)), int(np.clip(np.searchsorted(bounds, tau, side="right") - 1, 0, len(first) - 1))):
         near |= {i for i in (k - 1, k, k + 1) if 0 <= i < len(first)}
-    idx = np.array(sorted(near))
-    runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
+    in_near = np.zeros(len(first), bool)
+    in_near[list(near)] = True
+    runs = consecutive_runs(in_near)
     cells = [(c, st) for i, (c, st) in enumerate(zip(first, stat)) if i not in near]
     for run in runs:  # stretches of whole first-pass cells: every sample interval there
         lo, hi = first[run[0]][1], first[run[-1]][2]

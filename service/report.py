@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from jinja2 import Environment, FileSystemLoader, select_autoescape
 
 from service import plots
@@ -68,21 +69,47 @@ def with_sigma(value: Any, sigma: Any) -> str:
     return text(value)
 
 
+def _same(a: Any, b: Any) -> bool:
+    """Two lists of the same numbers (to rounding; None and NaN alike)."""
+    if not isinstance(a, (list, tuple)) or not isinstance(b, (list, tuple)):
+        return False
+    try:
+        x, y = np.array(a, dtype=float), np.array(b, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return x.shape == y.shape and bool(np.allclose(x, y, rtol=1e-9, atol=1e-12, equal_nan=True))
+
+
+def shown_parameters(finding: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A finding's parameters and sigma as shown to a person. A discovered block keeps its raw
+    coefficients for programs ("values", named by "labels"): shown once, under their names, and not at
+    all where a named parameter repeats them (an offset's "offset_lsb")."""
+    params = dict(finding.get("parameters") or {})
+    sigma = dict(finding.get("sigma") or {}) if isinstance(finding.get("sigma"), Mapping) else {}
+    labels = params.pop("labels", None)
+    if "values" in params and labels is not None:
+        values, sd = params.pop("values"), sigma.pop("values", None)
+        if not any(_same(values, v) for v in params.values()):
+            names = [str(x) for x in labels] if isinstance(labels, (list, tuple)) else [str(labels)]
+            key = f"values ({', '.join(names)})" if len(names) <= 6 else "values"
+            params = {key: values, **params}
+            sigma[key] = sd
+    return params, sigma
+
+
 def parameter_rows(finding: Mapping[str, Any]) -> list[tuple[str, str]]:
     """A finding's parameters as (name, "value ± sigma") rows."""
-    params = finding.get("parameters") or {}
-    sigma = finding.get("sigma") or {}
-    if not isinstance(params, Mapping):
-        return [("", text(params))]
-    return [(str(k), with_sigma(v, sigma.get(k) if isinstance(sigma, Mapping) else None)) for k, v in params.items()]
+    if not isinstance(finding.get("parameters") or {}, Mapping):
+        return [("", text(finding.get("parameters")))]
+    params, sigma = shown_parameters(finding)
+    return [(str(k), with_sigma(v, sigma.get(k))) for k, v in params.items()]
 
 
 def parameter_cells(finding: Mapping[str, Any]) -> list[tuple[str, list[str]]]:
     """A finding's parameters for the page: (name, one "value ± sigma" string per element)."""
-    params = finding.get("parameters") or {}
-    sigma = finding.get("sigma") or {}
-    if not isinstance(params, Mapping):
-        return [("", [text(params)])]
+    if not isinstance(finding.get("parameters") or {}, Mapping):
+        return [("", [text(finding.get("parameters"))])]
+    params, sigma = shown_parameters(finding)
     out = []
     for k, v in params.items():
         s = sigma.get(k) if isinstance(sigma, Mapping) else None

@@ -25,7 +25,7 @@ from procedures.calibrate import CalibrateParams, calibration_poses
 from service.cli import app
 from service.db import AuditLog, Run, Sample
 from service import report
-from service.report import analysis_html
+from service.report import analysis_html, parameter_cells, parameter_rows
 from service.store import store_calibration
 
 runner = CliRunner()
@@ -235,6 +235,25 @@ def test_report_shows_where_the_mismatch_lives_as_labelled_tables_and_links_back
     # the report of a run links back to the run page; a report of a file has no such link
     assert 'href="/ui/runs/7"' in analysis_html(result, None, "of run 7", run_url="/ui/runs/7")
     assert 'id="run-link"' not in analysis_html(result, None, "of a file")
+
+
+def test_a_discovered_blocks_raw_coefficients_are_shown_once_under_their_names():
+    """The JSON keeps a discovered block's coefficients for programs ("values", named by "labels"); a
+    person sees them once: not at all where a named parameter repeats them, else under their labels."""
+    offset = {"effect": "discovered", "parameters": {"labels": ["d[0]", "d[1]", "d[2]"], "values": [-197.6, -25.7, None],
+                                                     "offset_lsb": [-197.6, -25.7, None], "offset_ut": [-1.976, -0.257, None]},
+              "sigma": {"values": [12.0, 7.5, None], "offset_lsb": [12.0, 7.5, None], "offset_ut": [0.12, 0.075, None]}}
+    rows = dict(parameter_rows(offset))
+    assert list(rows) == ["offset_lsb", "offset_ut"], rows
+    assert rows["offset_lsb"].startswith("[-197.6 ± 12")
+    smooth = {"effect": "discovered", "parameters": {"labels": ["x P1", "y P1"], "values": [0.5, -0.25], "span_lsb": [3.0, 1.5]},
+              "sigma": {"values": [0.125, 0.0625]}}
+    rows = dict(parameter_rows(smooth))
+    assert list(rows) == ["values (x P1, y P1)", "span_lsb"] and rows["values (x P1, y P1)"] == "[0.5 ± 0.12, -0.25 ± 0.062]", rows
+    assert parameter_cells(smooth)[0] == ("values (x P1, y P1)", ["0.5 ± 0.12", "-0.25 ± 0.062"])
+    # a catalogue finding's parameters are shown as they are
+    catalogue = {"effect": "time_lag", "parameters": {"lag_s": 0.2}, "sigma": {"lag_s": 0.01}}
+    assert parameter_rows(catalogue) == [("lag_s", "0.2 ± 0.01")]
 
 
 # -------------------------------------------------------------------------------------------- CLI

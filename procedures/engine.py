@@ -736,16 +736,33 @@ class Trapezoid:
                                  self.ta + (x - self.da) / self.v))
 
 
+def _most_shared(lo: np.ndarray, hi: np.ndarray, near: float) -> float:
+    """The middle of the span that the most of the intervals [lo, hi] share (of several such spans,
+    the one nearest ``near``)."""
+    pts = np.concatenate([lo, hi])
+    step = np.r_[np.ones(len(lo)), -np.ones(len(hi))]
+    order = np.lexsort((-step, pts))  # at one point, starts before ends: intervals that touch share it
+    pts, depth = pts[order], np.cumsum(step[order])
+    tops = np.flatnonzero(depth == depth.max())  # each a start; the next point ends its span
+    middles = 0.5 * (pts[tops] + pts[tops + 1])
+    return float(middles[np.argmin(np.abs(middles - near))])
+
+
 def encoder_track(trace: list[tuple[float, float, float]], start: float, stop: float, speed: float,
                   accel: float) -> Callable[[np.ndarray], np.ndarray]:
     """The scanned axis's encoder angle as a function of host time, from the polls of a scan.
 
     ``trace``: (time before the request, after the reply, encoder deg) of each poll; ``speed`` and
     ``accel`` in host time units. A poll's position was latched somewhere within its round trip,
-    which a busy host stretches to milliseconds (0.03 deg each at 30 deg/s). The controller runs a
-    known trapezoid, so each position fixes the time since the profile began: the profile's start
-    is the median over the polls in motion of (middle of the round trip - that time), each poll's
-    time is then its profile time clamped into its own round trip, and the angle at any time is the
+    which a busy host stretches to milliseconds (0.03 deg each at 30 deg/s, ten times that at time
+    scale 10). The controller runs a known trapezoid, so each position fixes the time since the
+    profile began, and each poll's round trip bounds the profile's start: the start is the middle of
+    the span the most polls at full speed agree on (`_most_shared`; the accelerating polls carry the
+    servo's lag), so the quickest round trips place it, however long and lopsided the others are (a
+    reply that waits on a busy loop puts the middle of its round trip milliseconds after the latch,
+    and a median of those middles put the whole turn 2.2 deg off at time scale 10 in
+    `tests/test_characterize.py::test_encoder_track_is_placed_by_the_quickest_round_trips_however_lopsided_the_others`). Each poll's time
+    is then its profile time clamped into its own round trip, and the angle at any time is the
     profile there plus the measured departure from it (servo lag, a stop), interpolated between
     polls, never behind the start. Without enough polls in motion the polls are interpolated as they are."""
     t0, t1, pos = (np.array([p[k] for p in trace], dtype=float) for k in range(3))
@@ -758,7 +775,10 @@ def encoder_track(trace: list[tuple[float, float, float]], start: float, stop: f
         order = np.argsort(mid, kind="stable")
         return lambda t: np.interp(t, mid[order], pos[order])
     prof = Trapezoid(dist, speed, accel)
-    tau = float(np.median(mid[moving] - prof.time_at(x[moving])))
+    T = prof.time_at(x)
+    cruise = moving & (T > prof.ta) & (T < prof.T - prof.ta)
+    use = cruise if cruise.sum() >= 3 else moving
+    tau = _most_shared(t0[use] - T[use], t1[use] - T[use], float(np.median(mid[use] - T[use])))
     when = mid.copy()
     when[moving] = np.clip(tau + prof.time_at(x[moving]), t0[moving], t1[moving])
     order = np.argsort(when, kind="stable")

@@ -4,7 +4,8 @@ A run names its units once they are mounted, before the table's first step with 
 right away; a batch's unit after its mount prompt, which the table awaits at its load pose). For each slot:
 
 - the unit reports no serial number (an empty one, or it refuses the ID command): ``not identified``;
-  the typed serial is used as before, and the result and the certificate say so;
+  the typed serial is used as before, and the result and the certificate say so; with none typed the
+  slot is not calibrated (nothing to store it under), which a run of one unit says before the table moves;
 - it reports the typed one, or none was typed: ``identified``;
 - it reports another one: ``differs``, settled by the serial policy (the request's, else the
   station's): ``prompt`` asks the operator (answers ``typed``, ``identified`` or ``skip``), ``refuse``
@@ -148,6 +149,10 @@ class UnitCheck:
         typed = self.typed.get(slot)
         ident = (self.idents or {}).get(slot)
         identified = ident[1].strip() if ident and ident[1] and ident[1].strip() else None
+        if identified is None and typed is None:  # nothing to store its calibration under: do not move for it
+            return Identity(slot, None, None, "not identified", "",
+                            "the unit did not report a serial number and none was typed: not calibrated; start the "
+                            f'run again with its serial number, e.g. "serials": {{"{slot}": "SN-..."}}', certify=False)
         if identified is None:
             note = "the unit did not report a serial number (not identified)"
             return Identity(slot, typed, None, "not identified", typed or "",

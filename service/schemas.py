@@ -294,6 +294,14 @@ class StationOut(BaseModel):
 # ------------------------------------------------------------------------------------------ runs
 
 
+def _distinct_serials(serials: list[str]) -> list[str]:
+    """``serials`` unchanged, or a ValueError naming those listed more than once (one serial is one unit)."""
+    dup = sorted({s for s in serials if serials.count(s) > 1})
+    if dup:
+        raise ValueError(f"serial numbers listed twice: {', '.join(dup)}")
+    return serials
+
+
 class RunIn(In):
     """A run to start."""
 
@@ -308,6 +316,14 @@ class RunIn(In):
                               "there are taken over, the same units must be mounted)")
     serial_policy: SerialPolicy | None = Field(None, description="when a unit reports another serial number than "
                                                "the one typed: prompt, refuse or trust-typed; default the station's")
+
+    @field_validator("serials")
+    @classmethod
+    def _distinct(cls, v: dict[str, str] | None) -> dict[str, str] | None:
+        # two slots typed with one serial would certify two units under it, the second superseding the first
+        if v is not None:
+            _distinct_serials(list(v.values()))
+        return v
 
 
 class StateIn(In):
@@ -425,10 +441,7 @@ class BatchIn(In):
     @field_validator("serials")
     @classmethod
     def _distinct(cls, v: list[str]) -> list[str]:
-        dup = sorted({s for s in v if v.count(s) > 1})
-        if dup:
-            raise ValueError(f"serial numbers listed twice: {', '.join(dup)}")
-        return v
+        return _distinct_serials(v)
 
 
 class BatchUnit(BaseModel):

@@ -194,3 +194,29 @@ def test_a_unit_that_cannot_identify_itself_is_calibrated_as_typed(api: Api, how
         for text in (html, pdf):
             assert "Identified serial" in text and "not identified" in text
         assert "(not identified)" in api.get(f"/ui/runs/{done['id']}", role="viewer").text
+
+
+def test_one_serial_typed_for_two_slots_is_refused(api: Api):
+    """Two slots typed with one serial number would certify two units under it (the second superseding
+    the first): refused at the door, naming the field and the serial, as a batch's list is."""
+    for serials in ({"0": "SAME-1", "1": "SAME-1"}, {"0": "SAME-1", "1": " SAME-1 "}):
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "serials": serials})
+        assert r.status_code == 422, r.text
+        [err] = r.json()["detail"]
+        assert err["field"] == "body.serials" and "listed twice: SAME-1" in err["problem"], err
+    r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SAME-1", "SAME-1"]})
+    assert r.status_code == 422 and "listed twice: SAME-1" in r.text
+
+
+def test_a_unit_with_no_serial_at_all_is_refused_before_the_table_moves(api: Api):
+    """A unit that reports no serial number, with none typed, has nothing to be certified under: the
+    run fails before the table's first step, saying to type its serial, instead of running the plan."""
+    with sim_station(reference_config(seed=26, time_scale=20)) as info:
+        make_station(api, info)
+        mount(info, "")
+        j = wait_run(api, start(api), timeout=60)
+        assert j["status"] == "failed", j
+        assert "did not report a serial number and none was typed" in j["reason"] and '"serials"' in j["reason"], j
+        assert j["samples_count"] == 0 and j["calibrations"] == []
+        assert j["result"]["units"]["0"]["identification"] == "not identified"
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"

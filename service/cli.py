@@ -240,7 +240,7 @@ def fit(
     """Calibrate from a recording; print the paper's tables, uncertainties and staged heading errors."""
     _output_file(output, "--output")
     _output_file(plot, "--plot")
-    truth_data = _read_json(truth, "--truth") if truth is not None else None
+    truth_data = _read_truth(truth, per_slot=False)[0] if truth is not None else None
     rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
     if skip_bad_rows:
         skipped = rec.meta.get("skipped_rows")
@@ -356,6 +356,35 @@ def _read_json(path: Path, option: str) -> Any:
         _fail(f"{option} {path}: not JSON: line {e.lineno}, column {e.colno}: {e.msg}")
     except (ValueError, OSError) as e:  # missing, a directory, unreadable, not UTF-8
         _fail(f"{option} {path}: {getattr(e, 'strerror', None) or e}")
+
+
+def _read_truth(path: Path, per_slot: bool) -> list[dict[str, Any]]:
+    """The true units of ``--truth``, checked before any table time is spent on them: ``per_slot`` a
+    list by slot (what ``sim --truth`` writes), else one unit (``simulate``'s .truth.json, or a list
+    of one). A file of another shape ends the command naming what it holds and what was expected."""
+    data = _read_json(path, "--truth")
+    where = f"--truth {path}"
+    if per_slot and isinstance(data, dict):
+        _fail(f"{where}: a JSON object; expected the list by slot that `sim --truth` writes (one unit's, as "
+              "`simulate` writes it, is for `fit --truth`)")
+    if not per_slot and isinstance(data, list):
+        if len(data) != 1:
+            _fail(f"{where}: a list of {len(data)} units (what `sim --truth` writes); expected one unit: "
+                  "the .truth.json of `simulate`, or a list of one")
+    units = data if isinstance(data, list) else [data]
+    if not isinstance(data, (list, dict)):
+        _fail(f"{where}: a JSON {type(data).__name__}; expected the true parameters of a unit")
+    for i, unit in enumerate(units):
+        item = f"{where}: entry {i}" if isinstance(data, list) else where
+        if not isinstance(unit, dict):
+            _fail(f"{item}: a JSON {type(unit).__name__}; expected the true parameters of a unit")
+        try:
+            truth_from_json(unit)
+        except KeyError as e:
+            _fail(f"{item}: no {e.args[0]!r}; expected the true parameters written by `simulate` or `sim --truth`")
+        except (TypeError, ValueError, IndexError, AssertionError) as e:
+            _fail(f"{item}: not the true parameters of a unit ({e or type(e).__name__})")
+    return units
 
 
 def _read_calibration(path: Path) -> Calibration:
@@ -659,7 +688,7 @@ def calibrate(
         given.update(adaptive=True, budget_s=budget)
     params = _procedure_params("calibrate", given)
     _output_dir(output, "--output")
-    truths = _read_json(truth, "--truth") if truth is not None else None
+    truths = _read_truth(truth, per_slot=True) if truth is not None else None
     failed = _run(_calibrate_station(modbus, compass, output, time_scale, params, truths, evaluate))
     if failed:
         raise typer.Exit(code=1)

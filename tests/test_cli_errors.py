@@ -239,6 +239,43 @@ def test_fit_refuses_outputs_it_could_not_write_before_fitting(tmp_path: Path):
     refused(["fit", str(rec), "--truth", str(tmp_path / "missing.json")], "--truth", "missing.json")
 
 
+def test_a_truth_file_of_the_wrong_shape_is_refused_before_any_work(tmp_path: Path, monkeypatch):
+    """``--truth`` is checked when the command starts: one unit for fit (simulate's, or a list of one),
+    the list by slot for calibrate (sim's); anything else is one line naming the file and the problem."""
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", str(rec)]).exit_code == 0
+    one = tmp_path / "rec.truth.json"
+    listed = tmp_path / "list.json"
+    listed.write_text("[" + one.read_text() + "]")
+    two = tmp_path / "two.json"
+    two.write_text("[" + one.read_text() + "," + one.read_text() + "]")
+    (tmp_path / "a1.json").write_text('{"a": 1}')
+    (tmp_path / "num.json").write_text("3")
+    (tmp_path / "partial.json").write_text('{"magnetometer": {"M_o": [[1,0,0],[0,1,0],[0,0,1]]}}')
+    refused(["fit", str(rec), "--truth", str(two)], "--truth", "two.json", "list of 2 units")
+    refused(["fit", str(rec), "--truth", str(tmp_path / "a1.json")], "--truth", "a1.json", "'magnetometer'")
+    refused(["fit", str(rec), "--truth", str(tmp_path / "num.json")], "num.json", "int")
+    refused(["fit", str(rec), "--truth", str(tmp_path / "partial.json")], "partial.json", "'k'")
+    for good in (one, listed):  # simulate's unit, or a list of one, scores the fit
+        r = runner.invoke(app, ["fit", str(rec), "--truth", str(good)])
+        assert r.exit_code == 0 and "against the true unit" in r.output, r.output
+
+    started = []
+
+    async def fake_station(*args):
+        started.append(args)
+        return 0
+
+    monkeypatch.setattr(cli, "_calibrate_station", fake_station)
+    base = ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)]
+    refused([*base, "--truth", str(one)], "--truth", "a JSON object", "`sim --truth`")
+    refused([*base, "--truth", str(tmp_path / "num.json")], "--truth", "int")
+    (tmp_path / "lista1.json").write_text('[{"a": 1}]')
+    refused([*base, "--truth", str(tmp_path / "lista1.json")], "--truth", "entry 0", "'magnetometer'")
+    assert started == []  # refused before the station was touched
+    assert runner.invoke(app, [*base, "--truth", str(two)]).exit_code == 0 and len(started) == 1
+
+
 # -- fit's messages ---------------------------------------------------------------------------------
 
 def test_fit_says_how_many_rows_it_skipped(tmp_path: Path):

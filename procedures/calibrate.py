@@ -8,10 +8,11 @@ second of table time, and none does I/O: the engine, or a fake one in a test, ru
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal, Mapping
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator, model_validator
 
 from physics import errorsep as es
 from physics.calibration import Calibration
@@ -42,6 +43,10 @@ def _turn(step_deg: float) -> np.ndarray:
     return np.arange(0.0, 360.0 - 1e-9, step_deg)
 
 
+#: The adaptive extension's table-time budget unless one is given (s): issue 14's three minutes.
+DEFAULT_BUDGET_S = 180.0
+
+
 class CalibrateParams(_Params):
     """Choices of the calibration, with defaults chosen for accuracy per second of table time.
 
@@ -58,11 +63,11 @@ class CalibrateParams(_Params):
     tilt_step_deg: float = Field(60.0, gt=0, le=120, description="a turn needs at least three poses")
     sweep_psi_deg: float = 315.0
     method: str = "joint"
-    adaptive: bool = Field(False, description="after the plan, add the poses that lower the predicted heading error "
+    adaptive: StrictBool = Field(False, description="after the plan, add the poses that lower the predicted heading error "
                            "fastest until every unit meets both targets together at 95 % confidence or budget_s ends (joint method)")
     target_level_deg: float = Field(TARGET_LEVEL_DEG, gt=0, le=10, description="adaptive: level heading error target, deg")
     target_tilted_deg: float = Field(TARGET_TILTED_DEG, gt=0, le=10, description="adaptive: heading error target at pitch and roll up to 60 deg")
-    budget_s: float = Field(180.0, gt=0, le=3600, description="adaptive: table seconds the whole calibration may take "
+    budget_s: float = Field(DEFAULT_BUDGET_S, gt=0, le=3600, description="adaptive: table seconds the whole calibration may take "
                             "(the plan's and the added poses' nominal seconds)")
 
     @field_validator("method")
@@ -76,6 +81,16 @@ class CalibrateParams(_Params):
     def _adaptive_needs_joint(self) -> "CalibrateParams":
         if self.adaptive and self.method != "joint":
             raise ValueError(f"adaptive: needs method 'joint' (the covariance it predicts from), got {self.method!r}")
+        # (a run's stored parameters carry every field, the default budget too: that one is not a request)
+        if "budget_s" in self.model_fields_set and not self.adaptive and self.budget_s != DEFAULT_BUDGET_S:
+            raise ValueError("budget_s: only the adaptive extension has a table-time budget; set adaptive true, "
+                             "or leave budget_s out")
+        if self.adaptive:
+            plan_s = _plan_seconds(calibration_poses(self), self)
+            if self.budget_s < plan_s:
+                raise ValueError(f"budget_s: {self.budget_s:g} s is shorter than the plan itself ({plan_s:.1f} s of "
+                                 f"table time, nominal, at these samples and steps); give at least {math.ceil(plan_s)} "
+                                 "s, more to leave room for added poses")
         return self
 
 
@@ -97,6 +112,8 @@ class Collected:
 
     def __init__(self) -> None:
         self.parts: dict[int, list[Recording]] = {}
+        #: the table seconds the run had used at the last checkpoint, as the engine measured them (None: not said)
+        self.table_s: float | None = None
 
     def add(self, reply: object) -> None:
         """Keep one Acquire's reply."""
@@ -122,7 +139,9 @@ def visit(plan: list[Pose | Scan], settle_s: float, data: Collected) -> Procedur
             if settle_s > 0:
                 yield Settle(settle_s)
             data.add((yield Acquire(item.samples, item.step)))
-        yield Checkpoint(item.step)
+        used = yield Checkpoint(item.step)
+        if isinstance(used, (int, float)):
+            data.table_s = float(used)
     return Outcome()
 
 
@@ -336,6 +355,9 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
     added = 0
     rounds: dict[int, list[dict[str, float]]] = {}  # per slot: the prediction after each round, for the plot
     while True:
+        # the budget is spent by the table time measured (a batch's move to the load pose, drives slower
+        # than nominal), not only by the poses' nominal seconds: the run's table_seconds stays within it
+        spent_s = data.table_s if data.table_s is not None else spent_s
         yield Compute("fit and predicted heading error of each unit")
         fits = _unit_precisions(data)
         units = {s: u for s, (u, _) in fits.items()}

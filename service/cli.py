@@ -583,8 +583,8 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
             pr = cal.quality["precision"]
             colour = "green" if pr["met"] else "yellow"
             # the sentence itself is among the calibration's notes printed above; here what to do next
-            # the budget counts the poses' nominal seconds, which the measured table time above exceeds a little
-            spent = f"{pr['table_s']:.0f} s of the {pr['budget_s']:g}-s budget (nominal), poses added: {pr['added_poses']}"
+            # the budget is spent by the table time measured at each pose, the last round's poses by their nominal seconds
+            spent = f"{pr['table_s']:.0f} s of the {pr['budget_s']:g}-s budget, poses added: {pr['added_poses']}"
             need = needed_budget_s(pr)
             said = (f"targets met after {spent}" if pr["met"] else f"targets not met: the budget ended after {spent}"
                     + (f"; run again with --budget {need:.0f} to reach them" if need is not None else ""))
@@ -629,7 +629,8 @@ def _procedure_params(procedure: str, parameters: dict[str, Any]) -> dict[str, A
         err = e.errors()[0]
         field = ".".join(str(x) for x in err["loc"])
         if not field:  # a rule across options (e.g. --adaptive needs the joint method): its message names them
-            _fail(str(err["msg"]).removeprefix("Value error, "))
+            msg = str(err["msg"]).removeprefix("Value error, ")
+            _fail(msg.replace("budget_s: ", "--budget: ", 1).replace("adaptive: ", "--adaptive: ", 1))
         option = {"budget_s": "budget"}.get(field, field)
         _fail(f"--{option.replace('_', '-')} {err.get('input')}: {err['msg']}")
     return parameters
@@ -672,7 +673,7 @@ def calibrate(
     samples: int = typer.Option(CalibrateParams().samples, help="Samples per pose."),
     method: Method = typer.Option(METHODS[0], help="Calibration method."),  # type: ignore[valid-type]
     adaptive: bool = typer.Option(False, help="After the plan, add poses until every unit's predicted heading error meets the targets (0.02 deg level, 0.05 deg tilted) at 95 % confidence, or --budget ends (joint method)."),
-    budget: float = typer.Option(CalibrateParams().budget_s, metavar="<seconds>", help="With --adaptive: table seconds the whole calibration may take."),
+    budget: Optional[float] = typer.Option(None, metavar="<seconds>", help=f"With --adaptive: table seconds the whole calibration may take (default {CalibrateParams().budget_s:g})."),
     evaluate: bool = typer.Option(False, help="Then check each calibration on the table, level and at pitch and roll up to 60 deg."),
     truth: Optional[Path] = typer.Option(None, help="True parameters written by `sim --truth`: also score against them."),
 ) -> None:
@@ -685,7 +686,11 @@ def calibrate(
     time_scale = 1.0 if time_scale is None else time_scale
     given = {"samples": samples, "method": method.value}
     if adaptive:
-        given.update(adaptive=True, budget_s=budget)
+        given.update(adaptive=True)
+    if budget is not None and not adaptive:  # a budget nothing spends would be a silent no-op
+        _fail(f"--budget {budget:g}: only the adaptive extension has a table-time budget; add --adaptive, or leave --budget out")
+    if budget is not None:
+        given.update(budget_s=budget)
     params = _procedure_params("calibrate", given)
     _output_dir(output, "--output")
     truths = _read_truth(truth, per_slot=True) if truth is not None else None

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import threading
 from dataclasses import dataclass
 from datetime import datetime, timedelta
@@ -86,9 +87,20 @@ class Unavailable(DomainError):
     status = 503
 
 
+#: A rule across fields says which field it faults first ("budget_s: ..."): the 422 names that field.
+_RULE_FIELD = re.compile(r"^Value error, ([a-z_][a-z0-9_]*): (.*)$", re.S)
+
+
 def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[str, str]]:
     """Pydantic errors as the service's 422 detail: ``[{"field": "body.parameters.samples", "problem": ...}]``."""
-    return [{"field": ".".join([*prefix, *(str(p) for p in e["loc"])]), "problem": e["msg"]} for e in errors]
+    out = []
+    for e in errors:
+        loc, msg = [str(p) for p in e["loc"]], str(e["msg"])
+        rule = _RULE_FIELD.match(msg) if not loc else None
+        if rule:
+            loc, msg = [rule.group(1)], rule.group(2)
+        out.append({"field": ".".join([*prefix, *loc]), "problem": msg})
+    return out
 
 
 def invalid(field: str, problem: str) -> Invalid:

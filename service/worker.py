@@ -34,6 +34,7 @@ import numpy as np
 from procrastinate import App, JobContext, PsycopgConnector
 from procrastinate.jobs import Status
 from procrastinate.testing import InMemoryConnector
+from pydantic import ValidationError
 from sqlalchemy import select, update
 from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
@@ -289,7 +290,13 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
         return
     snapshot, given, name, parameters, meta, seen = taken
     proc = PROCEDURES[name]
-    params = proc.validate(parameters)
+    try:  # checked when the run was made; a stored run the procedure's rules now refuse ends, not the worker
+        params = proc.validate(parameters)
+    except ValidationError as e:
+        why = "; ".join(f"{'.'.join(map(str, err['loc'])) or 'parameters'}: {err['msg']}" for err in e.errors())
+        ctx.retry(lambda: _finish(ctx, run_id, _Finish(RunState.failed.value, f"parameters refused: {why}"), None),
+                  f"run {run_id}", timeout=None)
+        return
     check = UnitCheck(typed={int(k): str(v) for k, v in given.items()}, slots=list(range(len(snapshot["compasses"]))),
                       policy=str(meta.get("serial_policy") or DEFAULT_POLICY), seen=seen,
                       mounted_after=MOUNT_PROMPT if name == BATCH else None)

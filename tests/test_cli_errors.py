@@ -239,6 +239,24 @@ def test_fit_refuses_outputs_it_could_not_write_before_fitting(tmp_path: Path):
     refused(["fit", str(rec), "--truth", str(tmp_path / "missing.json")], "--truth", "missing.json")
 
 
+def test_a_budget_is_refused_when_nothing_would_spend_it_or_the_plan_overruns_it(tmp_path: Path, monkeypatch):
+    started = []
+
+    async def fake_station(*args):
+        started.append(args)
+        return 0
+
+    monkeypatch.setattr(cli, "_calibrate_station", fake_station)
+    base = ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)]
+    for budget in ("150", "180"):  # the default too: given without --adaptive, it would be spent on nothing
+        refused([*base, "--budget", budget], f"--budget {budget}", "only the adaptive extension", "add --adaptive")
+    refused([*base, "--adaptive", "--budget", "50"], "--budget", "50 s is shorter than the plan", "give at least 107 s")
+    refused([*base, "--adaptive", "--samples", "200", "--budget", "180"], "--budget", "shorter than the plan")
+    assert started == []
+    assert runner.invoke(app, [*base, "--adaptive", "--budget", "150"]).exit_code == 0
+    assert started and started[-1][4]["budget_s"] == 150 and started[-1][4]["adaptive"] is True
+
+
 def test_a_truth_file_of_the_wrong_shape_is_refused_before_any_work(tmp_path: Path, monkeypatch):
     """``--truth`` is checked when the command starts: one unit for fit (simulate's, or a list of one),
     the list by slot for calibrate (sim's); anything else is one line naming the file and the problem."""

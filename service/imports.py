@@ -756,7 +756,8 @@ class Mapping(_Strict):
         given = self.given
         for group, keys in _GROUP_COLUMNS.items():
             if 0 < len(missing := [k for k in keys if k not in given]) < 3:
-                raise ValueError(f"{group} needs all three columns {', '.join(keys)}; missing {', '.join(missing)}")
+                raise ValueError(f"columns.{', columns.'.join(missing)} not given: {group} needs all three columns "
+                                 f"({', '.join(keys)}) or none")
         if "mx" not in given:
             raise ValueError("columns.mx, columns.my and columns.mz (the magnetometer) are required")
         bases = [b for b, present in (("columns.t", "t" in given), ("columns.dt", "dt" in given),
@@ -767,6 +768,11 @@ class Mapping(_Strict):
                              + (f"got {', '.join(bases)}" if bases else "got none"))
         if self.attitude is not None and "psi_t" in given:
             raise ValueError("give either angle columns (columns.psi_t, theta_t, phi_t) or [attitude], not both")
+        for key, spec in given.items():  # one file column read as two kinds of quantity is a slip in the mapping
+            first = next(k for k, v in given.items() if v == spec and type(v) is type(spec))
+            if _COLUMN_GROUP[first] != _COLUMN_GROUP[key]:
+                raise ValueError(f"columns.{first} and columns.{key} both name column {spec!r}: each quantity needs "
+                                 "a column of its own")
         return self
 
 
@@ -891,6 +897,10 @@ def _csv_table(path: Path, m: Mapping, skip_bad_rows: bool) -> _Table:
             if spec not in header:
                 raise _fail(path, f"mapping: {group} column {spec!r} ({key}) not found in header "
                                   f"[{', '.join(header)}]")
+            if header.count(spec) > 1:  # which one is meant cannot be guessed
+                at = [str(i) for i, h in enumerate(header) if h == spec]
+                raise _fail(path, f"mapping: {group} column {spec!r} ({key}) appears {len(at)} times in the header "
+                                  f"(0-based columns {', '.join(at)}): give the 0-based index of the one meant")
             index[key] = header.index(spec)
         else:
             if header is not None and spec >= len(header):
@@ -898,6 +908,11 @@ def _csv_table(path: Path, m: Mapping, skip_bad_rows: bool) -> _Table:
                                   f"columns [{', '.join(header)}]")
             index[key] = spec
         labels[key] = _label(spec, header)
+    for key, i in index.items():  # one file column read as two kinds of quantity is a slip in the mapping
+        first = next(k for k, j in index.items() if j == i)
+        if _COLUMN_GROUP.get(first, "attitude") != _COLUMN_GROUP.get(key, "attitude"):
+            raise _fail(path, f"mapping: columns.{first} and columns.{key} both name column {labels[key]}: "
+                              "each quantity needs a column of its own")
 
     problems: list[str] = []
     bad_rows = 0
@@ -905,6 +920,8 @@ def _csv_table(path: Path, m: Mapping, skip_bad_rows: bool) -> _Table:
     cells_out: dict[str, list[Any]] = {k: [] for k in index}
     for lineno, cells in rows:
         row_problems = []
+        if header is not None and len(cells) > len(header):  # a shifted or merged line: its cells cannot be trusted
+            row_problems.append(f"line {lineno}: {len(cells)} fields, the header has {len(header)}")
         parsed: dict[str, Any] = {}
         for key, i in index.items():
             if i >= len(cells):
@@ -1053,6 +1070,18 @@ def _oriented(values: np.ndarray, axes: list[tuple[int, float]]) -> np.ndarray:
     return np.column_stack([sign * values[:, i] for i, sign in axes])
 
 
+def _one_column_per_quantity(path: Path, tab: _Table) -> None:
+    """Refuse one column read as two quantities of a kind (two angles, two axes) unless it is constant:
+    a column of zeros may stand for the axes a table lacks, a changing one is a slip in the mapping."""
+    keys = [k for k in tab.values if k != "step"]
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            if tab.labels[a] == tab.labels[b] and np.nanmax(tab.values[a]) > np.nanmin(tab.values[a]):
+                raise _fail(path, f"mapping: columns.{a} and columns.{b} both name column {tab.labels[a]}, whose "
+                                  "values change: each needs a column of its own (one column may stand for two "
+                                  "only when it is constant, e.g. zeros for the axes a table lacks)")
+
+
 def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
     """Read ``path`` as ``m`` says; see :func:`load_mapping`."""
     fmt = m.file.format or ("mat" if path.suffix.lower() == ".mat" else
@@ -1061,6 +1090,7 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
     if tab.n == 0:
         raise _fail(path, "mapping: no data rows" + (f" ({tab.skipped} bad row(s) skipped)" if tab.skipped else ""))
     v = tab.values
+    _one_column_per_quantity(path, tab)
     keep = np.ones(tab.n, dtype=bool)
     meta: dict[str, str] = {"source_file": path.name, "mapping": m._name}
 

@@ -460,10 +460,11 @@ def test_mapping_mat_variables_and_radians(tmp_path):
     n = 30
     log = np.column_stack([np.arange(n) * 0.1, np.full(n, 0.3), np.full(n, -0.1), np.full(n, 0.5),
                            np.linspace(0, np.pi, n)])
-    scipy.io.savemat(str(tmp_path / "log.mat"), {"log": log, "temp": np.full((n, 1), 300.15),
+    scipy.io.savemat(str(tmp_path / "log.mat"), {"log": log, "temp": np.full((n, 1), 300.15), "zero": np.zeros((n, 1)),
                                                  "acc": np.tile([0.0, 0.0, -9.80665], (n, 1))})
+    # one constant column may stand for the two angles of axes the table lacks
     m = {"file": {"variable": "log"},
-         "columns": {"t": 0, "mx": 1, "my": 2, "mz": 3, "psi_t": 4, "theta_t": "temp", "phi_t": "temp",
+         "columns": {"t": 0, "mx": 1, "my": 2, "mz": 3, "psi_t": 4, "theta_t": "zero", "phi_t": "zero",
                      "ax": "acc[0]", "ay": "acc[1]", "az": "acc[2]", "temp_c": "temp"},
          "mag": {"unit": "gauss"}, "acc": {"unit": "m/s^2"}, "angles": {"unit": "rad"}, "temp": {"unit": "K"}}
     rec = read_recording_file(tmp_path / "log.mat", mapping=m)
@@ -493,7 +494,7 @@ MAG_ABC = {"mx": "a", "my": "b", "mz": "c"}
      "d.csv: mapping: mag column 'Bx' (mx) not found in header [a, b, c]"),
     ({"columns": MAG_ABC}, "give exactly one time base"),
     ({"columns": {**MAG_ABC, "t": "a", "dt": "b"}}, "got columns.t, columns.dt"),
-    ({"columns": {**MAG_ABC, "ax": "a"}, "time": {"rate_hz": 1}}, "acc needs all three columns ax, ay, az; missing ay, az"),
+    ({"columns": {**MAG_ABC, "ax": "a"}, "time": {"rate_hz": 1}}, "columns.ay, columns.az not given: acc needs all three columns (ax, ay, az) or none"),
     ({"columns": MAG_ABC, "time": {"rate_hz": 1}, "mag": {"unit": "furlongs"}},
      "mag.unit 'furlongs' is not known; accepted: uT, nT"),
     ({"columns": MAG_ABC, "time": {"rate_hz": 1}, "mag": {"axes": ["x", "x", "z"]}}, "each of x, y, z once"),
@@ -512,9 +513,30 @@ MAG_ABC = {"mx": "a", "my": "b", "mz": "c"}
       "angles": {"sequence": "Zyx"}}, "angles.sequence 'Zyx' is not a rotation sequence"),
     ({"columns": MAG_ABC, "time": {"rate_hz": 1}, "angles": {"negate": ["yaw"]}}, "[angles] is given but"),
     ({"file": {"format": "xlsx"}}, "file.format 'xlsx' is not known; accepted: csv, mat, hdf5"),
+    ({"columns": {**MAG_ABC, "psi_t": "a", "theta_t": "b", "phi_t": "c"}, "time": {"rate_hz": 1}},
+     "columns.mx and columns.psi_t both name column 'a': each quantity needs a column of its own"),
+    ({"columns": {**MAG_ABC, "temp_c": 2}, "time": {"rate_hz": 1}},  # by index, the same column as mz by name
+     "columns.mz and columns.temp_c both name column 2 ('c')"),
 ])
 def test_mapping_errors_name_the_key_and_the_problem(tmp_path, mapping, expect):
     assert expect in _mapping_error(tmp_path, mapping)
+
+
+def test_mapping_refuses_an_ambiguous_header_and_rows_longer_than_it(tmp_path):
+    """What the native reader refuses, the mapped one does too: a mapped name the header holds twice, a
+    row with more fields than the header (a shifted or merged line), each named by column or line."""
+    m = {"columns": {"t": "tms", "mx": "a", "my": "b", "mz": "c"}, "time": {"unit": "ms"}}
+    msg = _mapping_error(tmp_path, m, "tms,a,b,c,a\n0,1,2,3,4\n")
+    assert "mag column 'a' (mx) appears 2 times in the header (0-based columns 1, 4)" in msg
+    msg = _mapping_error(tmp_path, m, "tms,a,b,c\n0,1,2,3\n10,1,2,3,9\n20,1,2,3\n")
+    assert "1 problem(s) in 1 row(s)" in msg and "line 3: 5 fields, the header has 4" in msg
+    rec = read_recording_file(tmp_path / "d.csv", mapping=m, skip_bad_rows=True)
+    assert len(rec) == 2 and rec.meta["skipped_rows"] == "1"
+    twice = {"columns": {"t": "tms", "mx": "a", "my": "b", "mz": "a"}, "time": {"unit": "ms"}}
+    msg = _mapping_error(tmp_path, twice, "tms,a,b\n0,1,2\n10,5,2\n")  # a column that changes, read twice
+    assert "columns.mx and columns.mz both name column 'a', whose values change" in msg
+    # a header name repeated in a column the mapping does not read is no one's business
+    assert len(read_recording_file(_write(tmp_path, "e.csv", "tms,a,b,c,x,x\n0,1,2,3,4,5\n"), mapping=m)) == 1
 
 
 def test_mapping_data_errors_name_the_column_and_line(tmp_path):

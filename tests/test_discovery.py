@@ -264,6 +264,10 @@ def _check_schema(r: dict) -> None:
         assert m["frame"] in (None, "sensor", "platform", "outer", "middle", "lab", "table")
         assert m["against"] in (None, "time", "temp_c", "rate", "acc", "psi_t", "theta_t", "phi_t")
     assert r["summary"]
+    # a block in the final model is significant at the correction its finding reports (the backward check's)
+    for f in r["findings"]:
+        if f["effect"] == "discovered":
+            assert f["p_adjusted"] < r["alpha"], f
     # the final model never predicts held-out data worse than the nominal one
     assert np.mean(r["heldout"]["rms_after_lsb"]) <= np.mean(r["heldout"]["rms_before_lsb"]) + 1e-9
 
@@ -792,3 +796,24 @@ def test_a_term_that_leaves_the_model_takes_its_share_of_the_nominal_fit_with_it
         assert np.allclose(dropped[key], never[key], rtol=1e-9, atol=0), (dropped[key], never[key])
     assert np.allclose(dropped["heldout"]["rms_after_lsb"], never["heldout"]["rms_after_lsb"], rtol=1e-9, atol=0)
     assert dropped["heading_error_deg"] == pytest.approx(never["heading_error_deg"], rel=1e-9)
+
+
+def test_the_backward_check_holds_a_discovered_block_to_the_correction_it_is_reported_with() -> None:
+    """A term kept in the final model must be significant at the correction its finding reports: a
+    discovered block pays for the dictionary and its window search (a penalty of e.g. 1e6), not only for
+    the round's catalogue tests. Evidence enough for the catalogue's correction (chi2 = 20 on 1 df,
+    p 8e-6 x 20 tests) but not for a search's keeps a catalogue term and drops a discovered one."""
+    from physics.discrepancy.analysis import _backward
+
+    rng = np.random.default_rng(0)
+    n = 400
+    Q, _ = np.linalg.qr(np.column_stack([np.ones(n), rng.normal(size=(n, 2))]))
+    Q0, x1, x2 = Q[:, :1], Q[:, 1:2], Q[:, 2:3]  # orthonormal: each term's statistic is its own share of z
+    z = np.sqrt(20.0) * (x1[:, 0] + x2[:, 0])  # each term: statistic 20 given the other
+    for penalty, kept in (({}, {"catalogue", "found"}), ({"found": float(np.log(1e6))}, {"catalogue"})):
+        terms = {"catalogue": x1, "found": x2}
+        rows: list[dict] = []
+        final = _backward(terms, Q0, z, None, 0.01, 20, rows, penalty)
+        assert set(terms) == kept, (penalty, rows)
+        assert all(final[k].p_adjusted < 0.01 for k in kept)
+        assert [r["variant"] for r in rows] == sorted({"catalogue", "found"} - kept)

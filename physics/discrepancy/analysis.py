@@ -246,7 +246,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         if attempt == 0:
             generic_first = {row["variant"]: row for row in rows if row["generic"]}
         terms = {**{s: candidates[s] for s in selected}, **{f.name: f.Xw for f in found}}
-        final = _backward(terms, Q0, z, null, alpha, n_round1, all_tests)
+        final = _backward(terms, Q0, z, null, alpha, n_round1, all_tests, _search_penalty(dic, found))
         selected = [s for s in selected if s in terms]
         found = [f for f in found if f.name in terms]
         coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
@@ -282,7 +282,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
 
     if terms:
         relinearise()  # and check every term again around it
-        final = _backward(terms, Q0, z, null, alpha, n_round1, all_tests)
+        final = _backward(terms, Q0, z, null, alpha, n_round1, all_tests, _search_penalty(dic, found))
         selected = [s for s in selected if s in terms]
         found = [f for f in found if f.name in terms]
     # The periodogram found the line against a running median of the spectrum; the twin tests it at that
@@ -342,7 +342,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         if name in by_name:
             # found by a search: its p pays for the dictionary's size and for the window's fitted edges,
             # as when it was chosen (the backward test alone counts only the round's catalogue tests)
-            row["p_adjusted"] = float(min(1.0, t.p_value * dic.cost(by_name[name].block) * np.exp(by_name[name].test.search)))
+            row["p_adjusted"] = float(min(1.0, t.p_value * np.exp(_search_penalty(dic, [by_name[name]])[name])))
             findings.append(discovered_finding(by_name[name], c, cv, contrib, row, nom, ctx,
                                                _heading_impact(ctx, y_raw, nom, contrib)))
             continue
@@ -501,12 +501,21 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
     return rows
 
 
+def _search_penalty(dic: Dictionary, found: list[Found]) -> dict[str, float]:
+    """Each discovered block's log Bonferroni correction: the dictionary's size (by prior weight) and
+    its window search, as when it was chosen."""
+    return {f.name: float(np.log(dic.cost(f.block)) + f.test.search) for f in found}
+
+
 def _backward(terms: dict[str, np.ndarray], Q0: np.ndarray, z: np.ndarray, null: np.ndarray | None, alpha: float,
-              m: int, rows: list[dict[str, Any]]) -> dict[str, Test]:
+              m: int, rows: list[dict[str, Any]], penalty: dict[str, float] | None = None) -> dict[str, Test]:
     """Backward check (in place on ``terms``): forward selection can take a many-parameter effect first
     that only stands in for a simpler one chosen after it, or a catalogue effect that stands in for a
     discovered block. Each term must stay significant given all the others (corrected over ``m``
-    tests); the weakest that does not is dropped, until all do. Returns each kept term's test."""
+    tests; a term in ``penalty`` by its own log correction instead: a discovered block pays for the
+    dictionary and its window's fitted edges, as its report does); the weakest that does not is
+    dropped, until all do. Returns each kept term's test."""
+    penalty = penalty or {}
     final: dict[str, Test] = {}
     while terms:
         final = {}
@@ -521,6 +530,9 @@ def _backward(terms: dict[str, np.ndarray], Q0: np.ndarray, z: np.ndarray, null:
             Qo = _extend(np.eye(Qf.shape[1], q0), *others)
             t = Test(name, Qf @ _complement(coords[name], Qo))
             _score([t], z - Qf @ (Qo @ (Qo.T @ (Qf.T @ z))), null, extra=m - 1)
+            if name in penalty and t.df > 0:  # its own correction in place of the catalogue's m
+                t.log_p = float(min(0.0, t.log_p - np.log(m) + penalty[name]))
+                t.p_adjusted = float(min(1.0, t.p_value * np.exp(penalty[name])))
             final[name] = t
         weakest = max(terms, key=lambda nm: final[nm].log_p)
         if final[weakest].log_p < np.log(alpha):

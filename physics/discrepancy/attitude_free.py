@@ -72,7 +72,7 @@ from physics.discrepancy.lrt import _orth
 from physics.discrepancy.noise import require_noise
 from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
                                           needs_table_angles, raw_distortions)
-from physics.discrepancy.schema import Analysis
+from physics.discrepancy.schema import Analysis, finding_model
 from physics.discrepancy.twin import blocks, runs
 from physics.effects import CATALOGUE, PARAMETER_SHIFT, UNEXPLAINED, separating_experiment
 from physics.errorsep import InsufficientData
@@ -2048,13 +2048,16 @@ def _findings(nom: _Nominal, dec: _Data, reg: dict[str, _Regression], finals: di
                 expl += (f" It carries only {100 * share[blk]:.0f} % of the structure against {against} (likelihood "
                          f"ratio), so read it as one shape of unexplained structure against {against}.")
             where["share_of_generic_structure"] = share.get(blk)
-            out.append({
+            finding = {
                 "effect": eff, "variant": BLOCKS[blk][1], "statistic": tt.statistic, "df": tt.df,
                 "p_value": tt.p, "p_adjusted": tt.p_adj, "parameters": params, "sigma": sig,
                 "heading_impact_deg": impact, "where": where, "explanation": expl,
                 "confusable_with": conf, "plausible": plausible,
                 "separating_experiment": "; ".join(sep) if sep else "",
-            })
+            }
+            if blk.endswith("/time"):  # fitted against time (no temperature logged to follow): the model says so
+                finding["model"] = {**finding_model(finding), "against": "time"}
+            out.append(finding)
     for tt in unexpl:
         if tt.p_adj >= alpha:
             continue

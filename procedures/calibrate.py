@@ -180,6 +180,21 @@ def _fixture_peak(data: Collected, step: str, column: str, axis: int) -> float:
     return round(circular_mean_deg(peaks), 2) if peaks else 0.0
 
 
+def _short_tour(angles: set[float], start: float, lo: float, hi: float) -> list[float]:
+    """``angles`` (deg, in (-180, 180]) in the order and at the turns (a or a + 360, within [lo, hi], the
+    range the plan's turns already use) that keep the axis's travel from ``start`` short: nearest first.
+    The axis drives to the angle it is given, not the short way round: sorted ascending after a sweep
+    that ended at 300 deg, the extremes had cost a 445-deg drive where 100 would do."""
+    left = sorted(angles)
+    here, tour = start, []
+    while left:
+        a, at = min(((a, r) for a in left for r in (a, a + 360.0) if lo <= r <= hi), key=lambda ar: abs(ar[1] - here))
+        left.remove(a)
+        tour.append(at)
+        here = at
+    return tour
+
+
 def maxmin_visit(p: CalibrateParams, data: Collected) -> ProcedureGen:
     """The plan of the maxmin method: every sensor axis pointed along and against the field.
 
@@ -196,8 +211,10 @@ def maxmin_visit(p: CalibrateParams, data: Collected) -> ProcedureGen:
             return Pose(step, psi, a if label == "sweep_y" else 0.0, a if label == "sweep_x" else 0.0, p.samples)
         yield from visit([pose(label, float(a)) for a in _turn(p.tilt_step_deg)], p.settle_s, data)
         peaks = [_fixture_peak(data, label, column, i) for i in axes]
-        extremes = sorted({round(float(wrap180(a + d)), 2) for a in peaks for d in (0.0, 180.0)})
-        yield from visit([pose("maxmin_" + label[-1], a) for a in extremes], p.settle_s, data)
+        extremes = {round(float(wrap180(a + d)), 2) for a in peaks for d in (0.0, 180.0)}
+        turn = _turn(p.tilt_step_deg)
+        tour = _short_tour(extremes, float(turn[-1]), -180.0, float(turn[-1]))
+        yield from visit([pose("maxmin_" + label[-1], a) for a in tour], p.settle_s, data)
     return Outcome()
 
 

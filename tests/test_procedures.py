@@ -115,3 +115,26 @@ def test_plan_lists_the_steps_without_data():
     assert sum(isinstance(s, Checkpoint) for s in steps) == 18
     assert all(isinstance(s, (Move, Settle, Acquire, Checkpoint)) for s in steps[:-1])
     assert steps[-1] == Compute("calibration fit")  # said before the fit (on no data the plan ends there)
+
+
+def test_maxmin_holds_its_extremes_in_a_short_tour_from_where_the_sweep_ended():
+    """Maxmin holds each axis along and against the field after each sweep: visited nearest first, at the
+    turn (a or a + 360) nearest the table, the middle and inner axes drive little more than the sweep's own
+    span of extremes, not from 300 deg round to -145 and back (an axis drives to the angle it is given)."""
+    from physics.simulate import plan_cost
+    from physics.table import Motion
+    from procedures.calibrate import _short_tour
+
+    assert _short_tour({-145.0, 35.0, 80.0, -100.0}, 300.0, -180.0, 300.0) == [260.0, 215.0, 80.0, 35.0]
+    eng = FakeEngine([reference_unit(3.0, 4.0)], World(55.0, 23.0))
+    out = eng.run("calibrate", {"method": "maxmin", "samples": 10})
+    assert "calibration" in out.results[0], out.results
+    moves = [s for s in eng.steps if isinstance(s, Move)]
+    for axis, sweep in ((1, "theta"), (2, "phi")):
+        angles = [(m.psi, m.theta, m.phi)[axis] for m in moves]
+        # the moves after this axis's sweep (its poses at 0, 60, ..., 300) that hold its extremes
+        end = max(i for i, a in enumerate(angles) if a == 300.0)
+        holds = [a for a in angles[end + 1:end + 5]]
+        travel = sum(abs(b - a) for a, b in zip([300.0, *holds], holds))
+        assert travel <= 360.0, (sweep, holds, travel)
+        assert all(-180.0 <= a <= 300.0 for a in holds)

@@ -17,6 +17,8 @@ import numpy as np
 VERSION_KEY = "compasscal-recording"
 FORMAT_VERSION = "1"
 SKIPPED_KEY = "skipped_rows"
+#: With skip_bad_rows: the 0-based data rows of the file that were skipped (a parse note, as SKIPPED_KEY).
+SKIPPED_AT_KEY = "skipped_at_rows"
 
 ANGLE_COLUMNS = ("psi_t", "theta_t", "phi_t")
 MAG_COLUMNS = ("mx", "my", "mz")
@@ -150,6 +152,16 @@ def _show(raw: str, limit: int = 80) -> str:
     return raw if len(raw) <= limit else raw[: limit - 3] + "..."
 
 
+def file_row(rec: Recording, index: int) -> int:
+    """The 0-based data row of the file that sample ``index`` was read from: the index itself unless
+    malformed rows before it were skipped (meta ``skipped_at_rows``), which a message about the sample
+    must count to point at the right row of the file."""
+    for skipped in sorted(int(x) for x in rec.meta.get(SKIPPED_AT_KEY, "").split(",") if x.strip()):
+        if skipped <= index:
+            index += 1
+    return index
+
+
 def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: int | None = None) -> Recording:
     """Parse recording CSV text (RECORDING.md) into a Recording.
 
@@ -184,6 +196,7 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
     rows: list[dict[str, Any]] = []
     problems: list[str] = []
     bad_rows = 0
+    skipped_at: list[int] = []  # data rows (0-based, good and bad counted) that were malformed
     last_t, last_t_line = -math.inf, 0
     for lineno, line in enumerate(lines[header_at + 1:], start=header_at + 2):
         stripped = line.strip()
@@ -194,6 +207,7 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
             row_problems.append(f"line {lineno}: column t: time goes backwards "
                                 f"(previous t={last_t:g} on line {last_t_line}) ('{row['raw_t']}')")
         if row_problems:
+            skipped_at.append(len(rows) + bad_rows)
             bad_rows += 1
             problems.extend(row_problems)
             continue
@@ -208,6 +222,8 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
                              + (f"\n... and {more} more" if more else ""))
     if skip_bad_rows:
         meta[SKIPPED_KEY] = str(bad_rows)
+        if skipped_at:
+            meta[SKIPPED_AT_KEY] = ",".join(map(str, skipped_at))
     if not rows:
         skipped = f" ({bad_rows} malformed row(s) skipped)" if bad_rows else ""
         raise RecordingError(f"recording has no data rows{skipped}")
@@ -316,7 +332,7 @@ def format_recording(rec: Recording, header: bool = True) -> str:
     if header:
         out.write(f"# {VERSION_KEY}: {FORMAT_VERSION}\n")
         for key, value in rec.meta.items():
-            if key not in (VERSION_KEY, SKIPPED_KEY):  # the version is ours to write; skipped_rows was a parse note
+            if key not in (VERSION_KEY, SKIPPED_KEY, SKIPPED_AT_KEY):  # the version is ours; the skips were parse notes
                 out.write(f"# {key}: {value}\n")
         writer.writerow([*KNOWN_COLUMNS, *extra_names])
 

@@ -21,7 +21,7 @@ from drivers import keep_drivers_responsive
 from physics.calibration import Calibration, staged_truth_errors, truth_summary
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, fit as fit_recording
-from physics.recording import Recording, RecordingError, format_recording
+from physics.recording import Recording, RecordingError, file_row, format_recording
 from physics.sensor import random_unit, reference_unit
 from physics.simulate import World, plan_cost, simulate_recording, truth_from_json, truth_json
 from physics.table import TableGeometry
@@ -254,9 +254,10 @@ def fit(
     dropped = cal.quality.get("rejected_rows") or []
     if dropped:  # bad samples the fit rejected on its own (physics.fit): which, and why
         console.print(f"[yellow]{len(dropped)} of {cal.quality.get('samples_total')} rows dropped as bad samples "
-                      "(sample index = 0-based data row):[/]")
-        for row in dropped[:20]:
-            console.print(f"  sample {row['index']} (t {row['t']:g} s, step {escape(row['step'])}): {escape(row['reason'])}")
+                      f"(sample index = 0-based data row of {recording.name}):[/]")
+        for row in dropped[:20]:  # as the file counts its rows, the malformed ones skipped included
+            console.print(f"  sample {file_row(rec, int(row['index']))} (t {row['t']:g} s, step {escape(row['step'])}): "
+                          f"{escape(row['reason'])}")
         if len(dropped) > 20:
             console.print(f"  ... and {len(dropped) - 20} more (all listed in the calibration JSON, quality.rejected_rows)")
     if truth_data is not None:

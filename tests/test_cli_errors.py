@@ -309,6 +309,25 @@ def test_fit_says_how_many_rows_it_skipped(tmp_path: Path):
     assert "2 malformed row(s) of rec.csv skipped" in r.stderr
 
 
+def test_fit_counts_a_dropped_samples_row_as_the_file_does_when_malformed_rows_were_skipped(tmp_path: Path):
+    """A bad sample the fit drops is named by its row in the file: the malformed rows skipped before it
+    count, or the technician would look at the wrong line."""
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "10", "-o", str(rec)]).exit_code == 0
+    lines = rec.read_text().splitlines()
+    data = [i for i, ln in enumerate(lines) if ln and not ln.startswith("#") and not ln.startswith("t,")]
+    cells = lines[data[40]].split(",")
+    cells[5] = "32000"  # a reading no unit gives: the fit drops the row (file data row 40)
+    lines[data[40]] = ",".join(cells)
+    for i in data[3:5]:  # two malformed rows before it
+        lines[i] = lines[i].rsplit(",", 1)[0] + ",oops"
+    rec.write_text("\n".join(lines) + "\n")
+    r = runner.invoke(app, ["fit", str(rec), "--skip-bad-rows"])
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.output.split())
+    assert "sample 40 (t" in said and "sample 38 (t" not in said, said
+
+
 def test_fit_names_the_elements_a_level_only_recording_leaves_undetermined(tmp_path: Path):
     rec = tmp_path / "rec.csv"
     assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", str(rec)]).exit_code == 0

@@ -186,7 +186,7 @@ def simulate_recording(
     header = {"serial": unit.serial, "station": "simulated", "model": unit.model,
               "sample_rate_hz": f"{motion.sample_rate_hz:g}"}
     header.update(meta or {})
-    t_all = np.concatenate(t)
+    t_all = np.round(np.concatenate(t), 6)  # to the microsecond: a written t reads 0.3, not 0.30000000000000004
     return Recording.from_arrays(
         t=t_all, step=np.array(steps, dtype=object),
         psi_t=ang[:, 0], theta_t=ang[:, 1], phi_t=ang[:, 2],

@@ -298,6 +298,7 @@ class Engine:
                                            left_wall_s=round(left / self.station.time_scale, 1)))
             if left_nominal > 1e-6 * total and done:  # a tail that used less than its reserve: done now
                 self.on_event(Progress(100.0, self._table_used, 0.0, self._samples, left_wall_s=0.0))
+            self._reconcile_flags(outcome)
             self._set_state(RunState.completed)
             self.on_event(Result(tuple(sorted(outcome.results)) if outcome else ()))
         except Aborted:
@@ -579,8 +580,8 @@ class Engine:
     def _flag_bad(self, slot: int, label: str) -> None:
         """Screen the slot's samples so far (``_kept``) as the fit will (physics.fit.screen_rows: a
         brown-out's zeros, a reading far off its pose's median) and warn, as it happens, of each bad
-        sample not flagged before, by its row in the unit's recording (the fit lists the same rows in
-        quality.rejected_rows). The samples stay recorded: the fit drops them, the recording keeps what
+        sample not flagged before, by its row in the unit's recording (the fit lists the rows it drops in
+        quality.rejected_rows; :meth:`_reconcile_flags` says which flagged ones it kept). The samples stay recorded: the fit drops them, the recording keeps what
         the compass said."""
         kept = self._kept.get(slot, [])
         flagged = self._flagged.setdefault(slot, set())
@@ -594,6 +595,23 @@ class Engine:
         who = self.serials.get(slot) or f"slot {slot}"
         self.on_event(StepWarning(f"{who}: {len(rows)} bad sample(s) flagged after {label}, rows {listed} "
                                   f"(the fit drops them): {why}"))
+
+    def _reconcile_flags(self, outcome: Outcome | None) -> None:
+        """Say which rows flagged during the run the fit kept after all. The live screen sees the run so
+        far: early on an axis's amplitude is what the first holds swept (the level turn hardly moves z),
+        so a reading 64 LSB off can be gross then and ordinary once the sweeps have turned z through the
+        field; the fit screens the whole run. The rows it dropped are its ``quality.rejected_rows``."""
+        for slot, res in sorted((outcome.results if outcome else {}).items()):
+            flagged = self._flagged.get(slot)
+            quality = getattr(res.get("calibration"), "quality", None) if isinstance(res, dict) else None
+            if not flagged or not isinstance(quality, dict) or "rejected_rows" not in quality:
+                continue
+            kept = sorted(flagged - {int(r["index"]) for r in quality["rejected_rows"]})
+            if kept:
+                who = self.serials.get(slot) or f"slot {slot}"
+                listed = ", ".join(map(str, kept[:20])) + (f" and {len(kept) - 20} more" if len(kept) > 20 else "")
+                self.on_event(StepWarning(f"{who}: {len(kept)} row(s) flagged during the run were kept by the fit, "
+                                          f"rows {listed}: on the whole run's readings they are within range"))
 
     def _on_sample_clock(self, slot: Any, samples: list[Sample]) -> np.ndarray | None:
         """When the compass measured ``samples`` (consecutive lines as received; host seconds), on its

@@ -282,3 +282,23 @@ def test_the_live_engine_drops_flipped_bits_from_a_simulated_compass() -> None:
     rec = sink.recording(0)
     flipped = set(np.flatnonzero(np.any(np.abs(rec.mag - _hold_medians(rec)) > 40, axis=1)).tolist())  # 64 LSB at least; noise 3
     assert 2 <= len(flipped) <= 4 and flipped <= dropped, (flipped, dropped)
+
+
+def test_rows_flagged_live_that_the_fit_kept_are_said_at_the_end() -> None:
+    """The live screen sees the run so far (early on the level turn has hardly moved z, so 64 LSB can be
+    gross there and ordinary after the sweeps); the fit screens the whole run. A row flagged as it came and
+    kept by the fit is said at the run's end, by its row, so the warnings and quality.rejected_rows agree."""
+    from types import SimpleNamespace
+
+    from procedures.engine import Engine
+    from procedures.events import StepWarning
+    from procedures.steps import Outcome
+
+    eng = Engine.__new__(Engine)  # the reconciliation alone: no station needed
+    said: list = []
+    eng._flagged, eng.serials, eng.on_event = {0: {483, 495, 12}, 1: {3}}, {0: "SN-1"}, said.append
+    cal0 = SimpleNamespace(quality={"rejected_rows": [{"index": 12, "reason": "zeros"}]})
+    cal1 = SimpleNamespace(quality={"rejected_rows": [{"index": 3, "reason": "zeros"}]})
+    eng._reconcile_flags(Outcome(results={0: {"calibration": cal0}, 1: {"calibration": cal1}}))
+    assert [type(e) for e in said] == [StepWarning]
+    assert said[0].warning.startswith("SN-1: 2 row(s) flagged during the run were kept by the fit, rows 483, 495")

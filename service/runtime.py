@@ -265,7 +265,9 @@ def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
             continue
         j = run_json(r)
         c = cals.get(r.id)
+        ident = ((j["result"] or {}).get("units") or {}).get("0") or {}  # what the mounted unit reported
         units.append({"serial": serial, "run_id": r.id, "status": j["status"], "reason": j["reason"],
+                      "identified_serial": ident.get("identified_serial"), "identification": ident.get("identification"),
                       "verdict": c.verdict if c else None, "calibration_id": c.id if c else None,
                       "calibration_status": c.status if c else None, "prompts": j["prompts"],
                       "table_seconds": j["table_seconds"], "target": target_said(c.data) if c else None})

@@ -452,6 +452,9 @@ class BatchUnit(BaseModel):
     status: str
     verdict: str | None
     reason: str | None = None
+    identified_serial: str | None = Field(None, description="the serial number the mounted unit reported (None: "
+                                          "not yet asked, or it reported none)")
+    identification: str | None = Field(None, description="identified, not identified, differs or duplicate")
     calibration_id: int | None = None
     calibration_status: str | None = None
     prompts: list[PromptOut] = []

@@ -170,6 +170,11 @@ def test_a_batch_certifies_one_unit_once(api: Api):
         assert units["SN-1"]["calibration_id"] and units["SN-2"]["calibration_id"] is None
         dup = api.get(f"/runs/{units['SN-2']['run_id']}", role="viewer").json()
         assert dup["samples_count"] == 0 and dup["result"]["units"]["0"]["identification"] == "duplicate"
+        # the batch says what each mounted unit reported, in its JSON and on its page
+        assert units["SN-1"]["identified_serial"] == UNIT and units["SN-1"]["identification"] == "differs"
+        assert units["SN-2"]["identified_serial"] == UNIT and units["SN-2"]["identification"] == "duplicate"
+        page = api.get(f"/ui/batches/{bid}", role="viewer").text
+        assert f'<td class="identified identification-duplicate">{UNIT} (duplicate)</td>' in page, page
 
 
 @pytest.mark.parametrize("how", ["empty serial", "no ID command"])

@@ -39,6 +39,11 @@
         verdict.textContent = v;
         verdict.className = `verdict verdict-${(u.verdict || "").toLowerCase()}`;
       }
+      const ident = tr.querySelector("td.identified");
+      if (ident) {  // what the mounted unit reported, and how it compared with the serial typed
+        const how = u.identification && u.identification !== "identified" ? ` (${u.identification})` : "";
+        ident.textContent = u.identified_serial ? u.identified_serial + how : (u.identification || "");
+      }
       const tableS = tr.querySelector("td.table-s");
       if (tableS) tableS.textContent = u.table_seconds ? `${Math.round(u.table_seconds)} s` : "";
       const target = tr.querySelector("td.target");

@@ -99,6 +99,9 @@ def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[s
         rule = _RULE_FIELD.match(msg) if not loc else None
         if rule:
             loc, msg = [rule.group(1)], rule.group(2)
+        if e.get("type") == "json_invalid":  # its loc is (body, character offset): the field is the body
+            at = f" at character {loc[1]}" if len(loc) > 1 else ""
+            loc, msg = loc[:1], f"not valid JSON{at}: {(e.get('ctx') or {}).get('error', msg)}"
         out.append({"field": ".".join([*prefix, *loc]), "problem": msg})
     return out
 

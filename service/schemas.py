@@ -16,7 +16,10 @@ from typing import Annotated, Any
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from drivers.modbus import BusURL
-from service.identity import CHOICES, SerialPolicy
+from service.identity import CHOICES, SerialPolicy as _SerialPolicy
+
+#: A serial policy as typed: spaces and case do not matter ("Refuse"), as an operator's answer to a serial prompt.
+SerialPolicy = Annotated[_SerialPolicy, BeforeValidator(lambda v: v.strip().lower() if isinstance(v, str) else v)]
 
 # ------------------------------------------------------------------------------------------ errors
 

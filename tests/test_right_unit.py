@@ -113,6 +113,8 @@ def test_refuse_policy_fails_the_slot_with_the_reason(api: Api):
         assert r.status_code == 200 and r.json()["serial_policy"] == "refuse"
         assert api.put("/stations/lab-1", json=body).json()["serial_policy"] == "refuse"
         assert api.put("/stations/lab-1", json={**body, "serial_policy": "maybe"}).status_code == 422
+        # typed as an operator types it (a prompt's answer takes any case too)
+        assert api.put("/stations/lab-1", json={**body, "serial_policy": " Refuse "}).json()["serial_policy"] == "refuse"
         rid = start(api, serials={"0": "SN-WRONG"})
         j = wait_run(api, rid)
         assert j["status"] == "failed" and j["serial_policy"] == "refuse", j
@@ -199,6 +201,13 @@ def test_a_unit_that_cannot_identify_itself_is_calibrated_as_typed(api: Api, how
         for text in (html, pdf):
             assert "Identified serial" in text and "not identified" in text
         assert "(not identified)" in api.get(f"/ui/runs/{done['id']}", role="viewer").text
+
+
+def test_a_body_that_is_not_json_is_named_as_the_body(api: Api):
+    r = api.post("/runs", role="operator", content=b'{"station": "lab-1",', headers={"Content-Type": "application/json"})
+    assert r.status_code == 422, r.text
+    [err] = r.json()["detail"]
+    assert err["field"] == "body" and err["problem"].startswith("not valid JSON at character"), err
 
 
 def test_one_serial_typed_for_two_slots_is_refused(api: Api):

@@ -112,8 +112,6 @@ class Collected:
 
     def __init__(self) -> None:
         self.parts: dict[int, list[Recording]] = {}
-        #: the table seconds the run had used at the last checkpoint, as the engine measured them (None: not said)
-        self.table_s: float | None = None
 
     def add(self, reply: object) -> None:
         """Keep one Acquire's reply."""
@@ -139,9 +137,7 @@ def visit(plan: list[Pose | Scan], settle_s: float, data: Collected) -> Procedur
             if settle_s > 0:
                 yield Settle(settle_s)
             data.add((yield Acquire(item.samples, item.step)))
-        used = yield Checkpoint(item.step)
-        if isinstance(used, (int, float)):
-            data.table_s = float(used)
+        yield Checkpoint(item.step)
     return Outcome()
 
 
@@ -372,9 +368,6 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
     added = 0
     rounds: dict[int, list[dict[str, float]]] = {}  # per slot: the prediction after each round, for the plot
     while True:
-        # the budget is spent by the table time measured (a batch's move to the load pose, drives slower
-        # than nominal), not only by the poses' nominal seconds: the run's table_seconds stays within it
-        spent_s = data.table_s if data.table_s is not None else spent_s
         yield Compute("fit and predicted heading error of each unit")
         fits = _unit_precisions(data)
         units = {s: u for s, (u, _) in fits.items()}

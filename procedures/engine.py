@@ -366,7 +366,7 @@ class Engine:
                 await self._resume.wait()
                 self._check_abort()
                 self._set_state(RunState.running)
-            return self._table_used  # what a budget is spent against (procedures.calibrate)
+            return None
         if isinstance(step, Identify):
             return await asyncio.wait_for(identify_units(self.station.fixture), IDENTIFY_TIMEOUT_S)
         if isinstance(step, Prompt):

@@ -68,9 +68,7 @@ class Identify:
 
 @dataclass(frozen=True)
 class Checkpoint:
-    """A safe place to pause or abort (the table holds still here). Reply: the table seconds the run
-    has used so far, as its result's ``table_seconds`` counts them (None when the engine does not say,
-    e.g. in a resumed run's replay)."""
+    """A safe place to pause or abort (the table holds still here)."""
 
     label: str
 

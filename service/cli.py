@@ -584,8 +584,8 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
             pr = cal.quality["precision"]
             colour = "green" if pr["met"] else "yellow"
             # the sentence itself is among the calibration's notes printed above; here what to do next
-            # the budget is spent by the table time measured at each pose, the last round's poses by their nominal seconds
-            spent = f"{pr['table_s']:.0f} s of the {pr['budget_s']:g}-s budget, poses added: {pr['added_poses']}"
+            # the budget counts the poses' nominal seconds, which the measured table time above exceeds a little
+            spent = f"{pr['table_s']:.0f} s of the {pr['budget_s']:g}-s budget (nominal), poses added: {pr['added_poses']}"
             need = needed_budget_s(pr)
             said = (f"targets met after {spent}" if pr["met"] else f"targets not met: the budget ended after {spent}"
                     + (f"; run again with --budget {need:.0f} to reach them" if need is not None else ""))

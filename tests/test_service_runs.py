@@ -496,10 +496,7 @@ def test_an_adaptive_calibration_over_the_api_says_whether_the_unit_reached_its_
         assert done["samples_count"] > 18 * 10  # an unreachable level target: poses were added
         cal = api.get("/devices/GAO2017-REF/calibrations/current", role="viewer").json()
         pr = cal["quality"]["precision"]
-        # the budget is spent by the table time measured, so the run keeps to it (its last round's poses may take a
-        # few % more than their nominal seconds), and the calibration's table time is the run's
-        assert pr["met"] is False and pr["stopped"] == "budget" and pr["added_poses"] > 0 and pr["table_s"] <= 90 * 1.05
-        assert abs(done["table_seconds"] - pr["table_s"]) < 1.0, (done["table_seconds"], pr["table_s"])
+        assert pr["met"] is False and pr["stopped"] == "budget" and pr["added_poses"] > 0 and pr["table_s"] <= 90
         assert pr["predicted_level_deg"] > 0.001 and pr["why"] in cal["notes"]
         # progress counts the budget's reserve: the added poses are not reported as done, and it ends at 100
         events = read_events(api, done["id"])

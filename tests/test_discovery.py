@@ -817,3 +817,22 @@ def test_the_backward_check_holds_a_discovered_block_to_the_correction_it_is_rep
         assert set(terms) == kept, (penalty, rows)
         assert all(final[k].p_adjusted < 0.01 for k in kept)
         assert [r["variant"] for r in rows] == sorted({"catalogue", "found"} - kept)
+
+
+def test_two_overlapping_windows_are_each_named_in_their_frame() -> None:
+    """A magnet on the unit for one stretch and steel set down near the table for another that overlaps
+    it: each window is reported in its own frame. The lab window lies in the sweeps, where the outer stage
+    stands still, so a 2-parameter rotation of that stage spans nearly what the room's offset does: it
+    was named, 1.6 ahead in evidence with nothing said of the lab. The tie goes to the commoner cause,
+    and each found window's frame is chosen again given the other."""
+    rec, unit = _recording(3)
+    sensor = np.outer(_window(rec, 0.1, 0.45), [40.0, -25.0, 30.0])
+    lab = _lab_offset(rec, unit, np.array([0.02, -0.015, 0.01]), _window(rec, 0.35, 0.8))
+    r = analyze(_with(rec, sensor + lab), null_sims=60).result
+    _check_schema(r)
+    found = {f["model"]["frame"]: f for f in r["findings"] if f["effect"] == "discovered"}
+    assert set(found) == {"sensor", "lab"}, [(f["model"], f.get("confusable_with")) for f in r["findings"]]
+    for frame, (a, b) in (("sensor", (0.1, 0.45)), ("lab", (0.35, 0.8))):
+        seg, = found[frame]["model"]["segments"]
+        assert found[frame]["model"]["form"] == "offset" and _edges_ok(seg, rec, a, b), found[frame]["model"]
+    _ok_fit(r)

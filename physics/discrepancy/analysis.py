@@ -249,6 +249,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         final = _backward(terms, Q0, z, null, alpha, n_round1, all_tests, _search_penalty(dic, found))
         selected = [s for s in selected if s in terms]
         found = [f for f in found if f.name in terms]
+        found, terms = _reconsider(dic, found, terms, Q0, z, null, alpha)
         coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
         refused = [s for i, s in enumerate(terms) if s in selected and s != LINE
                    and _implausible(s, coef[offsets[i + 1]:offsets[i + 2]], eff)]
@@ -499,6 +500,23 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
         else:
             break
     return rows
+
+
+def _reconsider(dic: Dictionary, found: list[Found], terms: dict[str, np.ndarray], Q0: np.ndarray, z: np.ndarray,
+                null: np.ndarray | None, alpha: float) -> tuple[list[Found], dict[str, np.ndarray]]:
+    """Each discovered window's frame and form chosen again given every other term (``Dictionary.reconsider``),
+    once all are in: departures that overlap in time were each first seen with the other's share in the
+    residual. ``terms`` keeps its order, a reconsidered block in its predecessor's place."""
+    if len(terms) < 2:
+        return found, terms
+    out = list(found)
+    for i, f in enumerate(found):
+        Qo = _extend(Q0, *(Xw for name, Xw in terms.items() if name != f.name))
+        g = dic.reconsider(f, Qo, z - Qo @ (Qo.T @ z), null, alpha)
+        if g.block != f.block:
+            terms = {(g.name if name == f.name else name): (g.Xw if name == f.name else Xw) for name, Xw in terms.items()}
+            out[i] = g
+    return out, terms
 
 
 def _search_penalty(dic: Dictionary, found: list[Found]) -> dict[str, float]:

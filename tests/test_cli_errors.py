@@ -239,14 +239,20 @@ def test_fit_refuses_outputs_it_could_not_write_before_fitting(tmp_path: Path):
     refused(["fit", str(rec), "--truth", str(tmp_path / "missing.json")], "--truth", "missing.json")
 
 
-def test_a_budget_is_refused_when_nothing_would_spend_it_or_the_plan_overruns_it(tmp_path: Path, monkeypatch):
-    started = []
+@pytest.fixture
+def started(monkeypatch: pytest.MonkeyPatch) -> list[tuple]:
+    """``calibrate`` without a station: the arguments of each station run it would have started."""
+    calls: list[tuple] = []
 
     async def fake_station(*args):
-        started.append(args)
+        calls.append(args)
         return 0
 
     monkeypatch.setattr(cli, "_calibrate_station", fake_station)
+    return calls
+
+
+def test_a_budget_is_refused_when_nothing_would_spend_it_or_the_plan_overruns_it(tmp_path: Path, started: list):
     base = ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)]
     for budget in ("150", "180"):  # the default too: given without --adaptive, it would be spent on nothing
         refused([*base, "--budget", budget], f"--budget {budget}", "only the adaptive extension", "add --adaptive")
@@ -257,7 +263,7 @@ def test_a_budget_is_refused_when_nothing_would_spend_it_or_the_plan_overruns_it
     assert started and started[-1][4]["budget_s"] == 150 and started[-1][4]["adaptive"] is True
 
 
-def test_a_truth_file_of_the_wrong_shape_is_refused_before_any_work(tmp_path: Path, monkeypatch):
+def test_a_truth_file_of_the_wrong_shape_is_refused_before_any_work(tmp_path: Path, started: list):
     """``--truth`` is checked when the command starts: one unit for fit (simulate's, or a list of one),
     the list by slot for calibrate (sim's); anything else is one line naming the file and the problem."""
     rec = tmp_path / "rec.csv"
@@ -278,13 +284,6 @@ def test_a_truth_file_of_the_wrong_shape_is_refused_before_any_work(tmp_path: Pa
         r = runner.invoke(app, ["fit", str(rec), "--truth", str(good)])
         assert r.exit_code == 0 and "against the true unit" in r.output, r.output
 
-    started = []
-
-    async def fake_station(*args):
-        started.append(args)
-        return 0
-
-    monkeypatch.setattr(cli, "_calibrate_station", fake_station)
     base = ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)]
     refused([*base, "--truth", str(one)], "--truth", "a JSON object", "`sim --truth`")
     refused([*base, "--truth", str(tmp_path / "num.json")], "--truth", "int")

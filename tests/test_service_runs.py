@@ -508,3 +508,36 @@ def test_an_adaptive_calibration_over_the_api_says_whether_the_unit_reached_its_
                 and d["step"]["percent"] is None]  # (a retried step's event has no "step")
         assert said[0] == "fit and predicted heading error of each unit" and said[-1] == "calibration fit", said
         assert said.count("fit and predicted heading error of each unit") >= 2, said  # after the plan, after added poses
+
+
+def test_a_stored_run_the_procedure_now_refuses_fails_and_the_worker_goes_on(api: Api, monkeypatch):
+    """Parameters are checked when a run is made and again when a worker takes it (a run may wait in
+    the queue across an upgrade whose rules are stricter): one refused then fails, saying which field
+    and why, instead of taking the worker down with it; the station is free for the next run."""
+    from dataclasses import replace
+
+    from pydantic import field_validator
+
+    import service.worker as worker
+    from procedures.calibrate import PROCEDURES, CalibrateParams
+
+    class Stricter(CalibrateParams):
+        @field_validator("samples")
+        @classmethod
+        def _more(cls, v: int) -> int:
+            if v < 50:
+                raise ValueError("at least 50 samples now")
+            return v
+
+    with sim_station(reference_config(seed=8, time_scale=20)) as info:
+        make_station(api, info)
+        monkeypatch.setattr(worker, "PROCEDURES", {**PROCEDURES, "calibrate": replace(PROCEDURES["calibrate"], params=Stricter)})
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
+        assert r.status_code == 202, r.text
+        j = wait_run(api, r.json()["id"], timeout=30)
+        assert j["status"] == "failed" and j["reason"].startswith("parameters refused: samples:"), j
+        assert "at least 50 samples now" in j["reason"] and j["samples_count"] == 0
+        monkeypatch.setattr(worker, "PROCEDURES", PROCEDURES)
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 10}})
+        assert r.status_code == 202, r.text
+        assert wait_run(api, r.json()["id"], timeout=90)["status"] == "completed"

@@ -152,6 +152,11 @@ class Replay:
         return out
 
 
+def _listed(rows: list[int], most: int = 20) -> str:
+    """Row numbers for a warning: the first ``most``, then how many more."""
+    return ", ".join(map(str, rows[:most])) + (f" and {len(rows) - most} more" if len(rows) > most else "")
+
+
 @dataclass
 class Engine:
     """Runs one procedure once. Control it from other tasks with :meth:`pause`, :meth:`resume`,
@@ -590,7 +595,7 @@ class Engine:
             return
         flagged.update(bad)
         rows = sorted(bad)
-        listed = ", ".join(map(str, rows[:20])) + (f" and {len(rows) - 20} more" if len(rows) > 20 else "")
+        listed = _listed(rows)
         why = "; ".join(f"row {i}: {bad[i]}" for i in rows[:2])
         who = self.serials.get(slot) or f"slot {slot}"
         self.on_event(StepWarning(f"{who}: {len(rows)} bad sample(s) flagged after {label}, rows {listed} "
@@ -609,9 +614,8 @@ class Engine:
             kept = sorted(flagged - {int(r["index"]) for r in quality["rejected_rows"]})
             if kept:
                 who = self.serials.get(slot) or f"slot {slot}"
-                listed = ", ".join(map(str, kept[:20])) + (f" and {len(kept) - 20} more" if len(kept) > 20 else "")
                 self.on_event(StepWarning(f"{who}: {len(kept)} row(s) flagged during the run were kept by the fit, "
-                                          f"rows {listed}: on the whole run's readings they are within range"))
+                                          f"rows {_listed(kept)}: on the whole run's readings they are within range"))
 
     def _on_sample_clock(self, slot: Any, samples: list[Sample]) -> np.ndarray | None:
         """When the compass measured ``samples`` (consecutive lines as received; host seconds), on its

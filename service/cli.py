@@ -365,6 +365,8 @@ def _read_truth(path: Path, per_slot: bool) -> list[dict[str, Any]]:
     of one). A file of another shape ends the command naming what it holds and what was expected."""
     data = _read_json(path, "--truth")
     where = f"--truth {path}"
+    if not isinstance(data, (list, dict)):
+        _fail(f"{where}: a JSON {type(data).__name__}; expected the true parameters of a unit")
     if per_slot and isinstance(data, dict):
         _fail(f"{where}: a JSON object; expected the list by slot that `sim --truth` writes (one unit's, as "
               "`simulate` writes it, is for `fit --truth`)")
@@ -373,8 +375,6 @@ def _read_truth(path: Path, per_slot: bool) -> list[dict[str, Any]]:
             _fail(f"{where}: a list of {len(data)} units (what `sim --truth` writes); expected one unit: "
                   "the .truth.json of `simulate`, or a list of one")
     units = data if isinstance(data, list) else [data]
-    if not isinstance(data, (list, dict)):
-        _fail(f"{where}: a JSON {type(data).__name__}; expected the true parameters of a unit")
     for i, unit in enumerate(units):
         item = f"{where}: entry {i}" if isinstance(data, list) else where
         if not isinstance(unit, dict):

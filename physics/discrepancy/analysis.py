@@ -338,6 +338,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     say("name and rank", 0.9)
     findings = []
     by_name = {f.name: f for f in found}
+    penalty = _search_penalty(dic, found)
     for i, name in enumerate(terms):
         c = coef[offsets[i + 1]:offsets[i + 2]]
         cv = cov[offsets[i + 1]:offsets[i + 2], offsets[i + 1]:offsets[i + 2]]
@@ -347,7 +348,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         if name in by_name:
             # found by a search: its p pays for the dictionary's size and for the window's fitted edges,
             # as when it was chosen (the backward test alone counts only the round's catalogue tests)
-            row["p_adjusted"] = float(min(1.0, t.p_value * np.exp(_search_penalty(dic, [by_name[name]])[name])))
+            row["p_adjusted"] = float(min(1.0, t.p_value * np.exp(penalty[name])))
             findings.append(discovered_finding(by_name[name], c, cv, contrib, row, nom, ctx,
                                                _heading_impact(ctx, y_raw, nom, contrib)))
             continue
@@ -521,16 +522,15 @@ def _refit_windows(dic: Dictionary, found: list[Found], terms: dict[str, np.ndar
         for i, f in enumerate(found):
             if not f.block.windowed or f.name not in terms:
                 continue
-            Qo = _extend(Q0, *(Xw for name, Xw in terms.items() if name != f.name))
-            y = z - Qo @ (Qo.T @ z)
+            Qo, y = _given_others(Q0, z, terms, f.name)
             mine = Test(f.name, _complement(f.Xw, Qo))
             mine.statistic, mine.search = float(np.sum((mine.basis.T @ y) ** 2)), f.test.search
             g = dic.choose(dic.round(Qo, y, null, alpha), Qo, y, null, alpha)
             if g is None or g.name in terms or g.test.evidence <= mine.evidence + SAME_EVIDENCE:
                 continue
-            terms_new = {(g.name if name == f.name else name): (g.Xw if name == f.name else Xw) for name, Xw in terms.items()}
+            renamed = _replaced(terms, f.name, g)
             terms.clear()
-            terms.update(terms_new)
+            terms.update(renamed)
             found[i] = g
             moved = changed = True
         if not moved:
@@ -547,12 +547,22 @@ def _reconsider(dic: Dictionary, found: list[Found], terms: dict[str, np.ndarray
         return found, terms
     out = list(found)
     for i, f in enumerate(found):
-        Qo = _extend(Q0, *(Xw for name, Xw in terms.items() if name != f.name))
-        g = dic.reconsider(f, Qo, z - Qo @ (Qo.T @ z), null, alpha)
+        g = dic.reconsider(f, *_given_others(Q0, z, terms, f.name), null, alpha)
         if g.block != f.block:
-            terms = {(g.name if name == f.name else name): (g.Xw if name == f.name else Xw) for name, Xw in terms.items()}
+            terms = _replaced(terms, f.name, g)
             out[i] = g
     return out, terms
+
+
+def _given_others(Q0: np.ndarray, z: np.ndarray, terms: dict[str, np.ndarray], name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The span of the nominal model and every term but ``name`` (orthonormal), and ``z``'s residual off it."""
+    Qo = _extend(Q0, *(Xw for other, Xw in terms.items() if other != name))
+    return Qo, z - Qo @ (Qo.T @ z)
+
+
+def _replaced(terms: dict[str, np.ndarray], name: str, g: Found) -> dict[str, np.ndarray]:
+    """``terms`` with ``g`` in the place of term ``name`` (the order kept: the fit's offsets follow it)."""
+    return {(g.name if other == name else other): (g.Xw if other == name else Xw) for other, Xw in terms.items()}
 
 
 def _search_penalty(dic: Dictionary, found: list[Found]) -> dict[str, float]:

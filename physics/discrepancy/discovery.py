@@ -941,9 +941,7 @@ class Dictionary:
                 # where the nominal model takes the block held constant, windows and the times between them
                 # are the same departure: the shorter state is reported as the one something came in
                 segs = _gaps(ctx, segs)
-            Xs = X * _mask(ctx, segs)[:, None, None]
-            Xw = whiten_all(Xs, noise, ctx.segment)
-            t = Test(blk.name, _complement(Xw, Q))
+            Xs, Xw, t = self._in_windows(blk, segs, Q)
             t.statistic = float(np.sum((t.basis.T @ y) ** 2))
             t.p_value = float(np.exp(ws.log_p))
             t.log_p = float(min(0.0, ws.log_p + np.log(self.cost(blk))))
@@ -954,6 +952,13 @@ class Dictionary:
             cands.append(Found(blk, Xs, Xw, lab, t, segs, ws.m_eff))
         return cands
 
+    def _in_windows(self, blk: Block, segments: list[list[float]], Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, Test]:
+        """Windowed block ``blk``'s columns present only in ``segments`` (raw and whitened) and its test
+        beyond span ``Q`` (not yet scored)."""
+        Xs = self.base[(blk.frame, blk.form)][0] * _mask(self.ctx, segments)[:, None, None]
+        Xw = whiten_all(Xs, self.noise, self.ctx.segment)
+        return Xs, Xw, Test(blk.name, _complement(Xw, Q))
+
     def reconsider(self, f: Found, Q: np.ndarray, y: np.ndarray, null: np.ndarray | None, alpha: float) -> Found:
         """A windowed block chosen in an earlier round, its frame and form chosen again given every other
         term of the model (``Q``; ``y`` the residual orthogonal to it), on the same windows: when two
@@ -963,13 +968,10 @@ class Dictionary:
         be told from."""
         if not f.block.windowed or not f.segments:
             return f
-        mask = _mask(self.ctx, f.segments)[:, None, None]
         cands = []
         for blk in self.windowed:
-            X, lab = self.base[(blk.frame, blk.form)]
-            Xs = X * mask
-            Xw = whiten_all(Xs, self.noise, self.ctx.segment)
-            t = Test(blk.name, _complement(Xw, Q))
+            Xs, Xw, t = self._in_windows(blk, f.segments, Q)
+            lab = self.base[(blk.frame, blk.form)][1]
             _score([t], y, null, extra=self.cost(blk) - 1.0)
             t.search = f.test.search  # the same windows, searched once
             t.log_p = float(min(0.0, t.log_p + t.search))

@@ -9,7 +9,7 @@ second of table time, and none does I/O: the engine, or a fake one in a test, ru
 from __future__ import annotations
 
 import math
-from typing import Any, Literal, Mapping
+from typing import Any, ClassVar, Literal, Mapping
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator, model_validator
@@ -23,7 +23,7 @@ from physics.methods import TWELVE_POSITIONS
 from physics.precision import CONFIDENCE, TARGET_LEVEL_DEG, TARGET_TILTED_DEG, UnitPrecision, unit_precision
 from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_cost, plan_timeline
-from physics.table import DRIVE_SETTLE_S, PROCEDURE_SETTLE_S, Motion
+from physics.table import DRIVE_SETTLE_S, PROCEDURE_SETTLE_S, Motion, move_seconds
 from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Procedure, ProcedureGen, Prompt, Scan, Settle
 
 NAME = "calibrate"
@@ -68,7 +68,8 @@ class CalibrateParams(_Params):
     target_level_deg: float = Field(TARGET_LEVEL_DEG, gt=0, le=10, description="adaptive: level heading error target, deg")
     target_tilted_deg: float = Field(TARGET_TILTED_DEG, gt=0, le=10, description="adaptive: heading error target at pitch and roll up to 60 deg")
     budget_s: float = Field(DEFAULT_BUDGET_S, gt=0, le=3600, description="adaptive: table seconds the whole calibration may take "
-                            "(the plan's and the added poses' nominal seconds)")
+                            "(the plan's and the added poses' nominal seconds; a batch unit's move back to the load "
+                            "pose included)")
 
     @field_validator("method")
     @classmethod
@@ -86,12 +87,22 @@ class CalibrateParams(_Params):
             raise ValueError("budget_s: only the adaptive extension has a table-time budget; set adaptive true, "
                              "or leave budget_s out")
         if self.adaptive:
-            plan_s = _plan_seconds(calibration_poses(self), self)
+            plan_s = self.plan_seconds()
             if self.budget_s < plan_s:
                 raise ValueError(f"budget_s: {self.budget_s:g} s is shorter than the plan itself ({plan_s:.1f} s of "
                                  f"table time, nominal, at these samples and steps); give at least {math.ceil(plan_s)} "
                                  "s, more to leave room for added poses")
         return self
+
+    #: Where the table goes once the poses are done (None: it stays at the last pose).
+    END_POSE: ClassVar[tuple[float, float, float] | None] = None
+
+    def plan_seconds(self) -> float:
+        """Nominal table seconds of the plan without an adaptive extension (and the move to
+        :attr:`END_POSE` after it), as the budget counts them."""
+        poses = calibration_poses(self)
+        last = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
+        return _plan_seconds(poses, self) + _return_seconds(last, self.END_POSE)
 
 
 def calibration_poses(p: CalibrateParams = CalibrateParams()) -> list[Pose]:
@@ -232,6 +243,8 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
             spent = _plan_seconds(poses, p)
             here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
             precision, fitted = yield from extend_to_target(p, data, spent, here)
+    if p.END_POSE is not None:
+        yield Move(*p.END_POSE)
 
     def result(cal: Calibration) -> dict[str, Any]:
         return {"calibration": cal, "quality": cal.quality}
@@ -264,6 +277,14 @@ def _plan_seconds(poses: list[Pose], p: CalibrateParams, start: tuple[float, flo
     return plan_cost(poses, Motion(settle_s=DRIVE_SETTLE_S + p.settle_s), start=start).total_s
 
 
+def _return_seconds(here: tuple[float, float, float], end: tuple[float, float, float] | None) -> float:
+    """Nominal table seconds of the move from ``here`` to ``end`` (0 without one), as the engine counts
+    a move: the drives' settling included, no procedure settle (nothing is acquired there)."""
+    if end is None:
+        return 0.0
+    return move_seconds([b - a for a, b in zip(here, end)], Motion(settle_s=DRIVE_SETTLE_S)) + DRIVE_SETTLE_S
+
+
 def adaptive_reserve(p: CalibrateParams) -> float:
     """Table seconds an adaptive extension may add after the plan (0 when not adaptive)."""
     return max(p.budget_s - _plan_seconds(calibration_poses(p), p), 0.0) if p.adaptive else 0.0
@@ -289,13 +310,16 @@ HOLDS = (1, 4)
 
 def choose_poses(units: dict[int, UnitPrecision], targets: dict[str, float], p: CalibrateParams,
                  here: tuple[float, float, float], left_s: float,
-                 added: dict[int, list] | None = None) -> tuple[list[Pose], float, dict[int, list]]:
+                 added: dict[int, list] | None = None,
+                 end: tuple[float, float, float] | None = None) -> tuple[list[Pose], float, dict[int, list]]:
     """Poses (up to :data:`ROUND_S` of table time, within ``left_s``) that lower the units' predicted heading
     errors fastest: each in turn the candidate (pose and hold length) with the largest fall per table second
     of the sum over units of their worst 1-sigma error over target, counting the poses already chosen (and
     ``added``, the information of poses chosen before but not yet in the fit). Returns them, their seconds
-    and the information added with them (per slot: magnetometer, accelerometer)."""
+    and the information added with them (per slot: magnetometer, accelerometer). With ``end``, a pose is
+    taken only if the move from it to ``end`` still fits in ``left_s`` (not counted in the seconds returned)."""
     cands = np.array(ADAPTIVE_POSES)
+    back = np.array([_return_seconds(c, end) for c in ADAPTIVE_POSES])
     per = {s: (u.mag.per_sample(cands), u.acc.per_sample(cands) if u.acc else None) for s, u in units.items()}
     if added is None:
         added = {s: [np.zeros((14, 14)), np.zeros((14, 14)) if u.acc else None] for s, u in units.items()}
@@ -321,7 +345,7 @@ def choose_poses(units: dict[int, UnitPrecision], targets: dict[str, float], p: 
                      None if a[1] is None else a[1] + grid_n[:, None, None] * per[s][1][grid_c]]
                  for s, a in added.items()}
         after = objective(trial)
-        rate = np.where(spent + cost <= left_s, (now - after) / cost, -np.inf)
+        rate = np.where(spent + cost + back[grid_c] <= left_s, (now - after) / cost, -np.inf)
         i = int(np.argmax(rate))
         if not rate[i] > 0.0:
             break
@@ -340,21 +364,22 @@ LOOKAHEAD_S = 900.0
 
 
 def time_to_target(u: UnitPrecision, targets: dict[str, float], p: CalibrateParams,
-                   here: tuple[float, float, float]) -> float | None:
+                   here: tuple[float, float, float], end: tuple[float, float, float] | None = None) -> float | None:
     """Table seconds of further poses, chosen round by round as the extension chooses them, after which
     ``u``'s predicted errors (bounds at 95 % confidence, on the information those poses would add to its fit) meet
     the targets; None when :data:`LOOKAHEAD_S` would not do. For a unit the budget left short: the
-    budget it needed."""
-    spent, added = 0.0, None
+    budget it needed. With ``end``: the move there from the last pose counted, less the one from ``here``
+    (which the table time so far already counts)."""
+    spent, added, back = 0.0, None, _return_seconds(here, end)
     while spent < LOOKAHEAD_S:
-        poses, seconds, added = choose_poses({0: u}, targets, p, here, LOOKAHEAD_S - spent, added)
+        poses, seconds, added = choose_poses({0: u}, targets, p, here, LOOKAHEAD_S - spent, added, end)
         if not poses:
             return None
         spent += seconds
         here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
         q = u.quantile(extra_mag=added[0][0], extra_acc=added[0][1])
         if all(q[k] <= t for k, t in targets.items()):
-            return spent
+            return spent + _return_seconds(here, end) - back
     return None
 
 
@@ -362,7 +387,8 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
                      here: tuple[float, float, float]) -> ProcedureGen:
     """Add poses until every unit's predicted heading error (bounds on its largest error level and at +-60 deg
     that hold together at 95 % confidence, from its joint fit's covariance: physics.precision) meets the targets, or the table-time budget
-    would be exceeded. Returns per slot what was predicted, whether the targets were met and why it stopped;
+    would be exceeded (with ``p.END_POSE``, the move there after the last pose included: it is counted in
+    the budget and in ``table_s``). Returns per slot what was predicted, whether the targets were met and why it stopped;
     and the last round's joint fits, made on all the data (the calibration's own fit, not made again)."""
     targets = {"level": p.target_level_deg, "tilted": p.target_tilted_deg}
     added = 0
@@ -377,7 +403,7 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
         pending = {s: units[s] for s in units if any(predicted[s][k] > t for k, t in targets.items())}
         if not pending:
             break
-        poses, seconds, _ = choose_poses(pending, targets, p, here, p.budget_s - spent_s)
+        poses, seconds, _ = choose_poses(pending, targets, p, here, p.budget_s - spent_s, end=p.END_POSE)
         if not poses:  # the budget cannot take another pose
             break
         yield from visit(poses, p.settle_s, data)
@@ -385,10 +411,11 @@ def extend_to_target(p: CalibrateParams, data: Collected, spent_s: float,
         added += len(poses)
         here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
     out = {}
+    spent_s += _return_seconds(here, p.END_POSE)
     for s, q in predicted.items():
         met = all(q[k] <= t for k, t in targets.items())
         # for a unit short of the targets: the further table time it needs (None: beyond the look-ahead)
-        more = None if met else time_to_target(units[s], targets, p, here)
+        more = None if met else time_to_target(units[s], targets, p, here, p.END_POSE)
         res = {"predicted_level_deg": q["level"], "predicted_tilted_deg": q["tilted"], "confidence": CONFIDENCE,
                "target_level_deg": targets["level"], "target_tilted_deg": targets["tilted"], "met": met,
                "stopped": "reached" if met else "budget", "added_poses": added,
@@ -710,6 +737,10 @@ MOUNT_PROMPT = "mount"
 class BatchCalibrateParams(CalibrateParams):
     """The calibration of one unit of a batch: the operator is asked to mount it first."""
 
+    #: the unit is taken out on a level platform at home, where the next unit's plan starts: the move
+    #: back is part of this unit's calibration (and of its budget), not of the next unit's
+    END_POSE: ClassVar[tuple[float, float, float] | None] = LOAD_POSE
+
     serial: str = Field(min_length=1, description="the unit to mount in slot 0")
     unmount: str | None = Field(None, description="the previous unit (with its result), to take out first")
 
@@ -723,8 +754,8 @@ def batch_calibrate(p: BatchCalibrateParams) -> ProcedureGen:
     text = f"mount unit {p.serial} in slot 0"
     if p.unmount:
         text = f"unmount unit {p.unmount}, then {text}"
-    # the last unit's plan left the platform rolled (the x sweep ends at phi 300): the operator swaps
-    # units on a level platform at home, where the next plan starts anyway
+    # the previous unit's run ended at the load pose (END_POSE); the first unit of a batch may find the
+    # table wherever another run left it
     yield Move(*LOAD_POSE)
     yield Prompt(text, id=MOUNT_PROMPT)
     return (yield from calibrate(p))

@@ -17,7 +17,8 @@ import numpy as np
 VERSION_KEY = "compasscal-recording"
 FORMAT_VERSION = "1"
 SKIPPED_KEY = "skipped_rows"
-#: With skip_bad_rows: the 0-based data rows of the file that were skipped (a parse note, as SKIPPED_KEY).
+#: The 0-based data rows of the file that are not in the recording (a parse note, as SKIPPED_KEY): the
+#: malformed rows skip_bad_rows dropped, and a mapped file's rows without a reference attitude.
 SKIPPED_AT_KEY = "skipped_at_rows"
 
 ANGLE_COLUMNS = ("psi_t", "theta_t", "phi_t")
@@ -153,9 +154,10 @@ def _show(raw: str, limit: int = 80) -> str:
 
 
 def file_row(rec: Recording, index: int) -> int:
-    """The 0-based data row of the file that sample ``index`` was read from: the index itself unless
-    malformed rows before it were skipped (meta ``skipped_at_rows``), which a message about the sample
-    must count to point at the right row of the file."""
+    """The 0-based data row of the file that sample ``index`` was read from (the rows after the header,
+    blank and comment lines not counted): the index itself unless rows before it were left out (meta
+    ``skipped_at_rows``: malformed rows skipped, a mapped file's rows without a reference), which a
+    message about the sample must count to point at the right row of the file."""
     for skipped in sorted(int(x) for x in rec.meta.get(SKIPPED_AT_KEY, "").split(",") if x.strip()):
         if skipped <= index:
             index += 1

@@ -254,7 +254,8 @@ def fit(
     dropped = cal.quality.get("rejected_rows") or []
     if dropped:  # bad samples the fit rejected on its own (physics.fit): which, and why
         console.print(f"[yellow]{len(dropped)} of {cal.quality.get('samples_total')} rows dropped as bad samples "
-                      f"(sample index = 0-based data row of {recording.name}):[/]")
+                      f"(sample = 0-based data row of {recording.name} after its header, blank and comment lines "
+                      f"not counted):[/]")
         for row in dropped[:20]:  # as the file counts its rows, the malformed ones skipped included
             console.print(f"  sample {file_row(rec, int(row['index']))} (t {row['t']:g} s, step {escape(row['step'])}): "
                           f"{escape(row['reason'])}")

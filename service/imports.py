@@ -44,7 +44,7 @@ from pydantic_core import ErrorDetails
 from scipy.spatial.transform import Rotation
 
 from physics.frames import yaw_pitch_roll
-from physics.recording import SKIPPED_KEY, Recording, RecordingError, parse_recording
+from physics.recording import SKIPPED_AT_KEY, SKIPPED_KEY, Recording, RecordingError, parse_recording
 from physics.sensor import ACC_LSB_PER_G
 
 #: Nominal magnetometer scale of PROTOCOLS.md's compass: counts per microtesla (0.01 uT per count).
@@ -148,6 +148,7 @@ def _read_qmc_csv(path: Path, text: str, skip_bad_rows: bool) -> Recording:
 
     rows: list[list[float]] = []
     problems: list[str] = []
+    skipped_at: list[int] = []  # 0-based data rows (the non-blank lines after the header)
     for lineno, line in enumerate(lines[3:], start=4):
         if not line.strip():
             continue
@@ -160,6 +161,7 @@ def _read_qmc_csv(path: Path, text: str, skip_bad_rows: bool) -> Recording:
                 raise ValueError("non-finite value")
         except ValueError as e:
             problems.append(f"line {lineno}: {e} ({line.strip()[:60]!r})")
+            skipped_at.append(len(rows) + len(skipped_at))
             continue
         rows.append(values)
     if problems and not skip_bad_rows:
@@ -187,6 +189,8 @@ def _read_qmc_csv(path: Path, text: str, skip_bad_rows: bool) -> Recording:
     }
     if skip_bad_rows:
         meta[SKIPPED_KEY] = str(len(problems))
+        if skipped_at:
+            meta[SKIPPED_AT_KEY] = ",".join(map(str, skipped_at))
     return _build(path, t=t, step=step, mag=mag, meta=meta)
 
 
@@ -835,9 +839,10 @@ def load_mapping(mapping: Path | str | dict[str, Any]) -> Mapping:
 class _Table:
     """The mapped file's rows: one float array per column key, labels for messages."""
 
-    def __init__(self, n: int, where: list[str], labels: dict[str, str]) -> None:
+    def __init__(self, n: int, where: list[str], labels: dict[str, str], rows: list[int] | np.ndarray) -> None:
         self.n = n
         self.where = where  # "line 17" / "row 5" for each kept row
+        self.rows = np.asarray(rows, dtype=int)  # the 0-based data row of the file of each kept row
         self.labels = labels  # column key -> how the message names the column ("'Bx'", "3 ('Bx')")
         self.values: dict[str, np.ndarray] = {}
         self.skipped = 0
@@ -917,8 +922,9 @@ def _csv_table(path: Path, m: Mapping, skip_bad_rows: bool) -> _Table:
     problems: list[str] = []
     bad_rows = 0
     where: list[str] = []
+    kept: list[int] = []
     cells_out: dict[str, list[Any]] = {k: [] for k in index}
-    for lineno, cells in rows:
+    for data_row, (lineno, cells) in enumerate(rows):
         row_problems = []
         if header is not None and len(cells) > len(header):  # a shifted or merged line: its cells cannot be trusted
             row_problems.append(f"line {lineno}: {len(cells)} fields, the header has {len(header)}")
@@ -950,13 +956,14 @@ def _csv_table(path: Path, m: Mapping, skip_bad_rows: bool) -> _Table:
             bad_rows += 1
             continue
         where.append(f"line {lineno}")
+        kept.append(data_row)
         for key, v in parsed.items():
             cells_out[key].append(v)
     if problems and not skip_bad_rows:
         more = f"\n... and {len(problems) - MAX_PROBLEMS} more" if len(problems) > MAX_PROBLEMS else ""
         raise _fail(path, f"{len(problems)} problem(s) in {bad_rows} row(s) of the mapped columns:\n"
                           + "\n".join(problems[:MAX_PROBLEMS]) + more)
-    table = _Table(len(where), where, labels)
+    table = _Table(len(where), where, labels, kept)
     table.skipped = bad_rows
     for key, values in cells_out.items():
         table.values[key] = np.array(values, dtype=object if key == "step" else float)
@@ -1040,7 +1047,7 @@ def _array_table(path: Path, m: Mapping, fmt: str, skip_bad_rows: bool) -> _Tabl
         raise _fail(path, f"{int(bad.sum())} row(s) with non-finite values in the mapped columns:\n"
                           + "\n".join(problems[:MAX_PROBLEMS]))
     keep = np.flatnonzero(~bad)
-    table = _Table(len(keep), [f"row {i + 1}" for i in keep], labels)
+    table = _Table(len(keep), [f"row {i + 1}" for i in keep], labels, keep)
     table.skipped = int(bad.sum())
     for key, col in cols.items():
         if key == "step":
@@ -1183,6 +1190,12 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
     step = v["step"] if "step" in v else np.full(tab.n, m.file.step, dtype=object)
     if skip_bad_rows:
         meta[SKIPPED_KEY] = str(tab.skipped)
+    # the file's data rows not in the recording (malformed, or with no reference): what a message about
+    # a sample counts to name its row of the file (physics.recording.file_row)
+    left_out = np.ones(tab.n + tab.skipped, dtype=bool)
+    left_out[tab.rows[keep]] = False
+    if left_out.any():
+        meta[SKIPPED_AT_KEY] = ",".join(map(str, np.flatnonzero(left_out)))
     if gyro is not None:
         extra = _extra(gyro[keep])
     meta.update(m.meta)

@@ -10,7 +10,7 @@ import pytest
 import scipy.io
 
 from physics.frames import rot_x, rot_y, rot_z
-from physics.recording import RecordingError, format_recording, parse_recording
+from physics.recording import RecordingError, file_row, format_recording, parse_recording
 from service.imports import RecordingFileError, broad_attitude, read_recording_file
 
 REAL = Path(__file__).resolve().parent.parent / "data" / "real"
@@ -155,9 +155,11 @@ def test_bad_files_give_named_errors(tmp_path):
 
 
 def test_bad_rows_can_be_skipped(tmp_path):
-    p = _write(tmp_path, "q.csv", "Fs,50\nInitialization time,0\nmx,my,mz\n1,2,3\n4,x,6\n7,8,9\n")
+    p = _write(tmp_path, "q.csv", "Fs,50\nInitialization time,0\nmx,my,mz\n1,2,3\n4,x,6\n\n7,8,9\n")
     rec = read_recording_file(p, skip_bad_rows=True)
     assert len(rec) == 2 and rec.meta["skipped_rows"] == "1"
+    # a message about the second sample names its data row of the file (the skipped one counted)
+    assert rec.meta["skipped_at_rows"] == "1" and [file_row(rec, i) for i in range(2)] == [0, 2]
 
 
 def test_mat_layouts_are_checked(tmp_path):
@@ -405,6 +407,7 @@ def test_mapping_dt_column_counts_and_quaternion(tmp_path):
     rec = read_recording_file(p, mapping=m)
     assert rec.t.tolist() == pytest.approx([0.0, 0.045])  # 0, then 20 + 25 ms (the dropped row's time counts)
     assert rec.meta["dropped_rows_no_reference"] == "1" and rec.mag[1].tolist() == [4.0, 5.0, 6.0]
+    assert file_row(rec, 1) == 2  # the file's row of the second sample: the dropped row counted
     assert rec.psi_t[0] == pytest.approx(30.0) and rec.theta_t[0] == pytest.approx(0.0, abs=1e-9)
     assert rec.theta_t[1] == pytest.approx(-20.0) and rec.phi_t[1] == pytest.approx(0.0, abs=1e-9)
     assert rec.meta["attitude_source"] == "attitude reference (quaternion)"
@@ -548,6 +551,11 @@ def test_mapping_data_errors_name_the_column_and_line(tmp_path):
     assert "column 'c' line 6: missing (the row has 3 fields)" in msg
     rec = read_recording_file(tmp_path / "d.csv", mapping=m, skip_bad_rows=True)
     assert len(rec) == 2 and rec.meta["skipped_rows"] == "3"
+    assert [file_row(rec, i) for i in range(2)] == [0, 1] and rec.meta["skipped_at_rows"] == "2,3,4"
+    # the rows after a skipped one are named by their row of the file, comments not counted
+    rec = read_recording_file(_write(tmp_path, "d.csv", "tms,a,b,c\n0,1,2,3\n# note\nx,1,2,3\n10,1,2,3\n"),
+                              mapping={**m, "file": {"comment": "#"}}, skip_bad_rows=True)
+    assert len(rec) == 2 and [file_row(rec, i) for i in range(2)] == [0, 2]
     msg = _mapping_error(tmp_path, m, "tms,a,b,c\n0,1,2,3\n10,1,2,3\n5,1,2,3\n")
     assert "column 'tms' line 4: time goes backwards (5 after 10 ms)" in msg
 

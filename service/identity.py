@@ -149,6 +149,17 @@ class UnitCheck:
         typed = self.typed.get(slot)
         ident = (self.idents or {}).get(slot)
         identified = ident[1].strip() if ident and ident[1] and ident[1].strip() else None
+        if identified is not None:
+            from service.schemas import check_serial  # (service.schemas imports this module)
+            try:
+                check_serial(identified)
+            except ValueError as e:  # a garbled answer, or one no URL /devices/{serial} reads back
+                said = f"the unit reported {identified[:80]!r}, which is not a serial number ({e})"
+                if typed is None:
+                    return Identity(slot, None, identified, "not identified", "",
+                                    f"{said}: not calibrated; start the run again with its serial number, e.g. "
+                                    f'"serials": {{"{slot}": "SN-..."}}', certify=False)
+                return Identity(slot, typed, identified, "not identified", typed, f"{said}; certified as the typed {typed}")
         if identified is None and typed is None:  # nothing to store its calibration under: do not move for it
             return Identity(slot, None, None, "not identified", "",
                             "the unit did not report a serial number and none was typed: not calibrated; start the "

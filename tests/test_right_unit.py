@@ -234,3 +234,23 @@ def test_a_unit_with_no_serial_at_all_is_refused_before_the_table_moves(api: Api
         assert j["samples_count"] == 0 and j["calibrations"] == []
         assert j["result"]["units"]["0"]["identification"] == "not identified"
         assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
+
+
+def test_a_unit_reporting_what_is_no_serial_number_is_treated_as_not_identified(api: Api):
+    """A compass whose ID answer is no serial number the station can store (a '/' that no URL
+    /devices/{serial} reads back, or a garbled answer) is not certified under it: with none typed the run
+    fails before the table moves, naming what it reported and the rule; with one typed, the unit is
+    calibrated as typed and marked "not identified", the note saying why."""
+    with sim_station(reference_config(seed=27, time_scale=20)) as info:
+        make_station(api, info)
+        mount(info, "UNIT/7")
+        j = wait_run(api, start(api), timeout=60)
+        assert j["status"] == "failed", j
+        assert "'UNIT/7'" in j["reason"] and "not a serial number" in j["reason"] and '"serials"' in j["reason"], j
+        assert j["samples_count"] == 0 and j["calibrations"] == []
+        done = wait_run(api, start(api, serials={"0": "SN-TYPED"}), timeout=90)
+        assert done["status"] == "completed", done
+        unit = done["result"]["units"]["0"]
+        assert unit["serial"] == "SN-TYPED" and unit["identification"] == "not identified", unit
+        assert unit["identified_serial"] == "UNIT/7" and "certified as the typed SN-TYPED" in unit["serial_note"], unit
+        assert [c["serial"] for c in done["calibrations"]] == ["SN-TYPED"]

@@ -24,7 +24,7 @@ from physics.precision import CONFIDENCE, TARGET_LEVEL_DEG, TARGET_TILTED_DEG, U
 from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_cost, plan_timeline
 from physics.table import DRIVE_SETTLE_S, PROCEDURE_SETTLE_S, Motion, move_seconds
-from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Procedure, ProcedureGen, Prompt, Scan, Settle
+from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Park, Procedure, ProcedureGen, Prompt, Scan, Settle
 
 NAME = "calibrate"
 VERSION = "2"
@@ -243,8 +243,8 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
             spent = _plan_seconds(poses, p)
             here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
             precision, fitted = yield from extend_to_target(p, data, spent, here)
-    if p.END_POSE is not None:
-        yield Move(*p.END_POSE)
+    if p.END_POSE is not None:  # a fault on the way there is a warning: the data are in
+        yield Park(*p.END_POSE)
 
     def result(cal: Calibration) -> dict[str, Any]:
         return {"calibration": cal, "quality": cal.quality}

@@ -41,7 +41,7 @@ from procedures.calibrate import PROCEDURES
 from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, PromptAsked, Result, Resumed, SamplesStored,
                                StateChanged, StepRetried, StepStarted, StepWarning)
 from procedures.states import RunState
-from procedures.steps import (TIMED_STEPS, Acquire, Checkpoint, Compute, Identify, Move, Outcome, Procedure, Prompt, Scan, Settle, Step,
+from procedures.steps import (TIMED_STEPS, Acquire, Checkpoint, Compute, Identify, Move, Outcome, Park, Procedure, Prompt, Scan, Settle, Step,
                               step_seconds)
 
 #: Table axis turned by each Scan axis.
@@ -349,8 +349,16 @@ class Engine:
         if isinstance(step, Compute):  # the table holds where it is
             return self._computing(step)
         if isinstance(step, Move):
-            self._held = await self._retry(lambda: self.station.table.move_to(
-                step.psi, step.theta, step.phi, speed_dps=self.station.speed_dps, accel_dps2=self.station.accel_dps2), MoveTimeout)
+            try:
+                self._held = await self._retry(lambda: self.station.table.move_to(
+                    step.psi, step.theta, step.phi, speed_dps=self.station.speed_dps, accel_dps2=self.station.accel_dps2), MoveTimeout)
+            except (DriverError, asyncio.TimeoutError) as e:
+                if not isinstance(step, Park):
+                    raise
+                await self._stop_axes()
+                self._held = None
+                self.on_event(StepWarning(f"the table did not reach its rest pose ({_reason(e)}): axes stopped; the run's "
+                                          "data and result are whole; reset the station before the next run"))
             return self._held
         if isinstance(step, Settle):
             await asyncio.sleep(step.seconds / self.station.time_scale)

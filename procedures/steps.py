@@ -30,6 +30,13 @@ class Move:
 
 
 @dataclass(frozen=True)
+class Park(Move):
+    """Move the table where the operator works once the run's data are in (a batch unit's load pose).
+    A fault on the way stops the axes and is a warning, not the run's failure: what the run measured is
+    whole (the next run finds the axis in fault and says to reset it). Reply: the encoder angles, or None."""
+
+
+@dataclass(frozen=True)
 class Settle:
     """Wait this long (table time) after the move, so the mechanics and the sensor filters settle."""
 

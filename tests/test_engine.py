@@ -26,7 +26,7 @@ from procedures.calibrate import PROCEDURES
 from procedures.engine import Engine, RecordingSink, RunState, run_procedure
 from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, PromptAnswered, PromptAsked, Result, SamplesStored, StateChanged, StepRetried,
                                StepStarted, StepWarning)
-from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Procedure, Prompt
+from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Park, Procedure, Prompt
 
 
 @asynccontextmanager
@@ -103,6 +103,40 @@ def test_an_axis_alarm_mid_run_fails_the_run_stops_the_table_and_keeps_the_sampl
     rec = parse_recording(sink.path(0).read_text())
     assert len(rec) == (8 + 1) * 60  # the level turn and the first sweep pose, all kept
     assert rec.step[-1] == "sweep_y"
+
+
+def test_a_fault_on_the_way_to_the_rest_pose_is_a_warning_and_the_run_keeps_its_result(tmp_path: Path):
+    """The move that parks the table once the data are in (a batch unit's load pose) faults: the axes
+    stop and the run says so, but it completes with its result (a unit's whole calibration is not lost
+    to the move back); a fault on an ordinary move still fails the run."""
+    def parked(params) -> object:
+        yield Move(30.0)
+        data = yield Acquire(5, "check")
+        yield Park(200.0)  # through the alarm at 100 deg
+        return Outcome({0: {"n": len(data[0]) if data else 0}})
+    cfg = reference_config(seed=3, time_scale=20)
+    d = cfg.model_dump()
+    d["fault"] = [{"kind": "axis_alarm", "axis": "z", "code": 0x30, "at_angle_deg": 100.0}]
+    proc = Procedure("parked", "1", PROCEDURES["rotate_z"].params, parked)
+
+    async def main():
+        async with on_sim(parse_config(d)) as (st, station):
+            events: list[Event] = []
+            result = await Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append).run()
+            return result, events, await station.table.status_all()
+    result, events, status = asyncio.run(asyncio.wait_for(main(), 30))
+    assert result.state is RunState.completed and result.outcome.results[0] == {"n": 5}, result
+    said = [e.warning for e in events if isinstance(e, StepWarning)]
+    assert any("did not reach its rest pose" in m and "0x30 overload" in m for m in said), said
+    assert not any(s.moving for s in status.values())
+    plain = Procedure("plain", "1", proc.params, lambda params: (yield Move(200.0)))
+    result, *_ = asyncio.run(asyncio.wait_for(_run_on(parse_config(d), plain), 30))
+    assert result.state is RunState.failed and "0x30 overload" in result.reason
+
+
+async def _run_on(cfg: StationConfig, proc: Procedure):  # noqa: ANN202
+    async with on_sim(cfg) as (st, station):
+        return await Engine(station, proc, proc.validate({}), RecordingSink(None, {})).run(), None
 
 
 def test_a_compass_hiccup_is_retried_and_every_pose_keeps_exactly_its_planned_count(tmp_path: Path):

@@ -19,7 +19,7 @@ from drivers import Station
 from physics.table import Motion
 from procedures.calibrate import (ADAPTIVE_POSES, BATCH, LOAD_POSE, PROCEDURES, CalibrateParams, adaptive_reserve,
                                   calibration_poses)
-from procedures.steps import TIMED_STEPS, Move, Prompt, simulate_run, step_seconds
+from procedures.steps import TIMED_STEPS, Park, Prompt, simulate_run, step_seconds
 
 
 def _units(n: int, seed: int) -> list[tuple]:
@@ -196,7 +196,7 @@ def test_a_batch_units_budget_holds_its_move_back_to_the_load_pose() -> None:
         pr = out.results[0]["calibration"].quality["precision"]
         after_mount = steps[next(i for i, s in enumerate(steps) if isinstance(s, Prompt)) + 1:]
         engine_s = sum(step_seconds([s for s in after_mount if isinstance(s, TIMED_STEPS)], motion, LOAD_POSE))
-        assert moves[-1] == Move(*LOAD_POSE) and pr["added_poses"] > 0, pr
+        assert moves[-1] == Park(*LOAD_POSE) and pr["added_poses"] > 0, pr
         assert budget - 15.0 < engine_s <= budget + 1e-6 and pr["table_s"] == pytest.approx(engine_s, abs=1e-6), (budget, engine_s, pr)
     # the plan alone with its move back is the least budget a batch unit takes
     plan_s = proc.validate({"serial": "SN-1"}).plan_seconds()

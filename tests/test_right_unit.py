@@ -254,3 +254,4 @@ def test_a_unit_reporting_what_is_no_serial_number_is_treated_as_not_identified(
         assert unit["serial"] == "SN-TYPED" and unit["identification"] == "not identified", unit
         assert unit["identified_serial"] == "UNIT/7" and "certified as the typed SN-TYPED" in unit["serial_note"], unit
         assert [c["serial"] for c in done["calibrations"]] == ["SN-TYPED"]
+        assert api.get("/devices/UNIT%2F7", role="viewer").status_code in (404, 422)

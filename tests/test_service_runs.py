@@ -450,23 +450,6 @@ def test_an_unanswered_prompt_frees_the_station(db_url: str, monkeypatch: pytest
         assert st["state"] == "idle" and st["run_id"] is None and st["batch_id"] is None
 
 
-def test_a_serial_a_compass_reports_is_checked_like_one_typed(api: Api):
-    """A compass that reports a serial the service cannot store or read back (here with a '/'): the
-    run measures, keeps its samples and says why no calibration was stored for that unit."""
-    from drivers.sim.config import parse_config
-
-    d = reference_config(seed=14, time_scale=20).model_dump()
-    d["unit"][0]["serial"] = "GAO/2017"
-    with sim_station(parse_config(d)) as info:
-        make_station(api, info)
-        rid = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}}).json()["id"]
-        done = wait_run(api, rid, timeout=90)
-    unit = done["result"]["units"]["0"]
-    assert done["status"] == "completed" and done["samples_count"] > 0, done
-    assert "GAO/2017" in unit.get("error", "") and "give serials in the request" in unit["error"], unit
-    assert api.get("/devices/GAO%2F2017", role="viewer").status_code in (404, 422)
-
-
 def test_an_adaptive_calibration_over_the_api_says_whether_the_unit_reached_its_target(api: Api):
     """POST /runs with ``adaptive``: a budget the short plan leaves room in; the stored calibration carries
     the prediction, the verdict on the targets and why, in its notes (which the certificate lists). A comparison

@@ -3,7 +3,8 @@
 A run names its units once they are mounted, before the table's first step with them (a calibration
 right away; a batch's unit after its mount prompt, which the table awaits at its load pose). For each slot:
 
-- the unit reports no serial number (an empty one, or it refuses the ID command): ``not identified``;
+- the unit reports no serial number (an empty one, or it refuses the ID command), or an answer that is no
+  serial number (:func:`check_serial`, the rule every serial number here follows): ``not identified``;
   the typed serial is used as before, and the result and the certificate say so; with none typed the
   slot is not calibrated (nothing to store it under), which a run of one unit says before the table moves;
 - it reports the typed one, or none was typed: ``identified``;
@@ -20,6 +21,7 @@ No I/O here: :class:`UnitCheck` wraps a procedure's generator with the steps tha
 
 from __future__ import annotations
 
+import string
 from collections.abc import Generator
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
@@ -34,6 +36,33 @@ DEFAULT_POLICY = "prompt"
 CHOICES = ("typed", "identified", "skip")
 #: Serial prompts are named ``serial-SLOT``.
 PROMPT_PREFIX = "serial-"
+
+
+#: Longest serial number (``devices.serial``).
+SERIAL_MAX = 64
+#: A serial number's characters: printable ASCII letters, digits, ``- _ . : + #`` and (inside) the space.
+SERIAL_CHARS = frozenset(string.ascii_letters + string.digits + "-_.:+# ")
+SERIAL_PATTERN = r"^[A-Za-z0-9_.:+#-]([A-Za-z0-9_.:+# -]*[A-Za-z0-9_.:+#-])?$"
+SERIAL_RULE = ("1 to 64 printable ASCII characters: letters, digits, '-', '_', '.', ':', '+', '#' and spaces "
+               "between them (no '/', no control or non-ASCII characters)")
+
+
+def check_serial(value: str) -> str:
+    """A serial number as stored: spaces at either end dropped, then 1 to 64 characters of
+    :data:`SERIAL_CHARS`, so it fits ``devices.serial`` on both databases, reads back through
+    ``/devices/{serial}`` and can name a file. ValueError names the problem."""
+    if "\x00" in value:
+        raise ValueError("contains a NUL character (\\x00)")
+    v = value.strip(" ")
+    if not v:
+        raise ValueError("empty serial number")
+    if len(v) > SERIAL_MAX:
+        raise ValueError(f"serial number of {len(v)} characters; at most {SERIAL_MAX}")
+    bad = next((c for c in v if c not in SERIAL_CHARS), None)
+    if bad is not None:
+        raise ValueError(f"character {bad!r} at position {v.index(bad) + 1} is not allowed in a serial number: "
+                         + SERIAL_RULE)
+    return v
 
 
 def is_serial_prompt(prompt_id: str) -> bool:
@@ -150,7 +179,6 @@ class UnitCheck:
         ident = (self.idents or {}).get(slot)
         identified = ident[1].strip() if ident and ident[1] and ident[1].strip() else None
         if identified is not None:
-            from service.schemas import check_serial  # (service.schemas imports this module)
             try:
                 check_serial(identified)
             except ValueError as e:  # a garbled answer, or one no URL /devices/{serial} reads back

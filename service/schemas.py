@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import math
 import re
-import string
 from datetime import datetime
 from typing import Annotated, Any
 
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from drivers.modbus import BusURL
-from service.identity import CHOICES, SerialPolicy as _SerialPolicy
+from service.identity import (CHOICES, SERIAL_MAX, SERIAL_PATTERN, SERIAL_RULE, SerialPolicy as _SerialPolicy,
+                              check_serial)
 
 #: A serial policy as typed: spaces and case do not matter ("Refuse"), as an operator's answer to a serial prompt.
 SerialPolicy = Annotated[_SerialPolicy, BeforeValidator(lambda v: v.strip().lower() if isinstance(v, str) else v)]
@@ -54,13 +54,8 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 
 #: The largest id, slot or offset: PostgreSQL's ``integer`` (SQLite would take more, PostgreSQL not).
 INT32_MAX = 2**31 - 1
-#: Longest serial number (``devices.serial``), station, limit or other name, and step label (``samples.step``).
-SERIAL_MAX, NAME_MAX, STEP_MAX = 64, 64, 32
-#: A serial number's characters: printable ASCII letters, digits, ``- _ . : + #`` and (inside) the space.
-SERIAL_CHARS = frozenset(string.ascii_letters + string.digits + "-_.:+# ")
-SERIAL_PATTERN = r"^[A-Za-z0-9_.:+#-]([A-Za-z0-9_.:+# -]*[A-Za-z0-9_.:+#-])?$"
-SERIAL_RULE = ("1 to 64 printable ASCII characters: letters, digits, '-', '_', '.', ':', '+', '#' and spaces "
-               "between them (no '/', no control or non-ASCII characters)")
+#: Longest station, limit or other name, and step label (``samples.step``); a serial number's: service.identity.
+NAME_MAX, STEP_MAX = 64, 32
 STATION_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]*$"
 STATION_RULE = "1 to 64 letters, digits, '.', '_' or '-', starting with a letter or digit"
 
@@ -70,22 +65,6 @@ def no_nul(value: str) -> str:
     if "\x00" in value:
         raise ValueError("contains a NUL character (\\x00)")
     return value
-
-
-def check_serial(value: str) -> str:
-    """A serial number as stored: spaces at either end dropped, then 1 to 64 characters of
-    :data:`SERIAL_CHARS`, so it fits ``devices.serial`` on both databases, reads back through
-    ``/devices/{serial}`` and can name a file. ValueError names the problem."""
-    v = no_nul(value).strip(" ")
-    if not v:
-        raise ValueError("empty serial number")
-    if len(v) > SERIAL_MAX:
-        raise ValueError(f"serial number of {len(v)} characters; at most {SERIAL_MAX}")
-    bad = next((c for c in v if c not in SERIAL_CHARS), None)
-    if bad is not None:
-        raise ValueError(f"character {bad!r} at position {v.index(bad) + 1} is not allowed in a serial number: "
-                         + SERIAL_RULE)
-    return v
 
 
 def check_station_name(value: str) -> str:

@@ -75,6 +75,8 @@ SATURATED_LSB = 32767.0
 MAX_REJECT_ROUNDS = 6
 #: Methods that reject rows inconsistent with their own fitted model (stage 2 above).
 ROBUST_METHODS = ("joint", "error-separation")
+#: Methods that calibrate from the magnetometer alone, without the table's angles (a hand-held recording).
+ANGLE_FREE_METHODS = ("ellipsoid", "maxmin")
 
 _COMPARISON: dict[str, Callable[[Recording, es.Accel], Calibration]] = {
     "ellipsoid": comparison.ellipsoid,
@@ -95,6 +97,11 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
     """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    if not rec.has_angles and method not in ANGLE_FREE_METHODS:
+        # (the joint fit's least squares on empty angles ended in "SVD did not converge")
+        raise RecordingError(f"method {method} needs the table's angles, and this recording has none (psi_t, theta_t "
+                             "and phi_t are empty: a hand-held recording); methods " + " and ".join(ANGLE_FREE_METHODS)
+                             + " calibrate from the magnetometer alone (without the sensor-to-body misalignment)")
     check_angles(rec)
     check_magnetometer(rec)
     rejected = screen_rows(rec)

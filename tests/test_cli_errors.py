@@ -382,3 +382,14 @@ def test_example_script_with_a_wrong_url_says_so_in_one_line():
     r = example({"COMPASSCAL_KEY": "cc_x", "COMPASSCAL_URL": "127.0.0.1:8000"})
     assert r.returncode != 0 and "Traceback" not in r.stderr
     assert r.stderr.count("\n") == 1 and "COMPASSCAL_URL" in r.stderr
+
+
+def test_fit_of_a_recording_without_table_angles_names_the_methods_that_need_none():
+    """The QMC logger's hand-held file (data/real) has no table angles: the default joint fit is refused in
+    one line saying so and which methods calibrate without them (before: "SVD did not converge"), and
+    the ellipsoid method calibrates it."""
+    qmc = Path(__file__).resolve().parent.parent / "data" / "real" / "qmc5883l_filtered_raw_data.csv"
+    refused(["fit", str(qmc)], "method joint needs the table's angles", "hand-held", "ellipsoid and maxmin")
+    refused(["fit", str(qmc), "--method", "error-separation"], "method error-separation needs the table's angles")
+    r = runner.invoke(app, ["fit", str(qmc), "--method", "ellipsoid"])
+    assert r.exit_code == 0 and "method ellipsoid" in r.output, r.output

@@ -590,6 +590,9 @@ def accelerometer(rec: Recording) -> Accel:
     """
     if rec.acc is None:
         return Accel(None, np.zeros(2), notes=("no accelerometer data: base taken as level, heading levelled by table angles",))
+    if not rec.has_angles:  # (its fit against the table's attitudes on empty angles ended in "SVD did not converge")
+        return Accel(None, np.zeros(2), notes=("accelerometer not calibrated: it is calibrated against the table's "
+                                               "angles, and this recording has none",))
     ok = np.all(np.isfinite(rec.acc), axis=1)
     R, acc = rotations(rec)[ok], rec.acc[ok]
     try:

@@ -142,9 +142,11 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
         cal.notes.append(f"dropped {len(rejected)} of {len(rec)} rows as bad samples ({_reason_counts(rejected)}): "
                          f"sample indices {index_list(sorted(rejected))}")
     spread = field_spread(work, cal)
-    if spread > MAX_FIELD_SPREAD:
+    misfit = misfit_over_noise(work, cal)
+    if spread > MAX_FIELD_SPREAD or misfit > MAX_MISFIT:
         message = (f"calibrated field magnitude varies by {100 * spread:.1f} % across the level turn (expected under "
-                   f"{100 * MAX_FIELD_SPREAD:.0f} %)")
+                   f"{100 * MAX_FIELD_SPREAD:.0f} %)") if spread > MAX_FIELD_SPREAD else (
+                   f"the fitted model leaves {misfit:.0f} times the noise the poses show (their samples' scatter)")
         if work.has_angles:
             means = pose_means(work)
             found = better_reading(np.column_stack([means.psi_t, means.theta_t, means.phi_t]), means.mag)
@@ -152,7 +154,7 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
                 here, best, how = found
                 raise RecordingError(f"{message}: the table angles fit the nominal model far better read {how} (the "
                                      f"pose means leave {here:.3g} LSB rms as given, {best:.3g} so read). {ANGLE_ADVICE}")
-        if method in ROBUST_METHODS:
+        if spread > MAX_FIELD_SPREAD and method in ROBUST_METHODS:
             # the nominal model fits any linear sensor: a misfit this large is the data's fault
             if too_many:
                 message += f"; {too_many}"
@@ -160,8 +162,33 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
                                  "table angles are degrees of the right axes, or whether more samples are garbage than "
                                  f"the fit can drop (up to half of each pose's samples, {100 * MODEL_BREAKDOWN:.0f} % of "
                                  "the rows off the model)")
-        cal.notes.append(message + f": a limitation of the {method} method on this recording")
+        cal.notes.append(message + (f": a limitation of the {method} method on this recording" if spread > MAX_FIELD_SPREAD
+                                    else ": physics the model leaves out (compasscal analyze names it), or readings "
+                                         "and angles that do not belong together; the calibration is not to be trusted"))
     return cal
+
+
+#: A fit whose residual is this many times the noise within the poses is no fit of this recording: the
+#: angles read in another convention are looked for, else it is said (swapped psi_t and phi_t columns left
+#: 1149 LSB rms against 3 LSB of noise, and the level turn, one pose under that reading, showed no spread).
+MAX_MISFIT = 10.0
+
+
+def misfit_over_noise(rec: Recording, cal: Calibration) -> float:
+    """The largest axis's model residual RMS over its noise (the pooled scatter of the samples of the
+    poses held 3 samples or more about their means); 0 when there are no such poses or no model."""
+    group = pose_groups(rec)
+    n = np.bincount(group)
+    held = n[group] >= 3
+    if held.sum() < 10 or cal.heading_model is not None:
+        return 0.0
+    means = np.column_stack([np.bincount(group, rec.mag[:, j]) / n for j in range(3)])
+    scatter = rec.mag[held] - means[group[held]]
+    dof = held.sum() - len(np.unique(group[held]))
+    noise = np.sqrt(np.sum(scatter ** 2, axis=0) / max(dof, 1))
+    resid = np.sqrt(np.nanmean(model_residuals(rec, cal)[held] ** 2, axis=0))
+    ratio = resid / np.maximum(noise, 0.5)  # (at least half a count: quantised readings of a quiet sensor)
+    return float(np.max(ratio)) if np.all(np.isfinite(ratio)) else 0.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -250,7 +277,8 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     robust sigmas and GROSS_FRACTION of its amplitude (half the span of the pose medians, about k)
     from the median of its pose (poses of at least 3 samples; sigma is the recording's MAD about the
     pose medians, at least a count where the readings are whole counts; one pose alone has no amplitude,
-    so only lone rows and short runs go there). One corrupted accelerometer row in a hundred moves the levelling, and with it the
+    so only lone rows and short runs go there). Rows in no hold are compared with their neighbours
+    instead (:func:`_screen_moving`). One corrupted accelerometer row in a hundred moves the levelling, and with it the
     heading, by tenths of a degree.
     """
     out: dict[int, str] = {}
@@ -271,6 +299,7 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     usable[list(out)] = False
     n = np.bincount(group[usable], minlength=group.max() + 1)
     multi = usable & (n[group] >= 3)
+    _screen_moving(rec, usable & ~multi, out)
     if not multi.any():
         return out
     for prefix, _, x in sensors:
@@ -295,6 +324,61 @@ def screen_rows(rec: Recording) -> dict[int, str]:
             out.setdefault(int(i), f"{prefix + 'xyz'[a]} = {x[i, a]:g} is {abs(dev[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) "
                                    f"from the median of its pose's samples ({med[group[i], a]:g})")
     return out
+
+
+#: Samples taken on the move (a scan, or a recording without table angles) are compared with the median
+#: of this many neighbours of their own step: two bad rows in a row cannot move it.
+MOVING_WINDOW = 5
+#: Neighbouring samples more than this far apart in any table angle (deg) are no neighbours: single-sample
+#: holds 45 deg apart are poses of their own, not a turn sampled on the move.
+MOVING_STEP_DEG = 5.0
+#: ... and go only when that far from it, as a share of the field's amplitude: no turn of a table or a hand
+#: moves the field by half its amplitude between neighbouring samples, while a garbage reading (random
+#: int16) mostly lies beyond it. Real hand-held files jump by 5-15 % between samples (a fast spin, a
+#: filter's steps), which the holds' GROSS_FRACTION would have dropped by the hundred.
+MOVING_GROSS_FRACTION = 0.5
+
+
+def _screen_moving(rec: Recording, moving: np.ndarray, out: dict[int, str]) -> None:
+    """The screen of :func:`screen_rows` for magnetometer rows in no hold (``moving``: a scan's, or every
+    row of a hand-held recording, whose angles change from sample to sample; runs of them end where the
+    table jumps by more than :data:`MOVING_STEP_DEG` between samples): a row goes when one axis is
+    more than REJECT_SIGMA robust sigmas and :data:`MOVING_GROSS_FRACTION` of the amplitude from the median
+    of its :data:`MOVING_WINDOW` neighbours (in place on ``out``). Without it one garbage reading in a
+    hand-held file bent the ellipsoid until its fit refused the file for want of attitudes. (The
+    accelerometer is left alone here: on the move it reads the motion's accelerations too.)"""
+    left = moving.copy()
+    for _ in range(3):  # again without the rows that went: two garbage rows side by side pull a median
+        idx = np.flatnonzero(left)
+        kept = np.ones(len(rec), bool)
+        kept[list(out)] = False
+        between = np.cumsum(kept)  # rows dropped before are skipped over; anything else in between ends a run
+        jump = np.abs(wrap180(np.diff(es.table_angles(rec)[idx], axis=0))) > MOVING_STEP_DEG  # (NaN: no angles)
+        cut = ((rec.step[idx[1:]] != rec.step[idx[:-1]]) | (between[idx[1:] - 1] - between[idx[:-1]] > 0)
+               | np.any(jump, axis=1))
+        runs = [r for r in np.split(idx, np.flatnonzero(cut) + 1) if len(r) >= MOVING_WINDOW]
+        if not runs:
+            return
+        rows = np.concatenate(runs)
+        x = rec.mag
+        ref = np.concatenate([median_filter(x[r], size=(MOVING_WINDOW, 1), mode="mirror") for r in runs])  # (at a run's end: not itself twice)
+        dev = x[rows] - ref
+        # the field's amplitude, the largest axis's (an axis that hardly turns, z in a level spin, has none
+        # of its own, and its ordinary jitter would pass for garbage against it), between the 1 % and 99 %
+        # points: where three of five neighbours are garbage, the median is garbage too
+        lo, hi = np.quantile(ref, [0.01, 0.99], axis=0)
+        amplitude = np.full(3, 0.5 * float(np.max(hi - lo)))
+        counts = np.all(x[rows] == np.round(x[rows]), axis=0)
+        z = np.abs(dev) / _robust_sigma(dev, np.maximum(2e-4 * amplitude, np.where(counts, 1.0, 1e-12)))
+        bad = np.flatnonzero(np.any((z > REJECT_SIGMA) & (np.abs(dev) > MOVING_GROSS_FRACTION * amplitude)
+                                    & (amplitude > 0), axis=1))
+        if not len(bad):
+            return
+        for k in bad:
+            a = int(np.argmax(z[k]))
+            out.setdefault(int(rows[k]), f"m{'xyz'[a]} = {x[rows[k], a]:g} is {abs(dev[k, a]):.1f} LSB ({z[k, a]:.0f} "
+                                         f"sigma) from the median of its {MOVING_WINDOW} neighbouring samples ({ref[k, a]:g})")
+        left[rows[bad]] = False
 
 
 def consecutive_runs(mask: np.ndarray) -> list[np.ndarray]:

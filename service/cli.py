@@ -18,7 +18,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from drivers import keep_drivers_responsive
-from physics.calibration import Calibration, staged_truth_errors, truth_summary
+from physics.calibration import Calibration, json_safe, staged_truth_errors, truth_summary
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, fit as fit_recording
 from physics.recording import Recording, RecordingError, file_row, format_recording
@@ -264,7 +264,7 @@ def fit(
     if truth_data is not None:
         print_truth(cal, truth_data)
     if output is not None:
-        output.write_text(json.dumps(cal.to_json(), indent=2))
+        output.write_text(json.dumps(json_safe(cal.to_json()), indent=2))  # (strict JSON: NaN as null)
         console.print(f"calibration written to {output}")
     if plot is not None:
         from service.plots import calibration_figure
@@ -577,7 +577,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
             continue
         cal = r["calibration"]
         path = out / f"{serials[slot]}.cal.json"
-        path.write_text(json.dumps(cal.to_json(), indent=2))
+        path.write_text(json.dumps(json_safe(cal.to_json()), indent=2))
         print_calibration(cal)
         calibration_figure(sink.recording(slot), cal, out / f"{serials[slot]}.png")
         console.print(f"calibration written to {path}, plot to {out / f'{serials[slot]}.png'}")

@@ -3,6 +3,7 @@ and the problem, exit code 2, no traceback, and nothing long started before the 
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import socket
@@ -393,3 +394,27 @@ def test_fit_of_a_recording_without_table_angles_names_the_methods_that_need_non
     refused(["fit", str(qmc), "--method", "error-separation"], "method error-separation needs the table's angles")
     r = runner.invoke(app, ["fit", str(qmc), "--method", "ellipsoid"])
     assert r.exit_code == 0 and "method ellipsoid" in r.output, r.output
+
+
+def test_fit_refuses_swapped_angle_columns_and_writes_strict_json(tmp_path: Path):
+    """psi_t and phi_t swapped in the header: the fit left 1000 times the noise and was accepted; now the
+    misfit is looked at and the refusal names the readings of the angles that fit. A hand-held recording
+    with an accelerometer calibrates with the ellipsoid (its accelerometer left alone: "SVD did not
+    converge" before), and the calibration JSON is strict (NaN written as null)."""
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "-o", str(rec)]).exit_code == 0
+    lines = rec.read_text().splitlines()
+    head = next(i for i, ln in enumerate(lines) if ln.startswith("t,"))
+    swapped = tmp_path / "swapped.csv"
+    swapped.write_text("\n".join(lines[:head] + [lines[head].replace("psi_t,theta_t,phi_t", "phi_t,theta_t,psi_t")]
+                                 + lines[head + 1:]) + "\n")
+    refused(["fit", str(swapped)], "the fitted model leaves", "times the noise", "far better read")
+    assert runner.invoke(app, ["fit", str(rec)]).exit_code == 0  # the file as written fits
+    blank = tmp_path / "noangles.csv"
+    blank.write_text("\n".join(lines[:head + 1] + [",".join(c if k not in (2, 3, 4) else "" for k, c in enumerate(ln.split(",")))
+                                                   for ln in lines[head + 1:]]) + "\n")
+    out = tmp_path / "cal.json"
+    r = runner.invoke(app, ["fit", str(blank), "--method", "ellipsoid", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "accelerometer not calibrated" in " ".join(r.output.split())
+    json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} in the calibration JSON"))

@@ -43,7 +43,8 @@ def event_stream(request: Request, topic: int | str, read: Read) -> StreamingRes
     it says nothing more will come; woken by the notifier on ``topic``, read again every
     :data:`POLL_S` anyway, with a keep-alive comment every :data:`KEEPALIVE_S` of silence."""
     last = request.headers.get("last-event-id", "")
-    start = int(last) if last.isdigit() else 0
+    # (an id beyond any a database holds resumes after everything: SQLite overflowed on 99999999999999999999999)
+    start = min(int(last), 2**63 - 1) if last.isascii() and last.isdigit() else 0
     notifier = request.app.state.notifier
 
     async def stream() -> AsyncIterator[str]:

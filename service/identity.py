@@ -133,6 +133,8 @@ class UnitCheck:
     mounted_after: str | None = None
     identities: dict[int, Identity] = field(default_factory=dict)
     done: bool = False
+    #: serials certified in this run so far -> which unit (one serial is one unit, whoever typed it)
+    certified: dict[str, str] = field(default_factory=dict)
 
     def procedure(self, proc: Procedure) -> Procedure:
         """``proc`` with the check in front of its first table step."""
@@ -149,7 +151,7 @@ class UnitCheck:
         return [f"slot {i.slot}: {i.note}" for _, i in sorted(self.identities.items()) if not i.certify]
 
     def _run(self, gen: ProcedureGen) -> ProcedureGen:
-        self.identities, self.done = {}, False
+        self.identities, self.done, self.certified = {}, False, {}
         mounting = self.mounted_after is not None
         reply: Reply = None
         while True:
@@ -175,6 +177,22 @@ class UnitCheck:
             reply = yield step
 
     def _decide(self, slot: int) -> Generator[Prompt, Reply, Identity]:
+        out = yield from self._settle(slot)
+        if not out.certify:
+            return out
+        if out.serial in self.certified:  # e.g. typed for one slot, and what another slot's unit reports
+            return Identity(slot, out.typed, out.identified, "duplicate", out.serial,
+                            f"{out.note}; but {self.certified[out.serial]} is already certified as {out.serial}: two units "
+                            "would be certified under one serial number; not certified", out.decision, out.policy,
+                            certify=False)
+        where = f"{out.serial} in slot {slot} of this run"
+        self.certified[out.serial] = f"the unit in slot {slot} of this run"
+        if out.identified:  # the physical unit, whatever it is certified as
+            self.seen.setdefault(out.identified, where)
+        return out
+
+    def _settle(self, slot: int) -> Generator[Prompt, Reply, Identity]:
+        """The slot's identity and decision, before the check against the serials certified so far."""
         typed = self.typed.get(slot)
         ident = (self.idents or {}).get(slot)
         identified = ident[1].strip() if ident and ident[1] and ident[1].strip() else None
@@ -205,8 +223,6 @@ class UnitCheck:
                            f"the unit reports {identified}" + (", as typed" if typed else ""))
         else:
             out = yield from self._differs(slot, typed, identified)
-        if out.certify:
-            self.seen[identified] = f"{out.serial} in slot {slot} of this run"  # two slots reporting one serial
         return out
 
     def _differs(self, slot: int, typed: str, identified: str) -> Generator[Prompt, Reply, Identity]:

@@ -34,7 +34,7 @@ from sqlalchemy import select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from physics.calibration import json_safe
-from procedures.calibrate import LOOKAHEAD_S, needed_budget_s
+from procedures.calibrate import BATCH, LOOKAHEAD_S, needed_budget_s
 from procedures.states import ACTIVE, FINAL, RunState, check_transition
 from service.db import Batch, Calibration, Run, RunCommand, RunEvent, Station, utcnow
 from service.identity import CHOICES, DEFAULT_POLICY, POLICIES, is_serial_prompt, normalise
@@ -259,7 +259,9 @@ def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
     by_serial: dict[str, Run] = {}
     for r in runs:
         by_serial[str((r.serials or {}).get("0", ""))] = r  # the latest run of each unit
-    cals = {c.run_id: c for c in s.scalars(select(Calibration).where(Calibration.run_id.in_([r.id for r in runs])))} if runs else {}
+    # a batch's unit is slot 0's (its run's other rows, if any, are not the batch's)
+    cals = {c.run_id: c for c in s.scalars(select(Calibration).where(Calibration.run_id.in_([r.id for r in runs]),
+                                                                      Calibration.slot == 0))} if runs else {}
     units, prompt = [], None
     for serial in batch.serials:
         r = by_serial.get(serial)
@@ -363,6 +365,9 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
     proc = PROCEDURES.get(procedure)
     if proc is None:
         raise invalid("body.procedure", f"unknown procedure {procedure!r}; known: {', '.join(sorted(PROCEDURES))}")
+    if procedure == BATCH and batch_id is None and resume is None:  # its unit's serial is the batch's to type
+        raise invalid("body.procedure", f"{BATCH} is one unit of a batch: start it with POST /batches (or calibrate one "
+                                        'unit with procedure calibrate and "serials")')
     try:
         params = proc.validate(parameters)
     except ValidationError as e:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections import Counter
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -278,7 +279,7 @@ class StationOut(BaseModel):
 
 def _distinct_serials(serials: list[str]) -> list[str]:
     """``serials`` unchanged, or a ValueError naming those listed more than once (one serial is one unit)."""
-    dup = sorted({s for s in serials if serials.count(s) > 1})
+    dup = sorted(s for s, n in Counter(serials).items() if n > 1)  # (not count() per serial: quadratic)
     if dup:
         raise ValueError(f"serial numbers listed twice: {', '.join(dup)}")
     return serials
@@ -291,7 +292,7 @@ class RunIn(In):
     procedure: str | None = Field(None, min_length=1, max_length=32,
                                   description="default calibrate (with resume: the resumed run's)")
     parameters: dict[str, Any] = Field(default_factory=dict)
-    serials: dict[str, Serial] | None = Field(None, description='slot -> serial, e.g. {"0": "SN-1"}; '
+    serials: dict[str, Serial] | None = Field(None, max_length=64, description='slot -> serial, e.g. {"0": "SN-1"}; '
                                               "omitted: the compasses' own serial numbers. A serial number: " + SERIAL_RULE)
     resume: Id | None = Field(None, description="a failed or aborted run of this station to continue from the "
                               "last checkpoint it passed (its procedure, parameters and units; its samples up to "

@@ -255,3 +255,19 @@ def test_a_unit_reporting_what_is_no_serial_number_is_treated_as_not_identified(
         assert unit["identified_serial"] == "UNIT/7" and "certified as the typed SN-TYPED" in unit["serial_note"], unit
         assert [c["serial"] for c in done["calibrations"]] == ["SN-TYPED"]
         assert api.get("/devices/UNIT%2F7", role="viewer").status_code in (404, 422)
+
+
+def test_one_serial_is_never_certified_twice_in_a_run(api: Api):
+    """Slot 0 typed (and trusted) as the serial the unit in slot 1 reports: the first certificate goes to
+    slot 0, and slot 1's unit is not certified under the same serial a second time (before, both were,
+    the second superseding the first while the run's result called both current)."""
+    from test_engine import two_units
+
+    with sim_station(two_units()) as info:
+        make_station(api, info)
+        done = wait_run(api, start(api, serials={"0": "SN-RANDOM"}, serial_policy="trust-typed"), timeout=120)
+        assert done["status"] == "completed", done
+        units = done["result"]["units"]
+        assert units["0"]["serial"] == "SN-RANDOM" and units["0"]["identified_serial"] == UNIT
+        assert units["1"]["identification"] == "duplicate" and "two units would be certified under one serial" in units["1"]["serial_note"], units["1"]
+        assert [(c["serial"], c["status"]) for c in done["calibrations"]] == [("SN-RANDOM", "current")]

@@ -87,6 +87,17 @@ def test_stations_need_admin_and_requests_are_validated(api: Api):
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.procedure" and "calibrate" in r.json()["detail"][0]["problem"]
     r = api.post("/runs", role="operator", json={**run, "parameters": {"samples": 0}})
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.parameters.samples"
+    # a batch's unit outside a batch (its serial would go unchecked); more slots than a station can have
+    # (200 000 serials held the service for minutes: a quadratic check on the event loop)
+    r = api.post("/runs", role="operator", json={**run, "procedure": "batch_calibrate", "parameters": {"serial": "Q1"}})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.procedure" and "POST /batches" in r.text
+    r = api.post("/runs", role="operator", json={**run, "serials": {str(i): f"S{i}" for i in range(20000)}})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.serials", r.text
+    # a batch mounts one unit in slot 0: a station of two slots would certify the other slot's unit too
+    two = api.post("/stations", json={**body, "name": "lab-2", "compasses": ["socket://127.0.0.1:4001", "socket://127.0.0.1:4002"]})
+    assert two.status_code == 201
+    r = api.post("/batches", role="operator", json={"station": "lab-2", "serials": ["SN-1", "SN-2"]})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.station" and "2 compass slots" in r.text
     r = api.post("/runs", role="operator", json={**run, "parameters": {"z_step": 10}})
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.parameters.z_step"
     r = api.post("/runs", role="operator", json={**run, "serials": {"3": "SN-1"}})
@@ -176,6 +187,7 @@ def test_calibration_runs_store_history_and_stream_events(api: Api):
         assert ids == sorted(ids) and len(ids) == len(events)
         tail = read_events(api, second, last=ids[-3])
         assert tail == events[-2:]
+        assert read_events(api, second, last=10**25) == []  # beyond any id (SQLite overflowed: a 500 in the stream)
 
         # listing: newest first, filters, pagination
         runs = api.get("/runs", role="viewer").json()

@@ -366,7 +366,13 @@ def test_operator_prompts_are_answered_on_the_run_page(browser: Any, tmp_path: P
         page, viewer = ctx.new_page(), vctx.new_page()
         login(page, s.keys["operator"])
         login(viewer, s.keys["viewer"])
-        run_id = start_run_api(s, "batch_calibrate", serial=SERIAL, samples=10)
+        r = s.api("POST", "/batches", "operator", json={"station": "sim", "serials": [SERIAL], "parameters": {"samples": 10}})
+        assert r.status_code == 202, r.text
+        deadline = time.monotonic() + 30
+        while not (b := s.api("GET", f"/batches/{r.json()['id']}", "viewer").json())["prompt"]:
+            assert time.monotonic() < deadline, b
+            time.sleep(0.1)
+        run_id = b["prompt"]["run_id"]
         page.goto(f"/ui/runs/{run_id}")
         answer = page.locator("#prompts button.answer")
         answer.wait_for()

@@ -36,6 +36,10 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
         row = s.scalar(select(Station).where(Station.name == body.station))
         if row is None:
             raise NotFound(f"no station {body.station!r}")
+        if len(row.compasses or []) > 1:  # its runs would calibrate (and certify) the other slots' units too
+            raise invalid("body.station", f"station {row.name} has {len(row.compasses)} compass slots; a batch mounts one "
+                                          "unit at a time in slot 0: use a station of one slot, or POST /runs with "
+                                          '"serials" for a full fixture')
         batch = Batch(station_id=row.id, serials=list(body.serials), status="running", operator=caller.owner, summary={})
         s.add(batch)
         s.flush()

@@ -13,6 +13,7 @@ from typing import Any, NoReturn, Optional
 import numpy as np
 import typer
 import typer.core
+from pydantic import ValidationError
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
@@ -96,6 +97,19 @@ def _fail(message: str) -> NoReturn:
 def _note(message: str) -> None:
     """A note on stderr (stdout stays the command's output)."""
     err_console.print(f"[dim]note:[/] {escape(message)}", soft_wrap=True)
+
+
+def _plot_file(path: Optional[Path], option: str = "--plot") -> None:
+    """:func:`_output_file`, and a picture format matplotlib writes, named by the file's extension (one
+    it does not know failed with a traceback after the fit; none wrote a .png under another name)."""
+    if path is None:
+        return
+    _output_file(path, option)
+    from matplotlib.figure import Figure  # local: matplotlib is slow to import
+
+    known = sorted(Figure().canvas.get_supported_filetypes())
+    if path.suffix.lower().lstrip(".") not in known:
+        _fail(f"{option} {path}: name the picture's format by its extension, one of {', '.join('.' + k for k in known)}")
 
 
 def _output_file(path: Optional[Path], option: str, make_parents: bool = False) -> None:
@@ -199,16 +213,23 @@ def _open_database() -> str:
 def simulate(
     output: Path = typer.Option(..., "-o", "--output", help="Recording CSV to write (RECORDING.md format)."),
     unit: UnitKind = typer.Option(UnitKind.random, help="The paper's reference unit or a random production unit."),
-    seed: int = typer.Option(0, help="Random seed (unit and noise)."),
+    seed: int = typer.Option(0, min=0, help="Random seed (unit and noise), >= 0."),
     noise: Optional[float] = typer.Option(None, help="Magnetometer noise, LSB, >= 0 (default: 3 for the reference unit, the unit's own for random)."),
-    inclination: float = typer.Option(55.0, help="Field inclination I, deg."),
-    declination: float = typer.Option(23.0, help="Field declination D from the table's zero mark, deg."),
+    inclination: float = typer.Option(55.0, help="Field inclination I, deg, -90 to 90."),
+    declination: float = typer.Option(23.0, help="Field declination D from the table's zero mark, deg, -360 to 360."),
     base_tilt: tuple[float, float] = typer.Option((0.0, 0.0), metavar="<x> <y>", help="Base tilt about x and about y, deg."),
     samples: int = typer.Option(CalibrateParams().samples, help="Samples per pose."),
 ) -> None:
     """Simulate a unit on an ideal table running the calibration poses; writes the recording and its truth."""
     if noise is not None and not noise >= 0:
         _fail(f"--noise must be >= 0 LSB, got {noise:g}")
+    # (an inclination of 200 is the field of -20 at D + 180, which --truth then scored 180 deg off; nan crashed)
+    if not -90.0 <= inclination <= 90.0:
+        _fail(f"--inclination {inclination:g}: the inclination is -90 to 90 deg (positive: the field points down)")
+    if not -360.0 <= declination <= 360.0:
+        _fail(f"--declination {declination:g}: give -360 to 360 deg")
+    if not all(-10.0 <= t <= 10.0 for t in base_tilt):
+        _fail(f"--base-tilt {base_tilt[0]:g} {base_tilt[1]:g}: a base tilt is a small angle, -10 to 10 deg")
     _output_file(output, "--output")
     truth = output.with_suffix(".truth.json")
     _output_file(truth, "--output (its .truth.json)")
@@ -217,8 +238,8 @@ def simulate(
     world = World(inclination, declination, TableGeometry(base_tilt_deg=base_tilt))
     try:
         poses = calibration_poses(CalibrateParams(samples=samples))
-    except ValueError as e:
-        _fail(str(e))
+    except ValidationError as e:
+        _fail(f"--samples {samples}: {e.errors()[0]['msg']}")
     rec = simulate_recording(u, poses, world, rng=rng, meta={"procedure": "calibrate", "seed": str(seed)})
     output.write_text(format_recording(rec))
     truth.write_text(json.dumps(truth_json(u, world), indent=2))
@@ -239,9 +260,12 @@ def fit(
 ) -> None:
     """Calibrate from a recording; print the paper's tables, uncertainties and staged heading errors."""
     _output_file(output, "--output")
-    _output_file(plot, "--plot")
+    _plot_file(plot)
     truth_data = _read_truth(truth, per_slot=False)[0] if truth is not None else None
     rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
+    if truth_data is not None and truth_data.get("serial") and rec.serial and truth_data["serial"] != rec.serial:
+        _note(f"--truth {truth}: the true parameters of unit {truth_data['serial']}, but {recording.name} is of unit "
+              f"{rec.serial}: the errors against the truth below compare two units")
     if skip_bad_rows:
         skipped = rec.meta.get("skipped_rows")
         _note(f"--skip-bad-rows: {skipped} malformed row(s) of {recording.name} skipped" if skipped is not None
@@ -413,7 +437,7 @@ def analyze(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the analysis JSON here."),
     html: Optional[Path] = typer.Option(None, "--html", help="Write the HTML report (self-contained, plots inline) here."),
     null_sims: int = typer.Option(200, "--null-sims", min=0, help="Simulated null recordings that calibrate the tests' false-alarm rate."),
-    seed: Optional[int] = typer.Option(None, help="Seed of the null simulations (default: the analyser's own fixed seed)."),
+    seed: Optional[int] = typer.Option(None, min=0, help="Seed of the null simulations (default: the analyser's own fixed seed)."),
     alpha: float = typer.Option(0.01, min=1e-6, max=0.5, help="Significance after correction for the number of tests."),
     mapping: Optional[Path] = typer.Option(None, "--mapping", exists=True, dir_okay=False, help=MAPPING_HELP),
 ) -> None:
@@ -621,7 +645,6 @@ def _station_urls(modbus: str, compasses: list[str]) -> None:
 
 def _procedure_params(procedure: str, parameters: dict[str, Any]) -> dict[str, Any]:
     """The procedure's own validation, before connecting the station: a bad value names its option."""
-    from pydantic import ValidationError
 
     from procedures.calibrate import PROCEDURES
 
@@ -706,7 +729,7 @@ def demo(
     output: Path = typer.Option(Path("out/demo"), "-o", "--output", help="Directory for recordings and calibrations."),
     config: Optional[Path] = typer.Option(None, "--config", help="Station TOML for the simulator (default: the paper's reference unit, 3 LSB noise, base tilt 0.05/-0.03 deg)."),
     time_scale: float = typer.Option(20.0, help="Simulated seconds per wall second."),
-    seed: int = typer.Option(1, help="Noise seed."),
+    seed: int = typer.Option(1, min=0, help="Noise seed."),
     api: bool = typer.Option(False, "--api", help="Run the service too and calibrate through its REST API (its database: COMPASSCAL_DATABASE_URL, else the SQLite default)."),
     port: int = typer.Option(8000, help="With --api: the service's port."),
     serve_after: bool = typer.Option(True, "--serve/--no-serve", help="With --api: keep serving after the calibration until interrupted."),
@@ -833,7 +856,7 @@ def sim(
     modbus_port: int = typer.Option(0, help="Modbus TCP port of the table (0: any free port)."),
     compass_tcp_port: Optional[int] = typer.Option(None, help="Serve compasses on TCP from this port (slot i on port+i; 0: any free ports) instead of ptys."),
     time_scale: Optional[float] = typer.Option(None, help="Run this many times faster than real time (overrides the config)."),
-    seed: Optional[int] = typer.Option(None, help="Seed of the random unit and the noise (overrides the config)."),
+    seed: Optional[int] = typer.Option(None, min=0, help="Seed of the random unit and the noise (overrides the config)."),
     truth: Optional[Path] = typer.Option(None, help="Also write the true parameters of every unit (JSON list, slot order) here."),
     host: str = typer.Option("127.0.0.1", help="Address to serve on (0.0.0.0 for other machines)."),
 ) -> None:
@@ -1053,7 +1076,7 @@ def worker(
 @app.command(cls=_Command)
 def prove(
     n: int = typer.Option(10, "--n", min=0, help="Recordings per catalogue effect (non-centrality log-uniform in 3-300; 0: none)."),
-    seed: int = typer.Option(0, help="Random seed of the whole proof."),
+    seed: int = typer.Option(0, min=0, help="Random seed of the whole proof."),
     nulls: Optional[int] = typer.Option(None, "--nulls", min=0, help="Null recordings (default max(3 n, 20))."),
     open_n: int = typer.Option(0, "--open-n", min=0,
                                help="Out-of-catalogue recordings per open-world kind (0: none; see proof.concealments)."),

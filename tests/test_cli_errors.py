@@ -418,3 +418,22 @@ def test_fit_refuses_swapped_angle_columns_and_writes_strict_json(tmp_path: Path
     assert r.exit_code == 0, r.output
     assert "accelerometer not calibrated" in " ".join(r.output.split())
     json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} in the calibration JSON"))
+
+
+def test_simulate_and_fit_options_are_checked_before_any_work(tmp_path: Path):
+    """Values no field or plot can have are refused in one line, exit 2 (before: tracebacks for a negative
+    seed, a NaN inclination and a plot format matplotlib does not write, after the fit; raw pydantic
+    wording for --samples 0; an inclination of 200 accepted and then scored 180 deg off by --truth)."""
+    out = str(tmp_path / "x.csv")
+    assert runner.invoke(app, ["simulate", "--seed", "-1", "-o", out]).exit_code == 2
+    refused(["simulate", "--inclination", "nan", "-o", out], "--inclination nan", "-90 to 90")
+    refused(["simulate", "--inclination", "200", "-o", out], "--inclination 200", "-90 to 90")
+    refused(["simulate", "--samples", "0", "-o", out], "--samples 0", "greater than or equal to 1")
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", out]).exit_code == 0
+    for plot in ("p.txt", "pnoext"):
+        refused(["fit", out, "--plot", str(tmp_path / plot), "-o", str(tmp_path / "c.json")], f"--plot", ".png")
+        assert not (tmp_path / "c.json").exists()  # refused before the fit wrote anything
+    other = tmp_path / "other.csv"
+    assert runner.invoke(app, ["simulate", "--seed", "4", "--samples", "3", "-o", str(other)]).exit_code == 0
+    r = runner.invoke(app, ["fit", out, "--truth", str(other.with_suffix(".truth.json"))])
+    assert r.exit_code == 0 and "compare two units" in " ".join(r.output.split()), r.output

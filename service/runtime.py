@@ -334,6 +334,12 @@ def _resumable(s: Session, resume: int, station_name: str, procedure: str | None
         raise invalid("body.procedure", f"run {resume} was {old.procedure}; a resumed run is the same procedure")
     if parameters and parameters != old.parameters:
         raise invalid("body.parameters", f"run {resume}'s parameters are taken over; leave them out")
+    # one continuation of a run: two would each complete it (their calibrations superseding each other);
+    # a continuation that failed or was aborted leaves the run to resume again (or that one to resume)
+    for later in s.scalars(select(Run).where(Run.station_id == old.station_id, Run.id > old.id)):
+        if ((later.meta or {}).get("resume") or {}).get("run_id") == old.id and \
+                later.status not in (RunState.failed.value, RunState.aborted.value):
+            raise Conflict(f"run {resume} is already resumed by run {later.id} ({later.status})")
     passed = checkpoints_passed(s, resume)
     if not passed:
         raise Conflict(f"run {resume} passed no checkpoint: nothing to resume from; start a new run")
@@ -375,6 +381,12 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
     row = s.scalar(select(Station).where(Station.name == station_name))
     if row is None:
         raise NotFound(f"no station {station_name!r}")
+    # a procedure's per-slot parameters (evaluate's calibrations) name slots of this station (one that did
+    # not ran the whole plan and ended "completed" with nothing evaluated)
+    for slot in getattr(params, "calibrations", None) or {}:
+        if not 0 <= int(slot) < len(row.compasses):
+            raise invalid(f"body.parameters.calibrations.{slot}",
+                          f"not a slot of station {row.name} (slots 0 to {len(row.compasses) - 1})")
     given: dict[str, str] = {}
     for key, serial in (serials or {}).items():
         if not (key.isascii() and key.isdigit() and int(key) < len(row.compasses)):

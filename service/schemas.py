@@ -245,8 +245,18 @@ class StationConfigIn(In):
     @field_validator("compasses")
     @classmethod
     def _urls(cls, v: list[str]) -> list[str]:
+        import serial  # pyserial: the URL forms the compass driver opens (serial.serial_for_url)
+
         if any(not u.strip() for u in v):
             raise ValueError("empty compass URL")
+        for i, u in enumerate(v):  # (before: an unknown protocol was taken, and the first run put the station in fault)
+            try:
+                serial.serial_for_url(u, do_not_open=True)
+            except (ValueError, serial.SerialException) as e:
+                raise ValueError(f"slot {i}: {u!r}: {e}") from None
+        twice = sorted({u for u in v if v.count(u) > 1})
+        if twice:  # two slots cannot read one compass
+            raise ValueError(f"compass URL given for two slots: {', '.join(twice)}")
         return v
 
 

@@ -93,9 +93,21 @@ def test_stations_need_admin_and_requests_are_validated(api: Api):
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.procedure" and "POST /batches" in r.text
     r = api.post("/runs", role="operator", json={**run, "serials": {str(i): f"S{i}" for i in range(20000)}})
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.serials", r.text
+    from physics.calibration import Calibration, json_safe
+    from physics.sensor import LinearSensor
+    cal = json_safe(Calibration(method="joint", mag=LinearSensor.from_matrix(1000.0 * np.eye(3), np.zeros(3))).to_json())
+    r = api.post("/runs", role="operator", json={**run, "procedure": "evaluate", "parameters": {"calibrations": {"5": cal}}})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.parameters.calibrations.5", r.text
     # a batch mounts one unit in slot 0: a station of two slots would certify the other slot's unit too
-    two = api.post("/stations", json={**body, "name": "lab-2", "compasses": ["socket://127.0.0.1:4001", "socket://127.0.0.1:4002"]})
-    assert two.status_code == 201
+    two = {**body, "name": "lab-2", "modbus": "tcp://127.0.0.1:1503", "compasses": ["socket://127.0.0.1:4002", "socket://127.0.0.1:4003"]}
+    # one table or compass belongs to one station; a URL no driver opens, or one compass for two slots: 422
+    shared = api.post("/stations", json={**two, "modbus": body["modbus"]})
+    assert shared.status_code == 409 and "already has table" in shared.text
+    assert api.post("/stations", json={**two, "compasses": ["socket://127.0.0.1:4001"]}).status_code == 409
+    for compasses, words in ((["ftp://x"], "protocol 'ftp' not known"), (["/dev/ttyS7", "/dev/ttyS7"], "two slots")):
+        r = api.post("/stations", json={**two, "compasses": compasses})
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.compasses" and words in r.text, r.text
+    assert api.post("/stations", json=two).status_code == 201
     r = api.post("/batches", role="operator", json={"station": "lab-2", "serials": ["SN-1", "SN-2"]})
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.station" and "2 compass slots" in r.text
     r = api.post("/runs", role="operator", json={**run, "parameters": {"z_step": 10}})
@@ -340,6 +352,9 @@ def test_an_interrupted_calibration_resumes_from_its_last_checkpoint(api: Api):
             s.commit()
         second = api.post("/runs", role="operator", json={"station": "lab-1", "resume": first})
         assert second.status_code == 202, second.text
+        # one continuation (the failed one above does not count): a second would complete the run again
+        again = api.post("/runs", role="operator", json={"station": "lab-1", "resume": first})
+        assert again.status_code == 409 and f"already resumed by run {second.json()['id']}" in again.text, again.text
         done = wait_run(api, second.json()["id"], timeout=90)
         assert done["status"] == "completed", done
         assert done["procedure"] == "calibrate" and done["parameters"]["samples"] == 20

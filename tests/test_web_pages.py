@@ -124,7 +124,7 @@ def test_pages_without_a_valid_key_redirect_to_the_login(api):
 
 
 def test_stations_page_offers_operators_a_start_form(api):
-    r = api.put("/stations/bench-1", json={"modbus": "tcp://127.0.0.1:1", "compasses": ["tcp://127.0.0.1:2"]})
+    r = api.put("/stations/bench-1", json={"modbus": "tcp://bench-1.local:502", "compasses": ["socket://bench-1.local:4001"]})
     assert r.status_code == 200, r.text
     page = Elements(api.get("/ui/stations", role="operator").text)
     assert page.find("tr", data_station="bench-1")
@@ -229,7 +229,7 @@ def test_device_history_certificate_and_pdf(api):
 
 def new_batch(api: Any, session: Any, station: str, summary: dict[str, str]) -> Batch:
     """A completed batch of the units in ``summary`` on a new station (its runs are the caller's)."""
-    r = api.put(f"/stations/{station}", json={"modbus": "tcp://127.0.0.1:1", "compasses": ["tcp://127.0.0.1:2"]})
+    r = api.put(f"/stations/{station}", json={"modbus": f"tcp://{station}.local:502", "compasses": [f"socket://{station}.local:4001"]})
     assert r.status_code == 200
     st = session.scalar(select(Station).where(Station.name == station))
     batch = Batch(station_id=st.id, serials=list(summary), status="completed", operator="operator-user", summary=summary)
@@ -380,7 +380,7 @@ def test_time_left_is_in_wall_seconds_for_old_and_new_progress_events():
 
 
 def test_start_form_has_a_serial_field_per_slot(api):
-    r = api.put("/stations/bench-3", json={"modbus": "tcp://127.0.0.1:1", "compasses": ["tcp://127.0.0.1:2", "tcp://127.0.0.1:3"]})
+    r = api.put("/stations/bench-3", json={"modbus": "tcp://bench-3.local:502", "compasses": ["socket://bench-3.local:4001", "socket://bench-3.local:4002"]})
     assert r.status_code in (200, 201), r.text
     page = Elements(api.get("/ui/stations", role="operator").text)
     serials = page.find("input", cls="serial", name="serial")
@@ -389,7 +389,7 @@ def test_start_form_has_a_serial_field_per_slot(api):
 
 
 def test_batches_page_lists_batches_and_offers_operators_a_form(api):
-    r = api.put("/stations/bench-4", json={"modbus": "tcp://127.0.0.1:1", "compasses": ["tcp://127.0.0.1:2"]})
+    r = api.put("/stations/bench-4", json={"modbus": "tcp://bench-4.local:502", "compasses": ["socket://bench-4.local:4001"]})
     assert r.status_code in (200, 201), r.text
     with api.client.app.state.sessions() as session:
         st = session.scalar(select(Station).where(Station.name == "bench-4"))

@@ -12,6 +12,7 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Request
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from service.auth import Caller, audit, require
 from service.db import Run, Station
@@ -33,12 +34,24 @@ async def list_stations(request: Request, _: Caller = Depends(require("viewer"))
     return [station_json(r) for r in rows]
 
 
+def _hardware_free(s: Session, name: str, modbus: str, compasses: list[str]) -> None:
+    """409 when another station already has this table or one of these compasses: two stations on one
+    table would move it under each other's runs (a probe's second station failed with "port lost")."""
+    for other in s.scalars(select(Station).where(Station.name != name)):
+        shared = [u for u in compasses if u in (other.compasses or [])]
+        if other.modbus == modbus or shared:
+            what = f"table {modbus}" if other.modbus == modbus else f"compass {shared[0]}"
+            raise HTTPException(409, f"station {other.name!r} already has {what}; one piece of hardware belongs to one "
+                                     f"station (change or delete {other.name!r} first)")
+
+
 @router.post("/stations", status_code=201, response_model=StationOut, responses=ERRORS)
 async def create_station(body: StationIn, request: Request, caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
     """Add a station (admin). 409 if the name is taken."""
     with sessions(request)() as s:
         if s.scalar(select(Station.id).where(Station.name == body.name)) is not None:
             raise HTTPException(409, f"station {body.name!r} exists")
+        _hardware_free(s, body.name, body.modbus, list(body.compasses))
         row = Station(name=body.name, modbus=body.modbus, compasses=list(body.compasses), time_scale=body.time_scale,
                       state="idle", serial_policy=body.serial_policy or DEFAULT_POLICY)
         s.add(row)
@@ -55,6 +68,7 @@ async def put_station(name: StationName, body: StationConfigIn, request: Request
     # the same checks as POST: the name in the path has StationIn.name's type (a bad one: 422 path.name)
     full = StationIn.model_construct(name=name, **body.model_dump())
     with sessions(request)() as s:
+        _hardware_free(s, name, full.modbus, list(full.compasses))
         row = s.scalar(select(Station).where(Station.name == name))
         if row is None:
             row = Station(name=name, modbus=full.modbus, compasses=list(full.compasses), time_scale=full.time_scale,

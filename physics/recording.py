@@ -205,6 +205,17 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
         if not stripped or stripped.startswith("#"):  # comments after the column line are ignored too
             continue
         row, row_problems = _parse_row(line, lineno, names, col, numeric, max_step_chars)
+        if (not row_problems and row["t"] < last_t and len(rows) >= 2 and row["t"] >= rows[-2]["t"]
+                and row["t"] - rows[-2]["t"] < last_t - row["t"]):
+            # the row before jumped ahead of both neighbours, this one going on from the row before it: that
+            # one time stamp is the bad one (blaming this row instead made every row after the jump
+            # "malformed"); a small step back stays this row's
+            ahead = rows.pop()
+            problems.append(f"line {ahead['line']}: column t: {ahead['raw_t']} is ahead of the rows before and after "
+                            f"it (t={rows[-1]['t']:g} on line {rows[-1]['line']}, t={row['raw_t']} on line {lineno})")
+            skipped_at.append(ahead["data_row"])
+            bad_rows += 1
+            last_t, last_t_line = rows[-1]["t"], rows[-1]["line"]
         if not row_problems and row["t"] < last_t:
             row_problems.append(f"line {lineno}: column t: time goes backwards "
                                 f"(previous t={last_t:g} on line {last_t_line}) ('{row['raw_t']}')")
@@ -214,7 +225,7 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
             problems.extend(row_problems)
             continue
         last_t, last_t_line = row["t"], lineno
-        row["line"] = lineno
+        row["line"], row["data_row"] = lineno, len(rows) + bad_rows
         rows.append(row)
 
     if problems and not skip_bad_rows:

@@ -304,8 +304,9 @@ def convert(
     skip_bad_rows: bool = typer.Option(False, help="Drop malformed rows instead of refusing the file."),
 ) -> None:
     """Write any recording the importers read as RECORDING.md CSV, with every conversion in its metadata:
-    to upload it to the service (POST /recordings), where it is fitted, analysed and kept with the unit's
-    history, or to hand it to another tool."""
+    to upload it to the service (POST /recordings: stored as a run of procedure import, found by serial in
+    GET /runs?serial=..., analysed with POST /runs/{id}/analysis; not fitted), to fit it here, or to hand it
+    to another tool."""
     _output_file(output, "--output")
     rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
     output.write_text(format_recording(rec))

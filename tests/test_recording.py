@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from physics.recording import (
     Recording,
     RecordingError,
+    file_row,
     format_recording,
     parse_recording,
 )
@@ -417,3 +418,18 @@ def test_round_trip(rec: Recording) -> None:
     assert back.extra == rec.extra
     # once rounded, formatting is a fixed point
     assert format_recording(back) == text
+
+
+def test_one_time_stamp_ahead_of_both_neighbours_is_the_bad_row() -> None:
+    """A row whose t jumps ahead (1000 among 1, 2, 3, ...) is the one named, not every row after it (which
+    made --skip-bad-rows throw away the rest of the recording); a row that goes back stays the one named."""
+    rows = [f"{t},s{t},0,0,0,1,2,3" for t in range(1, 9)]
+    rows[3] = "1000,jump,0,0,0,1,2,3"  # data row 3
+    text = REQ + "\n" + "\n".join(rows) + "\n"
+    with pytest.raises(RecordingError) as err:
+        parse_recording(text)
+    msg = str(err.value)
+    assert msg.startswith("1 malformed row(s)") and "line 5: column t: 1000 is ahead of the rows before and after it" in msg
+    rec = parse_recording(text, skip_bad_rows=True)
+    assert len(rec) == 7 and "jump" not in rec.step.tolist() and rec.meta["skipped_at_rows"] == "3"
+    assert [file_row(rec, i) for i in (2, 3)] == [2, 4]

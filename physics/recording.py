@@ -233,6 +233,16 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
         more = len(problems) - len(listed)
         raise RecordingError(f"{bad_rows} malformed row(s):\n" + "\n".join(listed)
                              + (f"\n... and {more} more" if more else ""))
+    if skip_bad_rows and rows:
+        # a row whose table angles are partly or wholly missing where the others have them (or the other
+        # way round) is malformed too: the recording's rows share one kind
+        given = np.array([[not math.isnan(r[c]) for c in ANGLE_COLUMNS] for r in rows])
+        usual = given.all(axis=1).sum() * 2 >= len(rows)
+        odd = ~given.all(axis=1) if usual else given.any(axis=1)
+        for i in np.flatnonzero(odd):
+            skipped_at.append(rows[i]["data_row"])
+        bad_rows += int(odd.sum())
+        rows = [r for r, o in zip(rows, odd) if not o]
     if skip_bad_rows:
         meta[SKIPPED_KEY] = str(bad_rows)
         if skipped_at:
@@ -246,7 +256,7 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
     if empty.any() and not empty.all():
         where = [f"line {rows[i]['line']}" for i in np.flatnonzero(empty.any(axis=1))[:10]]
         raise RecordingError("table angles psi_t, theta_t, phi_t must be given in every row or left empty in every "
-                             f"row (a recording without table angles); empty in: {', '.join(where)}")
+                             f"row (a recording without table angles); empty in: {', '.join(where)} (skipping bad rows drops them)")
     acc = np.column_stack([column(c) for c in ACC_COLUMNS]) if has_acc else None
     temp = column("temp_c") if has_temp else None
     return Recording(

@@ -433,3 +433,16 @@ def test_one_time_stamp_ahead_of_both_neighbours_is_the_bad_row() -> None:
     rec = parse_recording(text, skip_bad_rows=True)
     assert len(rec) == 7 and "jump" not in rec.step.tolist() and rec.meta["skipped_at_rows"] == "3"
     assert [file_row(rec, i) for i in (2, 3)] == [2, 4]
+
+
+def test_a_row_missing_a_table_angle_is_a_bad_row_to_skip() -> None:
+    """Table angles are given in every row or in none: a row with one missing is refused by line, and with
+    skip_bad_rows dropped and counted like any malformed row (before: refused even then)."""
+    rows = [f"{t},s{t},{t},0,0,1,2,3" for t in range(1, 9)]
+    rows[2] = "3,s3,3,,0,1,2,3"
+    text = REQ + "\n" + "\n".join(rows) + "\n"
+    with pytest.raises(RecordingError, match="empty in: line 4 .skipping bad rows drops them"):
+        parse_recording(text)
+    rec = parse_recording(text, skip_bad_rows=True)
+    assert len(rec) == 7 and rec.meta["skipped_rows"] == "1" and rec.meta["skipped_at_rows"] == "2"
+    assert rec.has_angles and [file_row(rec, i) for i in (1, 2)] == [1, 3]

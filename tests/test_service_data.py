@@ -91,7 +91,7 @@ def test_limits_are_data_and_changes_are_audited(api):
     assert {"residual_rms_lsb", "heading_error_level_deg", "heading_error_tilted_deg", "misalignment_deg",
             "sensitivity_mismatch", "bias_lsb"} <= set(limits)
     r = api.put("/limits/bias_lsb", role="admin", json={"marginal": 10.0, "fail": 20.0})
-    assert r.status_code == 200
+    assert r.status_code == 200 and r.json()["description"] == limits["bias_lsb"]["description"]  # (was null)
     assert {lim["name"]: lim for lim in api.get("/limits").json()}["bias_lsb"]["fail"] == 20.0
     bad = api.put("/limits/bias_lsb", json={"marginal": "lots", "fail": 20})
     assert bad.status_code == 422 and bad.json()["detail"][0]["field"] == "body.marginal"

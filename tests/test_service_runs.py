@@ -310,6 +310,11 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
         assert [x["id"] for x in listed] == [bid] and listed[0]["summary"] == b["summary"]
         assert api.get("/batches?station=lab-1&status=completed", role="viewer").json()[0]["id"] == bid
         assert api.get("/batches?status=running", role="viewer").json() == []
+        # a filter no run or batch can match is a mistake, named (before: an empty list, as if none existed)
+        for url, field in (("/runs?status=bogus", "query.status"), ("/runs?procedure=bogus", "query.procedure"),
+                           ("/batches?status=bogus", "query.status")):
+            r = api.get(url, role="viewer")
+            assert r.status_code == 422 and r.json()["detail"][0]["field"] == field, (url, r.text)
         assert api.get("/batches?station=nowhere", role="viewer").json() == []
 
 

@@ -4,7 +4,7 @@ prompting its mounting; a failed unit does not stop the batch."""
 from __future__ import annotations
 
 import asyncio
-from typing import Any
+from typing import Any, Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from pydantic import ValidationError
@@ -15,7 +15,7 @@ from service.auth import Caller, audit, require
 from service.db import Batch, Station
 from service.deps import sessions
 from service.runtime import Conflict, Invalid, NotFound, batch_json, field_errors, invalid
-from service.schemas import ERRORS, BatchIn, BatchOut, Id, Index, Name, StationName
+from service.schemas import ERRORS, BatchIn, BatchOut, Id, Index, StationName
 from service.worker import station_queue
 
 router = APIRouter(tags=["batches"])
@@ -62,7 +62,8 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
 
 
 @router.get("/batches", response_model=list[BatchOut], responses=ERRORS)
-async def list_batches(request: Request, station: StationName | None = None, status: Name | None = None,
+async def list_batches(request: Request, station: StationName | None = None,
+                       status: Literal["running", "completed", "failed"] | None = None,
                        limit: int = Query(50, ge=1, le=1000), offset: Index = 0,
                        _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
     """Batches, newest first, filtered by station name and status (running, completed, failed)."""

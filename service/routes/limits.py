@@ -36,4 +36,4 @@ def put_limit(name: Name, body: LimitIn, session: Session = Depends(db), caller:
     row.marginal, row.fail = body.marginal, body.fail
     audit(session, caller, "limit.update", name, {"old": old, "new": body.model_dump()})
     session.commit()
-    return {"name": name, **body.model_dump(), "unit": row.unit}
+    return {"name": name, **body.model_dump(), "unit": row.unit, "description": row.description}

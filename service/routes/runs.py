@@ -29,7 +29,7 @@ from procedures.states import ACTIVE, RunState
 from service.auth import Caller, audit, require
 from service.db import Calibration, Device, Run, Station
 from service.deps import event_stream, sessions
-from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after,
+from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after, invalid,
                              finish_unstarted, queue_answer, request_state, run_json, wait_for)
 from service.schemas import (ERRORS, AnswerIn, AnswerOut, ErrorOut, Id, Index, Name, RunDetail, RunIn, RunOut, RunStateOut,
                              Serial, StateIn, StationName, content)
@@ -70,7 +70,7 @@ async def create_run_route(body: RunIn, request: Request, caller: Caller = Depen
 
 
 @router.get("/runs", response_model=list[RunOut], responses=ERRORS)
-async def list_runs(request: Request, station: StationName | None = None, status: Name | None = None,
+async def list_runs(request: Request, station: StationName | None = None, status: RunState | None = None,
                     procedure: Name | None = None, serial: Serial | None = None,
                     limit: int = Query(50, ge=1, le=1000), offset: Index = 0,
                     _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
@@ -79,8 +79,13 @@ async def list_runs(request: Request, station: StationName | None = None, status
     if station is not None:
         q = q.join(Station, Station.id == Run.station_id).where(Station.name == station)
     if status is not None:
-        q = q.where(Run.status == status)
+        q = q.where(Run.status == status.value)
     if procedure is not None:
+        from procedures.calibrate import PROCEDURES
+
+        known = sorted([*PROCEDURES, "import"])  # (import: an uploaded recording's run, routes/recordings.py)
+        if procedure not in known:  # (an unknown one listed nothing, as if no run had been made)
+            raise invalid("query.procedure", f"unknown procedure {procedure!r}; known: {', '.join(known)}")
         q = q.where(Run.procedure == procedure)
     if serial is not None:
         # serials is a small JSON object {"0": "SN-1"}; its text holds each serial JSON-quoted on both databases

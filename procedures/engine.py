@@ -262,8 +262,10 @@ class Engine:
                     outcome = value
                     break
                 step = value
+                replayed_last = None
                 if replaying and not self._live_in_replay(step):
                     reply = self._replayed(step)
+                    replayed_last = step
                     if isinstance(step, Checkpoint):
                         passed += 1
                         if passed == self.replay.checkpoints:
@@ -282,10 +284,15 @@ class Engine:
                         # after the step's table time: host work, which a time scale would multiply
                         self._flag_pending()
                 if isinstance(step, TIMED_STEPS):
-                    elapsed = self._table_used
                     # a data-dependent tail beyond the plan spends the reserve by its steps' nominal seconds,
                     # as the procedure spends its budget (so the two agree on what is left)
                     spent = nominal[done] if done < len(nominal) else step_seconds([step], self._motion(), commanded)[0]
+                    if replayed_last is not None:
+                        # a replayed step counts its nominal seconds: the interrupted run's sample times also
+                        # hold the time it stood paused, which is no table time (a resume after a pause
+                        # reported 219 s for a plan of 120)
+                        self._table_used += spent
+                    elapsed = self._table_used
                     left_nominal -= min(spent, left_nominal)
                     done += 1
                     if isinstance(step, Move):
@@ -426,8 +433,7 @@ class Engine:
         """The replay has reached its last checkpoint: table time goes on after its last sample."""
         assert self.replay is not None
         t = self._replayed_until + 1.0
-        self._t0 = time.monotonic() - t / self.station.time_scale
-        self._table_used = t  # the interrupted run's table time, which the live steps add to
+        self._t0 = time.monotonic() - t / self.station.time_scale  # (the samples' t goes on from there)
         self.on_event(Resumed(self.replay.run_id, label, self._samples, t))
 
     async def _stream(self) -> None:

@@ -17,6 +17,9 @@ import numpy as np
 VERSION_KEY = "compasscal-recording"
 FORMAT_VERSION = "1"
 SKIPPED_KEY = "skipped_rows"
+#: The largest magnitude a magnetometer or accelerometer cell may hold (counts): far beyond any converter
+#: (int16, int32 at 2e9), so only a corrupt cell is refused (1e40 was stored, and its squares overflow).
+MAX_READING = 1e10
 #: The 0-based data rows of the file that are not in the recording (a parse note, as SKIPPED_KEY): the
 #: malformed rows skip_bad_rows dropped, and a mapped file's rows without a reference attitude.
 SKIPPED_AT_KEY = "skipped_at_rows"
@@ -320,6 +323,9 @@ def _parse_row(line: str, lineno: int, names: list[str], col: dict[str, int],
             continue
         if not math.isfinite(value):
             problems.append(f"{where}: column {c}: non-finite value ('{_show(raw)}')")
+            continue
+        if c in MAG_COLUMNS + ACC_COLUMNS and abs(value) > MAX_READING:
+            problems.append(f"{where}: column {c}: {_show(raw)} is beyond any sensor's reading (|value| <= {MAX_READING:g})")
             continue
         row[c] = value
     row["step"] = cells[col["step"]].strip()

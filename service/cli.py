@@ -441,6 +441,7 @@ def analyze(
     seed: Optional[int] = typer.Option(None, min=0, help="Seed of the null simulations (default: the analyser's own fixed seed)."),
     alpha: float = typer.Option(0.01, min=1e-6, max=0.5, help="Significance after correction for the number of tests."),
     mapping: Optional[Path] = typer.Option(None, "--mapping", exists=True, dir_okay=False, help=MAPPING_HELP),
+    skip_bad_rows: bool = typer.Option(False, help="Drop malformed rows instead of refusing the file (as fit does)."),
 ) -> None:
     """Find where a recording departs from the nominal model, name the missing physics, and show the
     fit before and after (held out)."""
@@ -450,7 +451,9 @@ def analyze(
 
     _output_file(json_out, "--json", make_parents=True)
     _output_file(html, "--html", make_parents=True)
-    rec = _read_recording(recording, mapping=mapping)
+    rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
+    if skip_bad_rows and rec.meta.get("skipped_rows") is not None:
+        _note(f"--skip-bad-rows: {rec.meta['skipped_rows']} malformed row(s) of {recording.name} skipped")
     cal = _read_calibration(calibration) if calibration is not None else None
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
                   TimeElapsedColumn(), console=err_console, transient=True) as bar:

@@ -437,3 +437,19 @@ def test_simulate_and_fit_options_are_checked_before_any_work(tmp_path: Path):
     assert runner.invoke(app, ["simulate", "--seed", "4", "--samples", "3", "-o", str(other)]).exit_code == 0
     r = runner.invoke(app, ["fit", out, "--truth", str(other.with_suffix(".truth.json"))])
     assert r.exit_code == 0 and "compare two units" in " ".join(r.output.split()), r.output
+
+
+def test_analyze_skips_bad_rows_as_fit_does(tmp_path: Path):
+    """analyze takes --skip-bad-rows (before, a file with one malformed row could only be analysed after
+    convert --skip-bad-rows) and says how many it skipped."""
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "20", "-o", str(rec)]).exit_code == 0
+    lines = rec.read_text().splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln and not ln.startswith(("#", "t,"))) + 5
+    lines[i] = lines[i].rsplit(",", 1)[0] + ",oops"
+    rec.write_text("\n".join(lines) + "\n")
+    r = runner.invoke(app, ["analyze", str(rec), "--null-sims", "5"])
+    assert r.exit_code == 2 and "1 malformed row(s)" in r.stderr, r.output
+    r = runner.invoke(app, ["analyze", str(rec), "--null-sims", "5", "--skip-bad-rows", "--json", str(tmp_path / "a.json")])
+    assert r.exit_code == 0, r.output
+    assert "1 malformed row(s) of rec.csv skipped" in " ".join(r.stderr.split())

@@ -446,3 +446,12 @@ def test_a_row_missing_a_table_angle_is_a_bad_row_to_skip() -> None:
     rec = parse_recording(text, skip_bad_rows=True)
     assert len(rec) == 7 and rec.meta["skipped_rows"] == "1" and rec.meta["skipped_at_rows"] == "2"
     assert rec.has_angles and [file_row(rec, i) for i in (1, 2)] == [1, 3]
+
+
+def test_a_reading_beyond_any_sensor_is_a_malformed_cell() -> None:
+    """1e40 in a magnetometer cell was stored as a reading (its square overflows downstream): refused by
+    line and column, and skipped with the bad rows."""
+    text = f"{REQ}\n0,a,0,0,0,1,2,3\n1,b,0,0,0,1e40,2,3\n2,c,0,0,0,1,2,3\n"
+    with pytest.raises(RecordingError, match="line 3: column mx: 1e40 is beyond any sensor's reading"):
+        parse_recording(text)
+    assert parse_recording(text, skip_bad_rows=True).step.tolist() == ["a", "c"]

@@ -309,6 +309,9 @@ def convert(
     to another tool."""
     _output_file(output, "--output")
     rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
+    skipped = rec.meta.get("skipped_rows")
+    if skip_bad_rows and skipped not in (None, "0"):  # a conversion like the others, kept in the file
+        rec.meta["converted_skipping"] = f"{skipped} malformed row(s) of {recording.name} dropped (--skip-bad-rows)"
     output.write_text(format_recording(rec))
     console.print(f"wrote {output} ({len(rec)} samples{', table angles' if rec.has_angles else ', no table angles'}"
                   f"{', accelerometer' if rec.acc is not None else ''}{', temperature' if rec.temp_c is not None else ''})")

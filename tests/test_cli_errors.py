@@ -453,3 +453,14 @@ def test_analyze_skips_bad_rows_as_fit_does(tmp_path: Path):
     r = runner.invoke(app, ["analyze", str(rec), "--null-sims", "5", "--skip-bad-rows", "--json", str(tmp_path / "a.json")])
     assert r.exit_code == 0, r.output
     assert "1 malformed row(s) of rec.csv skipped" in " ".join(r.stderr.split())
+
+
+def test_convert_keeps_the_rows_it_skipped_in_the_metadata(tmp_path: Path):
+    """convert writes every conversion into the file's metadata: dropping malformed rows is one."""
+    qmc = Path(__file__).resolve().parent.parent / "data" / "real" / "qmc5883l_filtered_raw_data.csv"
+    lines = qmc.read_text().splitlines()
+    lines[10] = "12,abc,5"
+    bad, out = tmp_path / "q.csv", tmp_path / "out.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    assert runner.invoke(app, ["convert", str(bad), "--skip-bad-rows", "-o", str(out)]).exit_code == 0
+    assert "# converted_skipping: 1 malformed row(s) of q.csv dropped (--skip-bad-rows)" in out.read_text()

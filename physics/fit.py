@@ -182,8 +182,7 @@ def misfit_over_noise(rec: Recording, cal: Calibration) -> float:
     held = n[group] >= 3
     if held.sum() < 10 or cal.heading_model is not None:
         return 0.0
-    means = np.column_stack([np.bincount(group, rec.mag[:, j]) / n for j in range(3)])
-    scatter = rec.mag[held] - means[group[held]]
+    scatter = rec.mag[held] - pose_means(rec).mag[group[held]]
     dof = held.sum() - len(np.unique(group[held]))
     noise = np.sqrt(np.sum(scatter ** 2, axis=0) / max(dof, 1))
     resid = np.sqrt(np.nanmean(model_residuals(rec, cal)[held] ** 2, axis=0))
@@ -348,19 +347,19 @@ def _screen_moving(rec: Recording, moving: np.ndarray, out: dict[int, str]) -> N
     hand-held file bent the ellipsoid until its fit refused the file for want of attitudes. (The
     accelerometer is left alone here: on the move it reads the motion's accelerations too.)"""
     left = moving.copy()
+    x, angles = rec.mag, es.table_angles(rec)
     for _ in range(3):  # again without the rows that went: two garbage rows side by side pull a median
         idx = np.flatnonzero(left)
         kept = np.ones(len(rec), bool)
         kept[list(out)] = False
         between = np.cumsum(kept)  # rows dropped before are skipped over; anything else in between ends a run
-        jump = np.abs(wrap180(np.diff(es.table_angles(rec)[idx], axis=0))) > MOVING_STEP_DEG  # (NaN: no angles)
+        jump = np.abs(wrap180(np.diff(angles[idx], axis=0))) > MOVING_STEP_DEG  # (NaN: no angles)
         cut = ((rec.step[idx[1:]] != rec.step[idx[:-1]]) | (between[idx[1:] - 1] - between[idx[:-1]] > 0)
                | np.any(jump, axis=1))
         runs = [r for r in np.split(idx, np.flatnonzero(cut) + 1) if len(r) >= MOVING_WINDOW]
         if not runs:
             return
         rows = np.concatenate(runs)
-        x = rec.mag
         ref = np.concatenate([median_filter(x[r], size=(MOVING_WINDOW, 1), mode="mirror") for r in runs])  # (at a run's end: not itself twice)
         dev = x[rows] - ref
         # the field's amplitude, the largest axis's (an axis that hardly turns, z in a level spin, has none

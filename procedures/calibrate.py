@@ -23,8 +23,9 @@ from physics.methods import TWELVE_POSITIONS
 from physics.precision import CONFIDENCE, TARGET_LEVEL_DEG, TARGET_TILTED_DEG, UnitPrecision, unit_precision
 from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_cost, plan_timeline
-from physics.table import DRIVE_SETTLE_S, PROCEDURE_SETTLE_S, Motion, move_seconds
-from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Park, Procedure, ProcedureGen, Prompt, Scan, Settle
+from physics.table import DRIVE_SETTLE_S, PROCEDURE_SETTLE_S, Motion
+from procedures.steps import (Acquire, Checkpoint, Compute, Move, Outcome, Park, Procedure, ProcedureGen, Prompt, Scan, Settle,
+                              step_seconds)
 
 NAME = "calibrate"
 VERSION = "2"
@@ -279,10 +280,10 @@ def _plan_seconds(poses: list[Pose], p: CalibrateParams, start: tuple[float, flo
 
 def _return_seconds(here: tuple[float, float, float], end: tuple[float, float, float] | None) -> float:
     """Nominal table seconds of the move from ``here`` to ``end`` (0 without one), as the engine counts
-    a move: the drives' settling included, no procedure settle (nothing is acquired there)."""
+    a move (:func:`~procedures.steps.step_seconds`): the drives' settling, no procedure settle."""
     if end is None:
         return 0.0
-    return move_seconds([b - a for a, b in zip(here, end)], Motion(settle_s=DRIVE_SETTLE_S)) + DRIVE_SETTLE_S
+    return step_seconds([Move(*end)], Motion(settle_s=DRIVE_SETTLE_S), start=here)[0]
 
 
 def adaptive_reserve(p: CalibrateParams) -> float:

@@ -262,10 +262,9 @@ class Engine:
                     outcome = value
                     break
                 step = value
-                replayed_last = None
-                if replaying and not self._live_in_replay(step):
+                replayed = replaying and not self._live_in_replay(step)
+                if replayed:
                     reply = self._replayed(step)
-                    replayed_last = step
                     if isinstance(step, Checkpoint):
                         passed += 1
                         if passed == self.replay.checkpoints:
@@ -287,7 +286,7 @@ class Engine:
                     # a data-dependent tail beyond the plan spends the reserve by its steps' nominal seconds,
                     # as the procedure spends its budget (so the two agree on what is left)
                     spent = nominal[done] if done < len(nominal) else step_seconds([step], self._motion(), commanded)[0]
-                    if replayed_last is not None:
+                    if replayed:
                         # a replayed step counts its nominal seconds: the interrupted run's sample times also
                         # hold the time it stood paused, which is no table time (a resume after a pause
                         # reported 219 s for a plan of 120)

@@ -99,6 +99,13 @@ def _note(message: str) -> None:
     err_console.print(f"[dim]note:[/] {escape(message)}", soft_wrap=True)
 
 
+def _note_skipped(rec: Recording, recording: Path) -> None:
+    """Say how many malformed rows ``--skip-bad-rows`` dropped from ``recording``."""
+    skipped = rec.meta.get("skipped_rows")
+    _note(f"--skip-bad-rows: {skipped} malformed row(s) of {recording.name} skipped" if skipped is not None
+          else f"--skip-bad-rows: {recording.name} is not a text file with rows to skip; nothing skipped")
+
+
 def _plot_file(path: Optional[Path], option: str = "--plot") -> None:
     """:func:`_output_file`, and a picture format matplotlib writes, named by the file's extension (one
     it does not know failed with a traceback after the fit; none wrote a .png under another name)."""
@@ -267,9 +274,7 @@ def fit(
         _note(f"--truth {truth}: the true parameters of unit {truth_data['serial']}, but {recording.name} is of unit "
               f"{rec.serial}: the errors against the truth below compare two units")
     if skip_bad_rows:
-        skipped = rec.meta.get("skipped_rows")
-        _note(f"--skip-bad-rows: {skipped} malformed row(s) of {recording.name} skipped" if skipped is not None
-              else f"--skip-bad-rows: {recording.name} is not a text file with rows to skip; nothing skipped")
+        _note_skipped(rec, recording)
     try:
         cal = fit_recording(rec, method.value)
     except (RecordingError, InsufficientData, ValueError) as e:
@@ -455,8 +460,8 @@ def analyze(
     _output_file(json_out, "--json", make_parents=True)
     _output_file(html, "--html", make_parents=True)
     rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
-    if skip_bad_rows and rec.meta.get("skipped_rows") is not None:
-        _note(f"--skip-bad-rows: {rec.meta['skipped_rows']} malformed row(s) of {recording.name} skipped")
+    if skip_bad_rows:
+        _note_skipped(rec, recording)
     cal = _read_calibration(calibration) if calibration is not None else None
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
                   TimeElapsedColumn(), console=err_console, transient=True) as bar:

@@ -57,6 +57,8 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 INT32_MAX = 2**31 - 1
 #: Longest station, limit or other name, and step label (``samples.step``); a serial number's: service.identity.
 NAME_MAX, STEP_MAX = 64, 32
+#: The most compass slots a station has (and so the most serials a run types).
+MAX_SLOTS = 64
 STATION_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]*$"
 STATION_RULE = "1 to 64 letters, digits, '.', '_' or '-', starting with a letter or digit"
 
@@ -229,7 +231,7 @@ class StationConfigIn(In):
 
     modbus: str = Field(min_length=1, max_length=256, description="e.g. tcp://10.0.0.5:502")
     compasses: list[Annotated[str, AfterValidator(no_nul), Field(max_length=256)]] = Field(
-        min_length=1, max_length=64, description="the serial URL of slot 0, slot 1, ...")
+        min_length=1, max_length=MAX_SLOTS, description="the serial URL of slot 0, slot 1, ...")
     time_scale: Finite = Field(1.0, gt=0, le=1000, description="> 1 only for a simulated station running faster")
     serial_policy: SerialPolicy | None = Field(
         None, description="when a unit reports another serial number than the one typed: prompt (ask the operator), "
@@ -254,7 +256,7 @@ class StationConfigIn(In):
                 serial.serial_for_url(u, do_not_open=True)
             except (ValueError, serial.SerialException) as e:
                 raise ValueError(f"slot {i}: {u!r}: {e}") from None
-        twice = sorted({u for u in v if v.count(u) > 1})
+        twice = _repeated(v)
         if twice:  # two slots cannot read one compass
             raise ValueError(f"compass URL given for two slots: {', '.join(twice)}")
         return v
@@ -287,9 +289,14 @@ class StationOut(BaseModel):
 # ------------------------------------------------------------------------------------------ runs
 
 
+def _repeated(values: list[str]) -> list[str]:
+    """The values listed more than once, sorted (counted once each: count() per value was quadratic)."""
+    return sorted(v for v, n in Counter(values).items() if n > 1)
+
+
 def _distinct_serials(serials: list[str]) -> list[str]:
     """``serials`` unchanged, or a ValueError naming those listed more than once (one serial is one unit)."""
-    dup = sorted(s for s, n in Counter(serials).items() if n > 1)  # (not count() per serial: quadratic)
+    dup = _repeated(serials)
     if dup:
         raise ValueError(f"serial numbers listed twice: {', '.join(dup)}")
     return serials
@@ -302,7 +309,7 @@ class RunIn(In):
     procedure: str | None = Field(None, min_length=1, max_length=32,
                                   description="default calibrate (with resume: the resumed run's)")
     parameters: dict[str, Any] = Field(default_factory=dict)
-    serials: dict[str, Serial] | None = Field(None, max_length=64, description='slot -> serial, e.g. {"0": "SN-1"}; '
+    serials: dict[str, Serial] | None = Field(None, max_length=MAX_SLOTS, description='slot -> serial, e.g. {"0": "SN-1"}; '
                                               "omitted: the compasses' own serial numbers. A serial number: " + SERIAL_RULE)
     resume: Id | None = Field(None, description="a failed or aborted run of this station to continue from the "
                               "last checkpoint it passed (its procedure, parameters and units; its samples up to "

@@ -432,6 +432,10 @@ class Engine:
         """The replay has reached its last checkpoint: table time goes on after its last sample."""
         assert self.replay is not None
         t = self._replayed_until + 1.0
+        # the replayed steps counted their nominal seconds from where the table stands now (the
+        # interrupted run stopped it further on, so its first move back looks long): they took no more
+        # table time than their samples span
+        self._table_used = min(self._table_used, self._replayed_until)
         self._t0 = time.monotonic() - t / self.station.time_scale  # (the samples' t goes on from there)
         self.on_event(Resumed(self.replay.run_id, label, self._samples, t))
 

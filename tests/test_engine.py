@@ -18,12 +18,13 @@ from drivers.sim.config import StationConfig, parse_config, reference_config
 from drivers.sim.station import SimStation
 from drivers.station import open_station
 from physics.calibration import truth_summary
+from physics.precision import unit_precision
 from physics.recording import parse_recording
 from physics.sensor import random_unit
 from physics.simulate import truth_from_json
 from physics.table import Motion, move_seconds
 from procedures.calibrate import PROCEDURES
-from procedures.engine import Engine, RecordingSink, RunState, run_procedure
+from procedures.engine import Engine, RecordingSink, Replay, RunState, run_procedure
 from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, PromptAnswered, PromptAsked, Result, SamplesStored, StateChanged, StepRetried,
                                StepStarted, StepWarning)
 from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Park, Procedure, Prompt
@@ -84,7 +85,12 @@ def test_calibrate_two_units_at_time_scale_20(tmp_path: Path):
         assert "calibration" in result.outcome.results[slot], result.outcome.results[slot]
         cal = result.outcome.results[slot]["calibration"]
         s = truth_summary(cal, unit, world)
-        assert s["level_max"] < 0.03 and s["tilted_max"] < 0.06, (serial, s)
+        # as good as the unit's noise allows: within 1.5 times the bound its own data put on the error
+        # 99 % of the time (the samples' timing, hence their noise, differs from run to run: the random
+        # unit's level error ranged 0.020-0.031 deg unloaded, its 99 % bound 0.031)
+        bound = unit_precision(rec, cal).quantile(0.99)
+        assert s["level_max"] < 1.5 * bound["level"] and s["tilted_max"] < 1.5 * bound["tilted"], (serial, s, bound)
+        assert bound["level"] < 0.035 and bound["tilted"] < 0.06, (serial, bound)  # and those bounds are tight
     progress = [e.percent for e in events if isinstance(e, Progress)]
     assert progress == sorted(progress) and progress[-1] == 100.0
     assert [e.state for e in events if isinstance(e, StateChanged)] == [RunState.running, RunState.completed]
@@ -229,6 +235,30 @@ def test_pause_resume_and_abort_at_checkpoints():
     assert seen == ["running", "paused", "running", "aborted"]
     assert result.state is RunState.aborted and result.reason == "operator pressed abort"
     assert result.samples == 3 * 60
+
+
+def test_a_resumed_run_counts_no_more_table_time_than_its_samples_span():
+    """A run resuming an interrupted one replays its samples up to a checkpoint from where the
+    interrupted run left the table (here the far end of a whole calibration): the replayed steps count
+    their nominal seconds, but never more than the replayed samples span (CI once saw the first move
+    back, long from there, push the table time 4 s beyond the recording's last sample)."""
+    cfg = reference_config(seed=4, time_scale=20)
+
+    async def main():
+        async with on_sim(cfg) as (st, station):
+            first, _, sink1 = await run_procedure(station, "calibrate", {"samples": 20})
+            assert first.state is RunState.completed, first.reason
+            old = sink1.recording(0)
+            samples = {str(label): {0: old.select(old.step == label)} for label in dict.fromkeys(old.step.tolist())}
+            replay = Replay(1, 6, samples)
+            second, _, sink2 = await run_procedure(station, "calibrate", {"samples": 20},
+                                                   engine_hook=lambda e: setattr(e, "replay", replay))
+            return second, old, sink2.recording(0)
+    result, old, new = asyncio.run(asyncio.wait_for(main(), 120))
+    assert result.state is RunState.completed, result.reason
+    n = 6 * 20  # the replayed poses, as they were
+    assert np.array_equal(new.mag[:n], old.mag[:n]) and new.t[n] > new.t[n - 1]
+    assert 0.9 * (new.t[-1] - new.t[n]) < result.table_seconds <= new.t[-1] + 1.0, (result.table_seconds, new.t[n - 1], new.t[-1])
 
 
 def test_prompts_wait_for_the_operator():

@@ -35,7 +35,7 @@ from procedures.states import ACTIVE
 from service import plots
 from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_session, require, start_session
 from service.db import Analysis, Batch, Calibration, Device, Limit, Run, RunEvent, Sample, Station
-from service.identity import CHOICES, is_serial_prompt
+from service.identity import CHOICES, check_serial, is_serial_prompt
 from service.schemas import Id, Index, Serial, no_nul
 from service.store import limit_result, load_recording
 
@@ -455,6 +455,12 @@ def search(request: Request, serial: SerialPart = "") -> Response:
                 q = found[0]
             elif found:
                 return _render(request, who, "search.html", title=f"Search {q}", query=q, found=found)
+            else:
+                try:
+                    check_serial(q)
+                except ValueError as e:  # no device page could hold it (a '/' would not even reach one)
+                    return _render(request, who, "search.html", title=f"Search {q}", query=q, found=[],
+                                   problem=str(e))
     return RedirectResponse(f"/ui/devices/{quote(q, safe='')}", status_code=303)
 
 

@@ -206,6 +206,13 @@ def test_device_history_certificate_and_pdf(api):
     assert r.status_code == 303 and r.headers["location"] == "/ui/devices/SN-DEV"
     r = api.get("/ui/search?serial=sn-de", role="viewer", follow_redirects=False)
     assert r.headers["location"] == "/ui/devices/SN-DEV"  # the one partial match
+    # no serial number, and no match: the search page says so (a '/' sent to a device page was a JSON 404)
+    r = api.get("/ui/search?serial=SN%2FDEV", role="viewer", follow_redirects=False)
+    assert r.status_code == 200 and "text/html" in r.headers["content-type"], r.text
+    assert "No serial number seen by this service contains" in r.text and "&#39;/&#39; at position 3" in r.text, r.text
+    # a serial number never seen goes to its device page, which says it is unknown
+    r = api.get("/ui/search?serial=NO-SUCH-UNIT", role="viewer", follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == "/ui/devices/NO-SUCH-UNIT"
 
     cal_id = runs[1][1]
     r = api.get(f"/ui/calibrations/{cal_id}/certificate", role="viewer")

@@ -179,7 +179,7 @@ def _read_qmc_csv(path: Path, text: str, skip_bad_rows: bool) -> Recording:
         "source_file": path.name,
         "source": "tomisuarez2/MagnetometerCalibration, calibration data/filtered_raw_data.csv "
                   "(MIT, (c) 2025 Tomas Suarez)",
-        "sensor": "QMC5883L (GY-273 board)",
+        "sensor": "QMC5883L (on a board its source calls GY-63)",
         "sample_rate_hz": f"{fs:g}",
         "warmup_s": f"{t_init:g}",
         "mag_unit": "raw counts (uncalibrated)",

@@ -13,7 +13,10 @@ right away; a batch's unit after its mount prompt, which the table awaits at its
   leaves the slot uncalibrated with the reason, ``trust-typed`` certifies the typed serial and records
   what the unit reported;
 - it reports a serial already certified earlier in the same batch (or in another slot of the run):
-  ``duplicate``, the same physical unit mounted again; not certified, whatever the policy.
+  ``duplicate``, the same physical unit mounted again; not certified, whatever the policy;
+- it would be certified under a serial another unit of the batch (or of the run) is already
+  certified under: ``duplicate`` too, not certified (one serial is one unit). A unit whose calibration
+  was rejected (FAIL) counts as not certified: it may be mounted again for a retest.
 
 No I/O here: :class:`UnitCheck` wraps a procedure's generator with the steps that do it (an
 :class:`~procedures.steps.Identify` and the operator prompts), which the engine runs.
@@ -95,9 +98,12 @@ class Identity:
                 "serial_decision": self.decision, "serial_policy": self.policy, "serial_note": self.note}
 
 
-def serial_prompt_text(slot: int, typed: str, identified: str) -> str:
-    """The operator prompt of a differing serial: both serial numbers and the three answers."""
-    return (f"slot {slot}: the serial number typed is {typed} but the unit reports {identified}. "
+def serial_prompt_text(slot: int, typed: str, identified: str, typed_taken_by: str | None = None) -> str:
+    """The operator prompt of a differing serial: both serial numbers and the three answers (and, when
+    the typed serial is already another unit's, ``typed_taken_by``, that 'typed' will not certify it)."""
+    taken = (f" {typed} is already certified for {typed_taken_by}: 'typed' would leave this unit uncalibrated."
+             if typed_taken_by else "")
+    return (f"slot {slot}: the serial number typed is {typed} but the unit reports {identified}.{taken} "
             f"Answer 'typed' to certify it as {typed}, 'identified' to certify it as {identified}, "
             "or 'skip' to leave it uncalibrated")
 
@@ -128,6 +134,8 @@ class UnitCheck:
     policy: str = DEFAULT_POLICY
     idents: dict[int, tuple[str, str, str]] | None = None
     seen: dict[str, str] = field(default_factory=dict)
+    #: serials units earlier in the run's batch were certified under -> which unit
+    certified_before: dict[str, str] = field(default_factory=dict)
     #: the id of the prompt after which the units are mounted (a batch unit's), None when they are
     #: mounted before the run: the check waits for it (the table may go to its load pose before it)
     mounted_after: str | None = None
@@ -151,7 +159,7 @@ class UnitCheck:
         return [f"slot {i.slot}: {i.note}" for _, i in sorted(self.identities.items()) if not i.certify]
 
     def _run(self, gen: ProcedureGen) -> ProcedureGen:
-        self.identities, self.done, self.certified = {}, False, {}
+        self.identities, self.done, self.certified = {}, False, dict(self.certified_before)
         mounting = self.mounted_after is not None
         reply: Reply = None
         while True:
@@ -235,7 +243,8 @@ class UnitCheck:
             return Identity(slot, typed, identified, "differs", typed,
                             f"{both}; refused (serial policy refuse): mount unit {typed}, or start the run with "
                             f"serial {identified}", "refused", policy, certify=False)
-        answer = normalise(str((yield Prompt(serial_prompt_text(slot, typed, identified), id=f"{PROMPT_PREFIX}{slot}"))
+        taken = self.certified.get(typed)
+        answer = normalise(str((yield Prompt(serial_prompt_text(slot, typed, identified, taken), id=f"{PROMPT_PREFIX}{slot}"))
                                or ""))
         if answer == "typed":
             return Identity(slot, typed, identified, "differs", typed,

@@ -275,7 +275,8 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     """Run one queued run to its end: open the station, identify the units, drive the procedure's
     engine with the samples going to the database, store each unit's calibration, free the station.
     A run that is no longer ``queued`` (aborted before a worker took it) is left as it is."""
-    def take() -> tuple[dict[str, Any], dict[str, str], str, dict[str, Any], dict[str, Any], dict[str, str]] | None:
+    def take() -> tuple[dict[str, Any], dict[str, str], str, dict[str, Any], dict[str, Any],
+                        tuple[dict[str, str], dict[str, str]]] | None:
         with ctx.sessions() as s:
             run = s.get(Run, run_id)
             if run is None or run.status != RunState.queued.value:
@@ -288,7 +289,7 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     taken = ctx.retry(take, f"run {run_id}")
     if taken is None:
         return
-    snapshot, given, name, parameters, meta, seen = taken
+    snapshot, given, name, parameters, meta, (seen, under) = taken
     proc = PROCEDURES[name]
     try:  # checked when the run was made; a stored run the procedure's rules now refuse ends, not the worker
         params = proc.validate(parameters)
@@ -298,7 +299,7 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
                   f"run {run_id}", timeout=None)
         return
     check = UnitCheck(typed={int(k): str(v) for k, v in given.items()}, slots=list(range(len(snapshot["compasses"]))),
-                      policy=str(meta.get("serial_policy") or DEFAULT_POLICY), seen=seen,
+                      policy=str(meta.get("serial_policy") or DEFAULT_POLICY), seen=seen, certified_before=under,
                       mounted_after=MOUNT_PROMPT if name == BATCH else None)
     control = RunControl(ctx, run_id)
     ctx.executing[run_id] = control
@@ -320,17 +321,25 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
         ctx.retry(lambda: _finish(ctx, run_id, fin, table_seconds), f"run {run_id}", timeout=None)
 
 
-def batch_certified(s: Session, run: Run) -> dict[str, str]:
-    """The serials the units before this run in its batch identified as and were certified under:
-    identified serial -> which unit (a unit that reports one of them again is the same unit mounted again)."""
+def batch_certified(s: Session, run: Run) -> tuple[dict[str, str], dict[str, str]]:
+    """What the units before this run in its batch were certified as (a calibration kept, not rejected:
+    a unit that failed may be mounted again for a retest): their identified serials -> which unit (a
+    unit reporting one again is the same unit mounted again), and the serials they were certified under
+    -> which unit (another unit may not be certified under one of them)."""
     seen: dict[str, str] = {}
+    under: dict[str, str] = {}
     if run.batch_id is None:
-        return seen
+        return seen, under
     for r in s.scalars(select(Run).where(Run.batch_id == run.batch_id, Run.id < run.id).order_by(Run.id)):
         for entry in (((r.meta or {}).get("result") or {}).get("units") or {}).values():
-            if isinstance(entry, dict) and entry.get("calibration_id") and entry.get("identified_serial"):
-                seen.setdefault(str(entry["identified_serial"]), f"{entry.get('serial')} earlier in this batch (run {r.id})")
-    return seen
+            if not (isinstance(entry, dict) and entry.get("calibration_id") and entry.get("status") != "rejected"):
+                continue
+            serial, identified = str(entry.get("serial") or ""), entry.get("identified_serial")
+            if identified:
+                seen.setdefault(str(identified), f"{serial} earlier in this batch (run {r.id})")
+            reports = f", which reports {identified}" if identified and identified != serial else ""
+            under.setdefault(serial, f"the unit of run {r.id} earlier in this batch{reports}")
+    return seen, under
 
 
 async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot: dict[str, Any], proc: Any,

@@ -271,3 +271,60 @@ def test_one_serial_is_never_certified_twice_in_a_run(api: Api):
         assert units["0"]["serial"] == "SN-RANDOM" and units["0"]["identified_serial"] == UNIT
         assert units["1"]["identification"] == "duplicate" and "two units would be certified under one serial" in units["1"]["serial_note"], units["1"]
         assert [(c["serial"], c["status"]) for c in done["calibrations"]] == [("SN-RANDOM", "current")]
+
+
+def run_batch(api: Api, info: dict[str, Any], serials: list[str], on_mount: dict[str, str], answers: dict[str, str],
+              **body: Any) -> tuple[dict[str, Any], list[str]]:
+    """A batch to its end: at each unit's mount prompt the unit ``on_mount[serial]`` (by the typed serial)
+    is mounted, each serial prompt is answered from ``answers`` (by the typed serial). Returns the batch
+    and the serial prompts' texts."""
+    r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": serials, "parameters": PARAMS, **body})
+    assert r.status_code == 202, r.text
+    bid, deadline, asked = r.json()["id"], time.monotonic() + 150, []
+    while (b := api.get(f"/batches/{bid}", role="viewer").json())["status"] == "running":
+        assert time.monotonic() < deadline, b
+        if b["prompt"]:
+            run = api.get(f"/runs/{b['prompt']['run_id']}", role="viewer").json()
+            typed = run["parameters"]["serial"]
+            if b["prompt"]["id"] == "mount":
+                mount(info, on_mount[typed])
+                answer = "mounted"
+            else:
+                asked.append(b["prompt"]["text"])
+                answer = answers[typed]
+            api.post(f"/runs/{run['id']}/prompts/{b['prompt']['id']}", role="operator", json={"answer": answer})
+        time.sleep(0.05)
+    return b, asked
+
+
+def test_a_batch_never_certifies_two_units_under_one_serial(api: Api):
+    """The first unit of a batch reports SN-T and is certified as SN-T; the second, another unit
+    (reporting SN-U) typed as SN-T, is not certified as SN-T on a 'typed' answer: the prompt says SN-T is
+    already taken, and the summary says why (before, the second unit's calibration superseded the first
+    unit's, which left the line with none)."""
+    with sim_station(reference_config(seed=25, time_scale=20)) as info:
+        make_station(api, info)
+        b, asked = run_batch(api, info, ["SN-S", "SN-T"], {"SN-S": "SN-T", "SN-T": "SN-U"},
+                             {"SN-S": "identified", "SN-T": "typed"})
+        assert b["status"] == "completed", b
+        assert "already certified" not in asked[0] and "SN-T is already certified for the unit of run" in asked[1], asked
+        said = b["summary"]["SN-T"]
+        assert said.startswith("failed") and "two units would be certified under one serial number" in said, said
+        cals = api.get("/devices/SN-T/calibrations", role="viewer").json()
+        assert [c["status"] for c in cals] == ["current"], cals  # the first unit's, still current
+        units = {u["serial"]: u for u in b["units"]}
+        assert cals[0]["id"] == units["SN-S"]["calibration_id"] and units["SN-T"]["calibration_id"] is None
+
+
+def test_a_unit_that_failed_may_be_retested_in_its_batch(api: Api):
+    """A unit whose calibration was rejected (FAIL) is not certified: mounted again in the same batch, it
+    is measured again, not refused as "already certified" (the batch counted rejected calibrations)."""
+    with sim_station(reference_config(seed=26, time_scale=20)) as info:
+        make_station(api, info)
+        r = api.put("/limits/residual_rms_lsb", role="admin", json={"marginal": 0.1, "fail": 0.2})  # every unit fails
+        assert r.status_code == 200, r.text
+        b, _ = run_batch(api, info, ["SN-1", "SN-2"], {"SN-1": UNIT, "SN-2": UNIT}, {}, serial_policy="trust-typed")
+        assert b["status"] == "completed", b
+        assert b["summary"] == {"SN-1": "FAIL", "SN-2": "FAIL"}, b["summary"]
+        units = {u["serial"]: u for u in b["units"]}
+        assert units["SN-2"]["identification"] == "differs" and units["SN-2"]["calibration_id"], units["SN-2"]

@@ -9,10 +9,10 @@ second of table time, and none does I/O: the engine, or a fake one in a test, ru
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar, Literal, Mapping
+from typing import Any, ClassVar, Literal, Mapping, get_args
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationInfo, field_validator, model_validator
 
 from physics import errorsep as es
 from physics.calibration import Calibration
@@ -32,7 +32,18 @@ VERSION = "2"
 
 
 class _Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # a misspelt parameter is an error, not silently the default; "nan" is no number (it was said to be
+    # out of range)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, v: Any, info: ValidationInfo) -> Any:
+        # pydantic's lax mode reads true as 1 (``"samples": true`` was one sample): a mistake, not a number
+        kinds = get_args(cls.model_fields[info.field_name].annotation) or (cls.model_fields[info.field_name].annotation,)
+        if isinstance(v, bool) and bool not in kinds and (int in kinds or float in kinds):
+            raise ValueError("a number is required, not true or false")
+        return v
 
     samples: int = Field(60, ge=1, le=10_000, description="samples averaged at each pose")
     # The drive reports IN_POSITION only once the axis has settled in its window; this is extra

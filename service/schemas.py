@@ -129,7 +129,10 @@ Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 
 class In(BaseModel):
     """Base of every request body: no field, however deep (``parameters``), may carry a NUL
-    character or a non-finite number; the 422 names the field and where in it."""
+    character or a non-finite number; the 422 names the field and where in it. A field the body does
+    not know is an error, not silently dropped (``"serial_polcy": "refuse"`` left the policy as it was)."""
+
+    model_config = ConfigDict(extra="forbid")
 
     @field_validator("*", mode="after")
     @classmethod
@@ -229,6 +232,8 @@ class RecordingOut(BaseModel):
 class StationConfigIn(In):
     """A station's configuration (the name is in the path)."""
 
+    # a script that PUTs what it POSTed (or read) may carry the name: the path's, or a 422
+    name: StationName | None = Field(None, description="optional: the station's name, as in the path")
     modbus: str = Field(min_length=1, max_length=256, description="e.g. tcp://10.0.0.5:502")
     compasses: list[Annotated[str, AfterValidator(no_nul), Field(max_length=256)]] = Field(
         min_length=1, max_length=MAX_SLOTS, description="the serial URL of slot 0, slot 1, ...")
@@ -336,8 +341,9 @@ class StateIn(In):
 class AnswerIn(In):
     """The operator's answer to a prompt."""
 
-    answer: str = Field("", max_length=1000, description="a serial prompt (serial-SLOT) takes "
-                        + ", ".join(CHOICES))
+    # required: an empty body is no answer (it dismissed a mount prompt); "" may still be given
+    answer: str = Field(max_length=1000, description="a serial prompt (serial-SLOT) takes " + ", ".join(CHOICES)
+                        + "; any other prompt any text (e.g. \"done\")")
 
 
 class PromptOut(BaseModel):
@@ -488,8 +494,6 @@ class BatchOut(BaseModel):
 
 class AnalysisIn(In):
     """What to analyse; every field optional (an empty body analyses every unit of the run)."""
-
-    model_config = ConfigDict(extra="forbid")  # a misspelt field is an error, not silently the default
 
     slot: Index | None = Field(None, description="the fixture slot (unit) to analyse; default: every slot with samples")
     null_sims: Annotated[int, Field(ge=0, le=5000), BeforeValidator(_not_bool)] = Field(

@@ -112,6 +112,23 @@ def test_stations_need_admin_and_requests_are_validated(api: Api):
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.station" and "2 compass slots" in r.text
     r = api.post("/runs", role="operator", json={**run, "parameters": {"z_step": 10}})
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.parameters.z_step"
+    # a field no body knows is an error, not silently the default (a misspelt serial policy left the
+    # station's as it was; "serial" for "serials" started a run with none typed); true is no number;
+    # "nan" is no number, not a number out of range
+    for path, method, extra, field in (("/stations/lab-1", "put", {k: v for k, v in body.items() if k != "name"} | {"serial_polcy": "refuse"},
+                                        "body.serial_polcy"),
+                                       ("/runs", "post", {**run, "serial": {"0": "SN-1"}}, "body.serial"),
+                                       ("/batches", "post", {"station": "lab-1", "serials": ["A"], "extra": 1}, "body.extra"),
+                                       ("/runs", "post", {**run, "parameters": {"samples": True}}, "body.parameters.samples"),
+                                       ("/runs", "post", {**run, "parameters": {"z_step_deg": "nan"}}, "body.parameters.z_step_deg")):
+        r = getattr(api, method)(path, role="admin" if method == "put" else "operator", json=extra)
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == field, (path, r.text)
+    assert "not true or false" in r.text or "finite" in r.text
+    assert api.get("/stations/lab-1", role="viewer").json()["serial_policy"] == "prompt"
+    # the body a station was made with may be PUT again (its name the path's); another name is refused
+    assert api.put("/stations/lab-1", json=body).status_code == 200
+    r = api.put("/stations/lab-1", json={**body, "name": "lab-9"})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.name" and "keeps its name" in r.text, r.text
     r = api.post("/runs", role="operator", json={**run, "serials": {"3": "SN-1"}})
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.serials.3"
     assert api.post("/runs", role="operator", json={"procedure": "calibrate"}).json()["detail"][0]["field"] == "body.station"
@@ -119,6 +136,8 @@ def test_stations_need_admin_and_requests_are_validated(api: Api):
         assert api.get(path, role="viewer").status_code == 404, path
     assert api.put("/runs/999/state", role="operator", json={"state": "paused"}).status_code == 404
     assert api.post("/runs/999/prompts/mount", role="operator", json={"answer": "ok"}).status_code == 404
+    r = api.post("/runs/999/prompts/mount", role="operator", json={})  # an empty body is no answer
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.answer", r.text
     assert api.put("/runs/999/state", role="operator", json={"state": "dancing"}).status_code == 422
     assert api.post("/batches", role="operator", json={"station": "nope", "serials": ["A"]}).status_code == 404
     r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["A", "A"]})

@@ -18,7 +18,7 @@ from service.auth import Caller, audit, require
 from service.db import Run, Station
 from service.deps import sessions
 from service.identity import DEFAULT_POLICY
-from service.runtime import CONFIRM_S, Conflict, NotFound, Unavailable, run_json, station_json, wait_for
+from service.runtime import CONFIRM_S, Conflict, NotFound, Unavailable, invalid, run_json, station_json, wait_for
 from service.schemas import (ERRORS, ErrorOut, StationConfigIn, StationDetail, StationIn, StationName, StationOut,
                              StationResetOut)
 from service.worker import station_queue
@@ -66,7 +66,9 @@ async def put_station(name: StationName, body: StationConfigIn, request: Request
     """Create a station or change its URLs or serial policy (admin), e.g. after moving a table to another
     gateway. 409 while a run uses it; runs already made keep the configuration they ran with."""
     # the same checks as POST: the name in the path has StationIn.name's type (a bad one: 422 path.name)
-    full = StationIn.model_construct(name=name, **body.model_dump())
+    if body.name is not None and body.name != name:
+        raise invalid("body.name", f"{body.name!r} is not the station of the path, {name!r} (a station keeps its name)")
+    full = StationIn.model_construct(**{**body.model_dump(), "name": name})
     with sessions(request)() as s:
         _hardware_free(s, name, full.modbus, list(full.compasses))
         row = s.scalar(select(Station).where(Station.name == name))

@@ -330,3 +330,19 @@ def test_rows_flagged_live_that_the_fit_kept_are_said_at_the_end() -> None:
     eng._reconcile_flags(Outcome(results={0: {"calibration": cal0}, 1: {"calibration": cal1}}))
     assert [type(e) for e in said] == [StepWarning]
     assert said[0].warning.startswith("SN-1: 2 row(s) flagged during the run were kept by the fit, rows 483, 495")
+
+
+@pytest.mark.parametrize("method", ["joint", "error-separation"])
+@pytest.mark.parametrize("pose", [3, 10])
+def test_a_whole_pose_gone_wrong_is_dropped_by_either_fit(method: str, pose: int, clean: dict[str, float]) -> None:
+    """Every reading of one pose 400 LSB off on x (a magnetised tool set beside the unit for one hold):
+    the joint fit, pulled by it everywhere (the upside-down pose 10 left x's residuals at 40 LSB against
+    3 of noise), kept it and pointed 2 deg off, where the error-separation fit dropped it. Both drop it."""
+    from physics.fit import pose_groups
+
+    rec = _recording()
+    group = pose_groups(rec)
+    rec.mag[group == pose, 0] += 400.0
+    cal = fit(rec, method, bootstrap=0)
+    assert {r["index"] for r in cal.quality["rejected_rows"]} == set(np.flatnonzero(group == pose).tolist())
+    assert truth_summary(cal, UNIT, WORLD)["level_max"] <= 1.5 * clean[method]

@@ -11,7 +11,7 @@ import math
 import re
 from collections import Counter
 from datetime import datetime
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
@@ -335,6 +335,13 @@ class StateIn(In):
     """A requested state change of a run."""
 
     state: str = Field(pattern="^(paused|running|aborted)$")
+    reason: str | None = Field(None, max_length=500)
+
+
+class BatchStateIn(In):
+    """Abort a running batch."""
+
+    state: Literal["aborted"] = Field(description="aborted: the current unit's run is aborted, no further unit starts")
     reason: str | None = Field(None, max_length=500)
 
 

@@ -623,7 +623,7 @@ def batch_page(request: Request, batch_id: Id) -> Response:
         b = batch_json(s, batch)
     done = sum(1 for u in b["units"] if u["status"] in ("completed", "failed", "aborted"))
     return _render(request, who, "batch.html", title=f"Batch {batch_id}", batch=b, done=done,
-                   active=b["status"] in ("queued", "running"))
+                   active=b["status"] in ("queued", "running", "aborting"))
 
 
 @router.get("/ui/calibrations/{cal_id}/certificate", response_class=HTMLResponse)

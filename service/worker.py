@@ -540,6 +540,10 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
     try:
         for serial in serials:
             with ctx.sessions() as s:
+                if s.get(Batch, batch_id).status == BATCH_ABORTING:  # PUT /batches/{id}/state: no further unit
+                    summary.update({x: "not run: the batch was aborted" for x in serials if x not in summary})
+                    status = "aborted"
+                    break
                 row = s.scalar(select(Station).where(Station.name == name))
                 fault = row.reason if row.state == "fault" else None
                 try:
@@ -575,12 +579,18 @@ def _verdict(run: Run) -> str:
     return f"no calibration: {unit.get('error', 'no data from slot 0')}"
 
 
+#: A batch's status once the operator aborted it, until its worker has stopped it ("aborted").
+BATCH_ABORTING = "aborting"
+
+
 def _save_batch(ctx: WorkerContext, batch_id: int, status: str, summary: dict[str, str], final: bool) -> None:
     with ctx.sessions() as s:
         batch = s.get(Batch, batch_id)
         if batch is None:
             return
-        batch.status, batch.summary = status, dict(summary)
+        if final or batch.status != BATCH_ABORTING:  # (an abort asked for meanwhile stands)
+            batch.status = "aborted" if batch.status == BATCH_ABORTING and status == "completed" else status
+        batch.summary = dict(summary)
         if final:
             batch.finished_at = utcnow()
         s.commit()

@@ -328,3 +328,41 @@ def test_a_unit_that_failed_may_be_retested_in_its_batch(api: Api):
         assert b["summary"] == {"SN-1": "FAIL", "SN-2": "FAIL"}, b["summary"]
         units = {u["serial"]: u for u in b["units"]}
         assert units["SN-2"]["identification"] == "differs" and units["SN-2"]["calibration_id"], units["SN-2"]
+
+
+def test_a_batch_is_aborted_as_a_whole(api: Api):
+    """PUT /batches/{id}/state aborts the unit being calibrated (axes stopped, its samples kept) and
+    starts no further unit; the summary says which were not run (aborting the run alone moved the batch
+    on to the next unit's mount prompt: a 20-unit batch took 20 aborts)."""
+    with sim_station(reference_config(seed=27, time_scale=20)) as info:
+        make_station(api, info)
+        r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SN-1", "SN-2", "SN-3"],
+                                                         "parameters": PARAMS, "serial_policy": "trust-typed"})
+        assert r.status_code == 202, r.text
+        bid, deadline = r.json()["id"], time.monotonic() + 60
+        while not (b := api.get(f"/batches/{bid}", role="viewer").json())["prompt"]:
+            assert time.monotonic() < deadline, b
+            time.sleep(0.05)
+        run_id = b["prompt"]["run_id"]
+        api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": "mounted"})
+        while api.get(f"/runs/{run_id}", role="viewer").json()["samples_count"] < 40:  # on the table now
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert api.put(f"/batches/{bid}/state", role="viewer", json={"state": "aborted"}).status_code == 403
+        bad = api.put(f"/batches/{bid}/state", role="operator", json={"state": "paused"})
+        assert bad.status_code == 422 and bad.json()["detail"][0]["field"] == "body.state", bad.text
+        r = api.put(f"/batches/{bid}/state", role="operator", json={"state": "aborted", "reason": "line stopped"})
+        assert r.status_code == 202 and r.json()["status"] in ("aborting", "aborted"), r.text
+        while (b := api.get(f"/batches/{bid}", role="viewer").json())["status"] == "aborting":
+            assert time.monotonic() < deadline, b
+            time.sleep(0.05)
+        assert b["status"] == "aborted", b
+        assert b["summary"]["SN-1"] == "aborted: line stopped", b["summary"]
+        assert b["summary"]["SN-2"] == b["summary"]["SN-3"] == "not run: the batch was aborted", b["summary"]
+        run = api.get(f"/runs/{run_id}", role="viewer").json()
+        assert run["status"] == "aborted" and run["samples_count"] >= 40  # the samples so far are kept
+        assert [u["serial"] for u in b["units"] if u["run_id"]] == ["SN-1"]  # no run made for the others
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
+        assert api.put(f"/batches/{bid}/state", role="operator", json={"state": "aborted"}).status_code == 409
+        assert api.put("/batches/999/state", role="operator", json={"state": "aborted"}).status_code == 404
+        assert [x["id"] for x in api.get("/batches?status=aborted", role="viewer").json()] == [bid]

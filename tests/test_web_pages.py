@@ -254,6 +254,14 @@ def test_batch_page_lists_units(api):
     assert page.find("table", id="units") and page.find("tr", data_serial="U1") and page.find("tr", data_serial="U2")
     assert "PASS" in r.text and "failed: no unit" in r.text
     assert api.get("/ui/batches/99999", role="viewer").status_code == 404
+    # a running batch: operators get its abort button (batch.js: PUT /batches/{id}/state), viewers not
+    assert 'id="abort-batch"' not in r.text
+    with api.client.app.state.sessions() as session:
+        session.get(Batch, batch_id).status = "running"
+        session.commit()
+    assert 'id="abort-batch"' in api.get(f"/ui/batches/{batch_id}", role="operator").text
+    assert 'id="abort-batch"' not in api.get(f"/ui/batches/{batch_id}", role="viewer").text
+    assert "/batches/${batchId}/state" in api.get("/ui/static/batch.js", role=None).text
 
 
 def test_batch_page_shows_each_units_table_time_and_adaptive_target(api):

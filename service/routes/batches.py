@@ -12,11 +12,13 @@ from sqlalchemy import select, update
 
 from procedures.calibrate import BatchCalibrateParams
 from service.auth import Caller, audit, require
-from service.db import Batch, Station
+from procedures.states import ACTIVE
+from service.db import Batch, Run, Station
 from service.deps import sessions
 from service.runtime import Conflict, Invalid, NotFound, batch_json, field_errors, invalid
-from service.schemas import ERRORS, BatchIn, BatchOut, Id, Index, StationName
-from service.worker import station_queue
+from service.routes.runs import change_run_state
+from service.schemas import ERRORS, BatchIn, BatchOut, BatchStateIn, Id, Index, StationName
+from service.worker import BATCH_ABORTING, station_queue
 
 router = APIRouter(tags=["batches"])
 
@@ -63,10 +65,10 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
 
 @router.get("/batches", response_model=list[BatchOut], responses=ERRORS)
 async def list_batches(request: Request, station: StationName | None = None,
-                       status: Literal["running", "completed", "failed"] | None = None,
+                       status: Literal["running", "aborting", "completed", "aborted", "failed"] | None = None,
                        limit: int = Query(50, ge=1, le=1000), offset: Index = 0,
                        _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
-    """Batches, newest first, filtered by station name and status (running, completed, failed)."""
+    """Batches, newest first, filtered by station name and status (running, aborting, completed, aborted, failed)."""
     q = select(Batch)
     if station is not None:
         q = q.join(Station, Station.id == Batch.station_id).where(Station.name == station)
@@ -78,6 +80,31 @@ async def list_batches(request: Request, station: StationName | None = None,
             rows = s.scalars(q.order_by(Batch.created_at.desc(), Batch.id.desc()).limit(limit).offset(offset)).all()
             return [batch_json(s, b) for b in rows]
     return await asyncio.to_thread(read)
+
+
+@router.put("/batches/{batch_id}/state", status_code=202, response_model=BatchOut, responses=ERRORS)
+async def put_batch_state(batch_id: Id, body: BatchStateIn, request: Request,
+                          caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+    """Abort a running batch (operator): its current unit's run is aborted as ``PUT /runs/{id}/state``
+    would (the axes stop, its samples are kept), no further unit starts, and the summary says which
+    were not run. 409 unless the batch is running."""
+    with sessions(request)() as s:
+        batch = s.get(Batch, batch_id)
+        if batch is None:
+            raise NotFound(f"no batch {batch_id}")
+        if batch.status != "running":
+            raise Conflict(f"batch {batch_id} is {batch.status}: only a running batch can be aborted")
+        batch.status = BATCH_ABORTING
+        audit(s, caller, "batch.state", f"batch {batch_id}", body.model_dump())
+        s.commit()
+        current = s.scalars(select(Run.id).where(Run.batch_id == batch_id, Run.status.in_(ACTIVE))).all()
+    for run_id in current:  # (the worker starts no unit once it sees the batch aborting)
+        try:
+            await change_run_state(request, run_id, "aborted", body.reason or "the batch was aborted by the operator")
+        except Conflict:
+            pass  # it ended meanwhile
+    with sessions(request)() as s:
+        return batch_json(s, s.get(Batch, batch_id))
 
 
 @router.get("/batches/{batch_id}", response_model=BatchOut, responses=ERRORS)

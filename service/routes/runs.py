@@ -109,19 +109,26 @@ async def get_run(run_id: Id, request: Request, _: Caller = Depends(require("vie
     return out
 
 
+async def change_run_state(request: Request, run_id: int, state: str, reason: str | None) -> str:
+    """Queue an operator's state change of a run for its worker (an abort of a run no worker has taken
+    ends it here); what it does. NotFound, or Conflict naming the transition the run's state refuses."""
+    with sessions(request)() as s:
+        what, queued = request_state(s, run_id, state, reason)
+        job = (s.get(Run, run_id).meta or {}).get("job_id")
+    if queued and job is not None and await request.app.state.jobs.cancel(int(job)):
+        # no worker had taken it: end it here (else its worker sees the command before touching the table)
+        with sessions(request)() as s:
+            finish_unstarted(s, run_id, RunState.aborted.value, reason or "aborted by the operator")
+        request.app.state.notifier.poke(run_id)
+    return what
+
+
 @router.put("/runs/{run_id}/state", status_code=202, response_model=RunStateOut, responses=ERRORS)
 async def put_run_state(run_id: Id, body: StateIn, request: Request,
                         caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
     """Pause, resume or abort (operator), checked against the run's state machine (409 otherwise).
     202: a pause takes effect at the next checkpoint, an abort as soon as the current step ends."""
-    with sessions(request)() as s:
-        what, queued = request_state(s, run_id, body.state, body.reason)
-        job = (s.get(Run, run_id).meta or {}).get("job_id")
-    if queued and job is not None and await request.app.state.jobs.cancel(int(job)):
-        # no worker had taken it: end it here (else its worker sees the command before touching the table)
-        with sessions(request)() as s:
-            finish_unstarted(s, run_id, RunState.aborted.value, body.reason or "aborted by the operator")
-        request.app.state.notifier.poke(run_id)
+    what = await change_run_state(request, run_id, body.state, body.reason)
     with sessions(request)() as s:
         audit(s, caller, "run.state", f"run {run_id}", {"state": body.state, "reason": body.reason, "action": what})
         s.commit()

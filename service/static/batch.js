@@ -90,11 +90,26 @@
     });
   }
 
+  const abort = document.getElementById("abort-batch");
+  if (abort) {
+    abort.addEventListener("click", async () => {
+      if (!window.confirm("Abort the batch: the unit on the table is aborted and no further unit is started?")) return;
+      abort.disabled = true;
+      try {
+        update(await cc.api("PUT", `/batches/${batchId}/state`, { state: "aborted" }));
+      } catch (e) {
+        abort.disabled = false;
+        abort.title = e.message;
+      }
+    });
+  }
+
   if (root.dataset.active === "true") {
     cc.poll(async () => {
       const b = await cc.api("GET", `/batches/${batchId}`);
       update(b);
-      if (!["queued", "running"].includes(b.status)) {
+      if (abort && b.status !== "running") abort.remove();
+      if (!["queued", "running", "aborting"].includes(b.status)) {
         setTimeout(() => window.location.reload(), 400);
         return false;
       }

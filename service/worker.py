@@ -559,8 +559,12 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
             ctx.poke(run.id)
             await execute_run(ctx, run.id)
             with ctx.sessions() as s:
-                summary[serial] = _verdict(s.get(Run, run.id))
-            previous = f"{serial} ({summary[serial]})"
+                done = s.get(Run, run.id)
+                summary[serial] = _verdict(done)
+                reported = _unit0(done).get("identified_serial")
+            # the unit to take out, by what the operator typed and, when it said otherwise, what it reported
+            previous = f"{serial}" + (f" (it reports {reported})" if reported and reported != serial else "") \
+                + f" ({summary[serial]})"
             _save_batch(ctx, batch_id, "running", summary, final=False)
     finally:
         with ctx.sessions() as s:
@@ -569,13 +573,20 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
         _save_batch(ctx, batch_id, status, summary, final=True)
 
 
+def _unit0(run: Run) -> dict[str, Any]:
+    """What a batch unit's run stored of its unit (slot 0): serial, identity, verdict; {} without a result."""
+    return (((run.meta or {}).get("result") or {}).get("units") or {}).get("0") or {}
+
+
 def _verdict(run: Run) -> str:
-    """One unit's line in a batch summary: its verdict, or why it has none."""
+    """One unit's line in a batch summary (keyed by the serial typed): its verdict, and the serial it was
+    certified under when not that one; or why it has none."""
     if run.status != RunState.completed.value:
         return f"{run.status}: {run.reason}"
-    unit = (((run.meta or {}).get("result") or {}).get("units") or {}).get("0") or {}
+    unit = _unit0(run)
     if "verdict" in unit:
-        return unit["verdict"]
+        typed = (run.serials or {}).get("0")
+        return unit["verdict"] + (f" (certified as {unit['serial']})" if unit.get("serial") and unit["serial"] != typed else "")
     return f"no calibration: {unit.get('error', 'no data from slot 0')}"
 
 

@@ -310,6 +310,10 @@ def test_a_batch_never_certifies_two_units_under_one_serial(api: Api):
         assert "already certified" not in asked[0] and "SN-T is already certified for the unit of run" in asked[1], asked
         said = b["summary"]["SN-T"]
         assert said.startswith("failed") and "two units would be certified under one serial number" in said, said
+        # the first line says what its unit was certified as; the second unit's mount prompt what to take out
+        assert b["summary"]["SN-S"].endswith("(certified as SN-T)"), b["summary"]
+        second = api.get(f"/runs/{[u for u in b['units'] if u['serial'] == 'SN-T'][0]['run_id']}/events", role="viewer").text
+        assert "unmount unit SN-S (it reports SN-T)" in second, second[:2000]
         cals = api.get("/devices/SN-T/calibrations", role="viewer").json()
         assert [c["status"] for c in cals] == ["current"], cals  # the first unit's, still current
         units = {u["serial"]: u for u in b["units"]}

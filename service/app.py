@@ -12,13 +12,13 @@ from typing import AsyncIterator
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 
 from service.db import default_url, make_engine, sessions, upgrade
 from service.routes import ROUTERS
 from service.runtime import (HEARTBEAT_S, LOST_AFTER_S, SOFTWARE_VERSION, DomainError, Notifier, field_errors,
                              reap_lost_workers)
-from service.web import router as web_router
+from service.web import invalid_page, router as web_router
 from service.worker import Jobs, WorkerContext
 
 
@@ -79,9 +79,12 @@ def create_app(database_url: str | None = None, worker: bool = True) -> FastAPI:
         return JSONResponse(status_code=exc.status, content=jsonable_encoder({"detail": exc.detail}))
 
     @app.exception_handler(RequestValidationError)
-    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
-        # 422 naming each bad field by its path and the problem
-        return JSONResponse(status_code=422, content=jsonable_encoder({"detail": field_errors(exc.errors())}))
+    async def _invalid(request: Request, exc: RequestValidationError) -> Response:
+        # 422 naming each bad field by its path and the problem; a page's as a page (/ui/runs/abc was JSON)
+        detail = field_errors(exc.errors())
+        if request.url.path.startswith("/ui/") and not request.url.path.endswith(".json"):
+            return invalid_page(request, "; ".join(f"{d['field']}: {d['problem']}" for d in detail))
+        return JSONResponse(status_code=422, content=jsonable_encoder({"detail": detail}))
 
     for router in ROUTERS:
         app.include_router(router)

@@ -101,6 +101,12 @@ def _error_page(request: Request, caller: Caller | None, status: int, title: str
     return _render(request, caller, "error.html", status_code=status, title=title, message=message, status=status)
 
 
+def invalid_page(request: Request, message: str) -> HTMLResponse:
+    """A page's address the pages cannot read (an id that is no number, a NUL): 422, as a page."""
+    who = _page_caller(request)
+    return _error_page(request, who if isinstance(who, Caller) else None, 422, "Not a page address", message)
+
+
 def _when(dt: datetime | None) -> str:
     """A stored (naive UTC) time as people read it."""
     if dt is None:

@@ -589,8 +589,15 @@ def test_web_sessions_expire_end_with_their_key_and_are_secure_over_https(api):
 
 @pytest.mark.parametrize("path", ["/ui/runs/2147483648", "/ui/runs/99999999999999999999", "/ui/devices/a%00b",
                                   "/ui/search?serial=a%00b", "/ui/runs/1/samples.json?slot=-1", "/ui/batches/0",
-                                  "/ui/calibrations/3000000000/certificate"])
+                                  "/ui/calibrations/3000000000/certificate", "/ui/runs/abc"])
 def test_pages_refuse_out_of_range_ids_and_nul_bytes(api, path: str):
     """The pages take ids, slots and serials with the API's own limits: a 422, never a 500 (an id
-    beyond PostgreSQL's integer, a NUL it cannot store)."""
-    assert api.get(path, role="viewer").status_code == 422
+    beyond PostgreSQL's integer, a NUL it cannot store); a page as a page naming the problem (it was
+    the API's JSON), the pages' JSON as JSON."""
+    r = api.get(path, role="viewer")
+    assert r.status_code == 422
+    if ".json" in path:
+        assert r.json()["detail"][0]["field"] == "query.slot", r.text
+    else:
+        assert "text/html" in r.headers["content-type"] and "Not a page address" in r.text, r.text
+        assert re.search(r"path\.\w+|query\.\w+", r.text), r.text

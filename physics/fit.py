@@ -478,10 +478,28 @@ def _fit_rejecting(rec: Recording, screened: dict[int, str], run: Callable[[Reco
     out = dict(screened)
     for i in np.flatnonzero(candidates & ~keep):
         a = int(np.argmax(z[i]))
-        out[int(i)] = (f"{'m' + 'xyz'[a]} = {rec.mag[i, a]:g} is {abs(r[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) off the "
-                       "fitted model")
+        out[int(i)] = _bad_angles(rec, int(i), noise) or (
+            f"{'m' + 'xyz'[a]} = {rec.mag[i, a]:g} is {abs(r[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) off the fitted model")
     _require_good(rec, out)
     return cal, out, None
+
+
+def _bad_angles(rec: Recording, i: int, noise: np.ndarray | None) -> str | None:
+    """The reason of a row off the model whose table angles, not its reading, are wrong: inside a hold
+    (its two neighbours at one attitude), with angles of its own but a reading within 8 sigma of the
+    neighbours' (a corrupted psi_t was blamed on my: "my = -2161.8 is 2030 LSB off the fitted model")."""
+    if noise is None or i == 0 or i == len(rec) - 1:
+        return None
+    ang = es.table_angles(rec)
+    before, here, after = ang[i - 1], ang[i], ang[i + 1]
+    if not (np.allclose(before, after) and rec.step[i - 1] == rec.step[i] == rec.step[i + 1]):
+        return None
+    off = np.abs(wrap180(here - before)) > 1e-3
+    near = np.abs(rec.mag[i] - 0.5 * (rec.mag[i - 1] + rec.mag[i + 1])) <= REJECT_SIGMA * np.maximum(noise, 0.5)
+    if not off.any() or not near.all():
+        return None
+    said = ", ".join(f"{n} = {here[k]:g}" for k, n in enumerate(("psi_t", "theta_t", "phi_t")) if off[k])
+    return f"table angle(s) {said} differ from both neighbours' in its hold, whose reading it shares: a bad angle reading"
 
 
 #: A fit whose residuals' robust sigma is this many times the poses' own noise may be pulled by one
@@ -554,12 +572,14 @@ def _too_few(rec: Recording, rejected: dict[int, str], e: Exception) -> Exceptio
 
 
 def reason_kind(reason: str) -> str:
-    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, off its pose,
-    off the model."""
+    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, bad table
+    angles, off its pose, off the model."""
     if reason.startswith("all three"):
         return "all zeros"
     if reason.startswith("saturated"):
         return "saturated"
+    if reason.startswith("table angle"):
+        return "bad table angles"
     return "off their pose's median" if "median of its pose" in reason else "off the fitted model"
 
 

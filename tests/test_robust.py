@@ -346,3 +346,19 @@ def test_a_whole_pose_gone_wrong_is_dropped_by_either_fit(method: str, pose: int
     cal = fit(rec, method, bootstrap=0)
     assert {r["index"] for r in cal.quality["rejected_rows"]} == set(np.flatnonzero(group == pose).tolist())
     assert truth_summary(cal, UNIT, WORLD)["level_max"] <= 1.5 * clean[method]
+
+
+def test_a_row_with_a_bad_table_angle_is_named_for_its_angle_not_its_reading() -> None:
+    """A corrupted psi_t inside a hold: the row is dropped as before, but its reason names the angle
+    (it blamed the magnetometer: "my = -2161.8 is 2030 LSB off the fitted model"); the notes count it so."""
+    rec = _recording()
+    rec.psi_t[100] = rec.psi_t[100] + 137.0
+    cal = fit(rec, "joint", bootstrap=0)
+    [row] = cal.quality["rejected_rows"]
+    assert row["index"] == 100 and row["reason"].startswith("table angle(s) psi_t = ") and "bad angle reading" in row["reason"], row
+    assert any("1 bad table angles" in n for n in cal.notes), cal.notes
+    # a reading gone wrong keeps its own reason
+    rec = _recording()
+    rec.mag[100, 1] += 3000.0
+    [row] = fit(rec, "joint", bootstrap=0).quality["rejected_rows"]
+    assert row["index"] == 100 and not row["reason"].startswith("table angle"), row

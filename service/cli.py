@@ -21,8 +21,8 @@ from rich.table import Table
 from drivers import keep_drivers_responsive
 from physics.calibration import Calibration, json_safe, staged_truth_errors, truth_summary
 from physics.errorsep import InsufficientData
-from physics.fit import METHODS, fit as fit_recording
-from physics.recording import Recording, RecordingError, file_row, format_recording
+from physics.fit import METHODS, fit as fit_recording, index_list
+from physics.recording import SKIPPED_AT_KEY, SKIPPED_KEY, Recording, RecordingError, file_row, format_recording
 from physics.sensor import random_unit, reference_unit
 from physics.simulate import World, plan_cost, simulate_recording, truth_from_json, truth_json
 from physics.table import TableGeometry
@@ -101,8 +101,10 @@ def _note(message: str) -> None:
 
 def _note_skipped(rec: Recording, recording: Path) -> None:
     """Say how many malformed rows ``--skip-bad-rows`` dropped from ``recording``."""
-    skipped = rec.meta.get("skipped_rows")
-    _note(f"--skip-bad-rows: {skipped} malformed row(s) of {recording.name} skipped" if skipped is not None
+    skipped = rec.meta.get(SKIPPED_KEY)
+    at = [int(x) for x in rec.meta.get(SKIPPED_AT_KEY, "").split(",") if x.strip()]
+    where = f" (data rows {index_list(at)}, 0-based, header and comments not counted)" if at else ""
+    _note(f"--skip-bad-rows: {skipped} malformed row(s) of {recording.name} skipped{where}" if skipped is not None
           else f"--skip-bad-rows: {recording.name} is not a text file with rows to skip; nothing skipped")
 
 

@@ -664,6 +664,9 @@ def check_angles(rec: Recording) -> None:
 def check_magnetometer(rec: Recording) -> None:
     """Refuse a magnetometer axis whose reading never changes: no method can calibrate it (its
     sensitivity would be 0 and every heading 0/0)."""
+    if len(rec) < 2:  # (one row "never changes" either: say what is wrong with the file)
+        raise RecordingError(f"the recording has {len(rec)} data row(s): a calibration needs readings at many "
+                             "attitudes (the calibrate plan records 18 poses of 60 samples)")
     dead = [f"{name} (always {col[0]:g})" for name, col in zip(("mx", "my", "mz"), rec.mag.T) if len(col) and np.ptp(col) == 0]
     if dead:
         raise RecordingError(f"column{'s' if len(dead) > 1 else ''} {', '.join(dead)}: the reading never changes over "

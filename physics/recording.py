@@ -274,11 +274,23 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
     )
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _parse_column_line(line: str, lineno: int) -> list[str]:
     try:
         names = [c.strip() for c in next(csv.reader([line], strict=True))]
     except csv.Error as exc:
         raise RecordingError(f"line {lineno}: column line: bad CSV quoting ({exc})") from None
+    if sum(_is_number(c) for c in names) > len(names) // 2:  # (such a file read "duplicate column(s): 0.0000")
+        raise RecordingError(f"line {lineno}: the first line that is not a comment must name the columns "
+                             f"({', '.join(REQUIRED_COLUMNS)}, ...; RECORDING.md), and this one holds numbers: "
+                             "the file has no column line")
     if "" in names:
         raise RecordingError(f"line {lineno}: column line: column {names.index('') + 1} has an empty name")
     dups = sorted({c for c in names if names.count(c) > 1})

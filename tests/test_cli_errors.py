@@ -464,3 +464,21 @@ def test_convert_keeps_the_rows_it_skipped_in_the_metadata(tmp_path: Path):
     bad.write_text("\n".join(lines) + "\n")
     assert runner.invoke(app, ["convert", str(bad), "--skip-bad-rows", "-o", str(out)]).exit_code == 0
     assert "# converted_skipping: 1 malformed row(s) of q.csv dropped (--skip-bad-rows)" in out.read_text()
+
+
+def test_a_file_without_its_column_line_or_of_one_row_is_refused_for_what_it_is(tmp_path: Path):
+    """A file of numbers only was refused as "duplicate column(s): 0.0000", and one data row as "the
+    reading never changes ... a dead or disconnected magnetometer axis?"."""
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", str(rec)]).exit_code == 0
+    lines = rec.read_text().splitlines()
+    header = next(i for i, ln in enumerate(lines) if ln.startswith("t,"))
+    bare = tmp_path / "bare.csv"
+    bare.write_text("\n".join(lines[header + 1:header + 40]) + "\n")
+    r = runner.invoke(app, ["fit", str(bare)])
+    assert r.exit_code != 0 and "the file has no column line" in " ".join(r.output.split()), r.output
+    one = tmp_path / "one.csv"
+    one.write_text("\n".join(lines[:header + 2]) + "\n")
+    r = runner.invoke(app, ["fit", str(one)])
+    said = " ".join(r.output.split())
+    assert r.exit_code != 0 and "1 data row(s)" in said and "dead or disconnected" not in said, r.output

@@ -413,6 +413,8 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                                         f"run {run_id}")
             except Exception as e:  # noqa: BLE001 - the data is kept; the run says what went wrong
                 fin = _Finish(RunState.failed.value, f"storing the calibrations failed: {_reason(e)}")
+        if "units" not in fin.summary and check.identities:  # aborted or failed after naming its units: say whom
+            fin.summary["units"] = {str(k): {"serial": i.serial, **i.to_json()} for k, i in sorted(check.identities.items())}
         fin.summary = {**fin.summary, "samples": result.samples}
         return fin, result.table_seconds
 

@@ -366,6 +366,9 @@ def test_a_batch_is_aborted_as_a_whole(api: Api):
         run = api.get(f"/runs/{run_id}", role="viewer").json()
         assert run["status"] == "aborted" and run["samples_count"] >= 40  # the samples so far are kept
         assert [u["serial"] for u in b["units"] if u["run_id"]] == ["SN-1"]  # no run made for the others
+        # the aborted unit keeps what it reported (its identification was lost with the result)
+        first = b["units"][0]
+        assert first["identified_serial"] == UNIT and first["identification"] == "differs", first
         assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
         assert api.put(f"/batches/{bid}/state", role="operator", json={"state": "aborted"}).status_code == 409
         assert api.put("/batches/999/state", role="operator", json={"state": "aborted"}).status_code == 404

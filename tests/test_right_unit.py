@@ -314,6 +314,10 @@ def test_a_batch_never_certifies_two_units_under_one_serial(api: Api):
         assert b["summary"]["SN-S"].endswith("(certified as SN-T)"), b["summary"]
         second = api.get(f"/runs/{[u for u in b['units'] if u['serial'] == 'SN-T'][0]['run_id']}/events", role="viewer").text
         assert "unmount unit SN-S (it reports SN-T)" in second, second[:2000]
+        # a unit's runs by any of its serial numbers: typed, reported, certified under
+        runs = {u["serial"]: u["run_id"] for u in b["units"]}
+        listed = lambda serial: sorted(r["id"] for r in api.get(f"/runs?serial={serial}", role="viewer").json())  # noqa: E731
+        assert listed("SN-T") == sorted(runs.values()) and listed("SN-S") == [runs["SN-S"]] and listed("SN-U") == [runs["SN-T"]]
         cals = api.get("/devices/SN-T/calibrations", role="viewer").json()
         assert [c["status"] for c in cals] == ["current"], cals  # the first unit's, still current
         units = {u["serial"]: u for u in b["units"]}

@@ -21,7 +21,7 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import Response, StreamingResponse
-from sqlalchemy import String, cast, select
+from sqlalchemy import String, cast, or_, select
 from sqlalchemy.orm import Session
 
 from physics.recording import format_recording
@@ -74,7 +74,8 @@ async def list_runs(request: Request, station: StationName | None = None, status
                     procedure: Name | None = None, serial: Serial | None = None,
                     limit: int = Query(50, ge=1, le=1000), offset: Index = 0,
                     _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
-    """Runs, newest first, filtered by station name, status, procedure and unit serial number."""
+    """Runs, newest first, filtered by station name, status, procedure and unit serial number (typed for
+    the run, reported by its unit, or certified under)."""
     q = select(Run)
     if station is not None:
         q = q.join(Station, Station.id == Run.station_id).where(Station.name == station)
@@ -88,9 +89,14 @@ async def list_runs(request: Request, station: StationName | None = None, status
             raise invalid("query.procedure", f"unknown procedure {procedure!r}; known: {', '.join(known)}")
         q = q.where(Run.procedure == procedure)
     if serial is not None:
-        # serials is a small JSON object {"0": "SN-1"}; its text holds each serial JSON-quoted on both databases
+        # the unit's runs: typed for it (serials is a small JSON object {"0": "SN-1"}, its text holds each
+        # serial JSON-quoted on both databases), a unit reporting it (the result's identified_serial), or
+        # certified under it (a unit typed otherwise: before, those runs were not found)
         needle = json.dumps(serial).replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
-        q = q.where(cast(Run.serials, String).like(f"%{needle}%", escape="\\"))
+        certified = select(Calibration.run_id).join(Device, Device.id == Calibration.device_id).where(Device.serial == serial)
+        q = q.where(or_(cast(Run.serials, String).like(f"%{needle}%", escape="\\"),
+                        cast(Run.meta, String).like(f'%"identified_serial": {needle}%', escape="\\"),
+                        Run.id.in_(certified)))
     with sessions(request)() as s:
         rows = s.scalars(q.order_by(Run.created_at.desc(), Run.id.desc()).limit(limit).offset(offset)).all()
         return [run_json(r) for r in rows]

@@ -30,13 +30,13 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from pydantic import ValidationError
-from sqlalchemy import select, text, update
+from sqlalchemy import ColumnElement, String, cast, or_, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from physics.calibration import json_safe
 from procedures.calibrate import BATCH, LOOKAHEAD_S, needed_budget_s
 from procedures.states import ACTIVE, FINAL, RunState, check_transition
-from service.db import Batch, Calibration, Run, RunCommand, RunEvent, Station, utcnow
+from service.db import Batch, Calibration, Device, Run, RunCommand, RunEvent, Station, utcnow
 from service.identity import CHOICES, DEFAULT_POLICY, POLICIES, is_serial_prompt, normalise
 
 try:
@@ -104,6 +104,17 @@ def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[s
             loc, msg = loc[:1], f"not valid JSON{at}: {(e.get('ctx') or {}).get('error', msg)}"
         out.append({"field": ".".join([*prefix, *loc]), "problem": msg})
     return out
+
+
+def runs_of_serial(serial: str) -> ColumnElement[bool]:
+    """The runs of a unit by any of its serial numbers: typed for the run (serials is a small JSON object
+    {"0": "SN-1"}, its text holds each serial JSON-quoted on both databases), reported by its unit (the
+    result's identified_serial), or certified under (a unit typed otherwise: those runs were not found)."""
+    needle = json.dumps(serial).replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+    certified = select(Calibration.run_id).join(Device, Device.id == Calibration.device_id).where(Device.serial == serial)
+    return or_(cast(Run.serials, String).like(f"%{needle}%", escape="\\"),
+               cast(Run.meta, String).like(f'%"identified_serial": {needle}%', escape="\\"),
+               Run.id.in_(certified))
 
 
 def invalid(field: str, problem: str) -> Invalid:
@@ -270,7 +281,8 @@ def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
             continue
         j = run_json(r)
         c = cals.get(r.id)
-        ident = ((j["result"] or {}).get("units") or {}).get("0") or {}  # what the mounted unit reported
+        result = j["result"] or {}  # what the mounted unit reported (a run ended early: its identities alone)
+        ident = (result.get("units") or {}).get("0") or (result.get("identities") or {}).get("0") or {}
         units.append({"serial": serial, "run_id": r.id, "status": j["status"], "reason": j["reason"],
                       "identified_serial": ident.get("identified_serial"), "identification": ident.get("identification"),
                       "verdict": c.verdict if c else None, "calibration_id": c.id if c else None,

@@ -37,6 +37,7 @@ from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_se
 from service.db import Analysis, Batch, Calibration, Device, Limit, Run, RunEvent, Sample, Station
 from service.identity import CHOICES, check_serial, is_serial_prompt
 from service.schemas import Id, Index, Serial, no_nul
+from service.runtime import runs_of_serial
 from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
@@ -558,8 +559,11 @@ def device_page(request: Request, serial: Serial) -> Response:
     with request.app.state.sessions() as s:
         dev = s.scalar(select(Device).where(Device.serial == serial))
         if dev is None:
+            seen = s.scalars(select(Run.id).where(runs_of_serial(serial)).order_by(Run.id).limit(20)).all()
             return _error_page(request, who, 404, "Unknown serial number",
-                               f"No device with serial number {serial!r} has been seen by this service.")
+                               f"No device has been certified under serial number {serial!r} by this service."
+                               + (f" Runs that named it (typed, or reported by their unit): "
+                                  f"{', '.join(f'/ui/runs/{i}' for i in seen)}." if seen else ""))
         rows = s.scalars(select(Calibration).where(Calibration.device_id == dev.id)
                          .order_by(Calibration.created_at.desc(), Calibration.id.desc())).all()
         history = [{"id": c.id, "run_id": c.run_id, "created_at": c.created_at, "status": c.status,

@@ -413,8 +413,8 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                                         f"run {run_id}")
             except Exception as e:  # noqa: BLE001 - the data is kept; the run says what went wrong
                 fin = _Finish(RunState.failed.value, f"storing the calibrations failed: {_reason(e)}")
-        if "units" not in fin.summary and check.identities:  # aborted or failed after naming its units: say whom
-            fin.summary["units"] = {str(k): {"serial": i.serial, **i.to_json()} for k, i in sorted(check.identities.items())}
+        if "units" not in fin.summary and check.identities:  # ended without results after naming its units: whom
+            fin.summary["identities"] = {str(k): i.to_json() for k, i in sorted(check.identities.items())}
         fin.summary = {**fin.summary, "samples": result.samples}
         return fin, result.table_seconds
 
@@ -576,8 +576,10 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
 
 
 def _unit0(run: Run) -> dict[str, Any]:
-    """What a batch unit's run stored of its unit (slot 0): serial, identity, verdict; {} without a result."""
-    return (((run.meta or {}).get("result") or {}).get("units") or {}).get("0") or {}
+    """What a batch unit's run stored of its unit (slot 0): serial, identity, verdict (a run that ended
+    without results: its identity alone); {} without either."""
+    result = (run.meta or {}).get("result") or {}
+    return (result.get("units") or {}).get("0") or (result.get("identities") or {}).get("0") or {}
 
 
 def _verdict(run: Run) -> str:

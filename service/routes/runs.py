@@ -16,12 +16,11 @@ stored and its station is free again.
 from __future__ import annotations
 
 import asyncio
-import json
 from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import Response, StreamingResponse
-from sqlalchemy import String, cast, or_, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from physics.recording import format_recording
@@ -30,6 +29,7 @@ from service.auth import Caller, audit, require
 from service.db import Calibration, Device, Run, Station
 from service.deps import event_stream, sessions
 from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after, invalid,
+                             runs_of_serial,
                              finish_unstarted, queue_answer, request_state, run_json, wait_for)
 from service.schemas import (ERRORS, AnswerIn, AnswerOut, ErrorOut, Id, Index, Name, RunDetail, RunIn, RunOut, RunStateOut,
                              Serial, StateIn, StationName, content)
@@ -89,14 +89,7 @@ async def list_runs(request: Request, station: StationName | None = None, status
             raise invalid("query.procedure", f"unknown procedure {procedure!r}; known: {', '.join(known)}")
         q = q.where(Run.procedure == procedure)
     if serial is not None:
-        # the unit's runs: typed for it (serials is a small JSON object {"0": "SN-1"}, its text holds each
-        # serial JSON-quoted on both databases), a unit reporting it (the result's identified_serial), or
-        # certified under it (a unit typed otherwise: before, those runs were not found)
-        needle = json.dumps(serial).replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
-        certified = select(Calibration.run_id).join(Device, Device.id == Calibration.device_id).where(Device.serial == serial)
-        q = q.where(or_(cast(Run.serials, String).like(f"%{needle}%", escape="\\"),
-                        cast(Run.meta, String).like(f'%"identified_serial": {needle}%', escape="\\"),
-                        Run.id.in_(certified)))
+        q = q.where(runs_of_serial(serial))
     with sessions(request)() as s:
         rows = s.scalars(q.order_by(Run.created_at.desc(), Run.id.desc()).limit(limit).offset(offset)).all()
         return [run_json(r) for r in rows]

@@ -153,16 +153,10 @@ def test_a_batch_certifies_one_unit_once(api: Api):
     (trusted, as asked), the other two are the same unit again: said so, not certified."""
     with sim_station(reference_config(seed=24, time_scale=20)) as info:
         make_station(api, info)
-        r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SN-1", "SN-2", "SN-3"],
-                                                         "parameters": PARAMS, "serial_policy": "trust-typed"})
-        assert r.status_code == 202, r.text
-        bid, deadline = r.json()["id"], time.monotonic() + 120
-        while (b := api.get(f"/batches/{bid}", role="viewer").json())["status"] == "running":
-            assert time.monotonic() < deadline, b
-            if b["prompt"]:
-                assert b["prompt"]["id"] == "mount", b["prompt"]
-                api.post(f"/runs/{b['prompt']['run_id']}/prompts/mount", role="operator", json={"answer": "mounted"})
-            time.sleep(0.05)
+        b, asked = run_batch(api, info, ["SN-1", "SN-2", "SN-3"], dict.fromkeys(["SN-1", "SN-2", "SN-3"], UNIT), {},
+                             serial_policy="trust-typed")
+        bid = b["id"]
+        assert not asked  # (trust-typed: no serial prompt)
         assert b["summary"]["SN-1"] in ("PASS", "MARGINAL"), b["summary"]
         for serial in ("SN-2", "SN-3"):
             said = b["summary"][serial]
@@ -273,14 +267,19 @@ def test_one_serial_is_never_certified_twice_in_a_run(api: Api):
         assert [(c["serial"], c["status"]) for c in done["calibrations"]] == [("SN-RANDOM", "current")]
 
 
+def start_batch(api: Api, serials: list[str], **body: Any) -> int:
+    """A batch of ``serials`` on lab-1 started (its id)."""
+    r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": serials, "parameters": PARAMS, **body})
+    assert r.status_code == 202, r.text
+    return r.json()["id"]
+
+
 def run_batch(api: Api, info: dict[str, Any], serials: list[str], on_mount: dict[str, str], answers: dict[str, str],
               **body: Any) -> tuple[dict[str, Any], list[str]]:
     """A batch to its end: at each unit's mount prompt the unit ``on_mount[serial]`` (by the typed serial)
     is mounted, each serial prompt is answered from ``answers`` (by the typed serial). Returns the batch
     and the serial prompts' texts."""
-    r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": serials, "parameters": PARAMS, **body})
-    assert r.status_code == 202, r.text
-    bid, deadline, asked = r.json()["id"], time.monotonic() + 150, []
+    bid, deadline, asked = start_batch(api, serials, **body), time.monotonic() + 150, []
     while (b := api.get(f"/batches/{bid}", role="viewer").json())["status"] == "running":
         assert time.monotonic() < deadline, b
         if b["prompt"]:
@@ -347,10 +346,7 @@ def test_a_batch_is_aborted_as_a_whole(api: Api):
     on to the next unit's mount prompt: a 20-unit batch took 20 aborts)."""
     with sim_station(reference_config(seed=27, time_scale=20)) as info:
         make_station(api, info)
-        r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SN-1", "SN-2", "SN-3"],
-                                                         "parameters": PARAMS, "serial_policy": "trust-typed"})
-        assert r.status_code == 202, r.text
-        bid, deadline = r.json()["id"], time.monotonic() + 60
+        bid, deadline = start_batch(api, ["SN-1", "SN-2", "SN-3"], serial_policy="trust-typed"), time.monotonic() + 60
         while not (b := api.get(f"/batches/{bid}", role="viewer").json())["prompt"]:
             assert time.monotonic() < deadline, b
             time.sleep(0.05)

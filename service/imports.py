@@ -743,7 +743,8 @@ class Mapping(_Strict):
     def _needs_its_columns(cls, value: Any, info: ValidationInfo) -> Any:
         # before the table's own keys: a table for columns that are not there is the problem, whatever it says
         keys, columns = _GROUP_COLUMNS[str(info.field_name)], info.data.get("columns")  # absent if refused
-        if isinstance(value, dict) and value and columns is not None and getattr(columns, keys[0]) is None:
+        # (only when none is given: one missing of three is the whole check's "columns.mx not given")
+        if isinstance(value, dict) and value and columns is not None and all(getattr(columns, k) is None for k in keys):
             raise ValueError(f"is given but columns.{', columns.'.join(keys)} are not")
         return value
 

@@ -506,6 +506,8 @@ MAG_ABC = {"mx": "a", "my": "b", "mz": "c"}
     ({"file": {"header": False}, "columns": MAG_ABC, "time": {"rate_hz": 1}},
      "mag column 'a' (mx) is given by name but file.header = false"),
     ({"columns": {"my": "b", "mz": "c"}, "time": {"rate_hz": 1}}, "mag needs all three columns"),
+    # with [mag] given too: the one column missing, not all three ("[mag] is given but columns.mx, ... are not")
+    ({"columns": {"my": "b", "mz": "c"}, "time": {"rate_hz": 1}, "mag": {"unit": "uT"}}, "columns.mx not given"),
     ({"columns": {**MAG_ABC, "t": 1.5}}, "columns.t must be a column name (text) or a 0-based index"),
     ({"columns": MAG_ABC, "time": {"rate_hz": -2}}, "time.rate_hz must be a number > 0, got -2"),
     ({"columns": {**MAG_ABC, "psi_t": "a", "theta_t": "b", "phi_t": "c"}, "time": {"rate_hz": 1},

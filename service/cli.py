@@ -94,6 +94,16 @@ def _fail(message: str) -> NoReturn:
     raise typer.Exit(code=2)
 
 
+def _write(path: Path, text: str) -> None:
+    """Write an output file (its directory made), or end the command saying why it cannot be written
+    (the up-front check cannot foresee everything: /proc refuses at the write, after the work)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text, encoding="utf-8")
+    except OSError as e:
+        _fail(f"cannot write {path}: {e.strerror or e}")
+
+
 def _note(message: str) -> None:
     """A note on stderr (stdout stays the command's output)."""
     err_console.print(f"[dim]note:[/] {escape(message)}", soft_wrap=True)
@@ -250,8 +260,8 @@ def simulate(
     except ValidationError as e:
         _fail(f"--samples {samples}: {e.errors()[0]['msg']}")
     rec = simulate_recording(u, poses, world, rng=rng, meta={"procedure": "calibrate", "seed": str(seed)})
-    output.write_text(format_recording(rec))
-    truth.write_text(json.dumps(truth_json(u, world), indent=2))
+    _write(output, format_recording(rec))
+    _write(truth, json.dumps(truth_json(u, world), indent=2))
     cost = plan_cost(poses)
     console.print(f"wrote {output} ({len(rec)} samples, {cost.positions} poses, {cost.total_s:.1f} s of table time) "
                   f"and the true parameters to {truth}")
@@ -295,7 +305,7 @@ def fit(
     if truth_data is not None:
         print_truth(cal, truth_data)
     if output is not None:
-        output.write_text(json.dumps(json_safe(cal.to_json()), indent=2))  # (strict JSON: NaN as null)
+        _write(output, json.dumps(json_safe(cal.to_json()), indent=2))  # (strict JSON: NaN as null)
         console.print(f"calibration written to {output}")
     if plot is not None:
         from service.plots import calibration_figure
@@ -319,7 +329,7 @@ def convert(
     skipped = rec.meta.get("skipped_rows")
     if skip_bad_rows and skipped not in (None, "0"):  # a conversion like the others, kept in the file
         rec.meta["converted_skipping"] = f"{skipped} malformed row(s) of {recording.name} dropped (--skip-bad-rows)"
-    output.write_text(format_recording(rec))
+    _write(output, format_recording(rec))
     console.print(f"wrote {output} ({len(rec)} samples{', table angles' if rec.has_angles else ', no table angles'}"
                   f"{', accelerometer' if rec.acc is not None else ''}{', temperature' if rec.temp_c is not None else ''})")
 
@@ -479,15 +489,12 @@ def analyze(
             _fail(f"{recording}: {e}")
     print_analysis(a.result)
     if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(a.to_json(), indent=2))
+        _write(json_out, json.dumps(a.to_json(), indent=2))
         console.print(f"analysis JSON written to {json_out}")
     if html is not None:
         from service.report import analysis_html
 
-        html.parent.mkdir(parents=True, exist_ok=True)
-        html.write_text(analysis_html(a.result, a.series, f"Discrepancy analysis: {rec.serial or recording.name}"),
-                        encoding="utf-8")
+        _write(html, analysis_html(a.result, a.series, f"Discrepancy analysis: {rec.serial or recording.name}"))
         console.print(f"HTML report written to {html}")
 
 
@@ -615,7 +622,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
             continue
         cal = r["calibration"]
         path = out / f"{serials[slot]}.cal.json"
-        path.write_text(json.dumps(json_safe(cal.to_json()), indent=2))
+        _write(path, json.dumps(json_safe(cal.to_json()), indent=2))
         print_calibration(cal)
         calibration_figure(sink.recording(slot), cal, out / f"{serials[slot]}.png")
         console.print(f"calibration written to {path}, plot to {out / f'{serials[slot]}.png'}")
@@ -1148,7 +1155,7 @@ def prove(
     if not out:
         console.print("nothing to prove: every count is 0", markup=False, highlight=False)
     if json_out is not None:
-        json_out.write_text(json.dumps(out, indent=1))
+        _write(json_out, json.dumps(out, indent=1))
         console.print(f"score and cases written to {json_out}")
 
 

@@ -482,3 +482,13 @@ def test_a_file_without_its_column_line_or_of_one_row_is_refused_for_what_it_is(
     r = runner.invoke(app, ["fit", str(one)])
     said = " ".join(r.output.split())
     assert r.exit_code != 0 and "1 data row(s)" in said and "dead or disconnected" not in said, r.output
+
+
+def test_an_output_that_cannot_be_written_after_the_work_is_one_line_not_a_traceback(tmp_path: Path):
+    """/proc passes the up-front check (its directory exists and is writable to root) but refuses the
+    write, after the analysis: that was a traceback and exit 1."""
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "10", "-o", str(rec)]).exit_code == 0
+    r = runner.invoke(app, ["fit", str(rec), "-o", "/proc/compasscal-cal.json"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 2 and "cannot write /proc/compasscal-cal.json" in said and "Traceback" not in said, r.output

@@ -1156,6 +1156,15 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
         f = ANGLE_UNITS[m.angles.unit]
         psi, theta, phi = (v[c] * f * (-1.0 if c in m.angles.negate else 1.0) for c in _GROUP_COLUMNS["angles"])
         angles = (psi, theta, phi)
+        fin = [a[np.isfinite(a)] for a in angles]
+        spans = [float(np.ptp(a)) if a.size else 0.0 for a in fin]
+        if (m.angles.unit == "deg" and tab.n >= 20 and max(spans) > math.pi
+                and all(np.all(np.abs(a) <= 2 * math.pi + 1e-6) for a in fin)):
+            # every angle within +-2 pi, one turning by more than pi: radians (fit refused such a file only
+            # later, "these look like radians"; a table in degrees turning that little has nothing to fit)
+            c = _GROUP_COLUMNS["angles"][int(np.argmax(spans))]
+            raise _fail(path, f"mapping: angles.unit is \"deg\", but every angle is within +-2 pi and column "
+                              f"{tab.labels[c]} ({c}) spans {max(spans):.3f}: these look like radians (angles.unit = \"rad\")")
         meta["attitude_source"] = m.angles.source
         meta["angles"] = (f"psi_t (outer, z) = {'-' if 'psi_t' in m.angles.negate else ''}column {tab.labels['psi_t']}, "
                           f"theta_t (middle, y) = {'-' if 'theta_t' in m.angles.negate else ''}column {tab.labels['theta_t']}, "
@@ -1170,10 +1179,15 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
                 meta["attitude_source"] = f"turntable with its stages nested {m.angles.sequence}, not z, y, x"
     elif m.attitude is not None:
         q = np.column_stack([v[f"q{i}"] for i in range(4)])
-        keep = np.isfinite(q).all(axis=1) & (np.linalg.norm(np.nan_to_num(q), axis=1) > 0.5)
+        norm = np.linalg.norm(np.nan_to_num(q), axis=1)
+        keep = np.isfinite(q).all(axis=1) & (norm > 0.5)
         if not keep.any():
             raise _fail(path, "mapping: the attitude quaternion has no valid row (columns "
                               f"{', '.join(tab.labels[f'q{i}'] for i in range(4))})")
+        if not 0.9 <= float(np.median(norm[keep])) <= 1.1:  # (a temperature column as q3 was taken, normalised)
+            raise _fail(path, f"mapping: the attitude quaternion's norm is {float(np.median(norm[keep])):.4g} (median "
+                              "over its rows), not 1: are attitude.columns "
+                              f"({', '.join(tab.labels[f'q{i}'] for i in range(4))}) the four components of a unit quaternion?")
         R = quaternion_matrix(q[keep], m.attitude.order)
         if m.attitude.rotation == "lab_to_body":
             R = np.transpose(R, (0, 2, 1))

@@ -620,3 +620,20 @@ negate = ["psi_t"]
     bad = _write(tmp_path, "bad.toml", '[columns]\nmx = "Bx"\nmy = "By"\nmz = "Bq"\n[time]\nrate_hz = 10\n')
     r = runner.invoke(app, ["analyze", str(foreign), "--mapping", str(bad)])
     assert r.exit_code == 2 and "mag column 'Bq' (mz) not found in header" in r.output
+
+
+def test_mapping_refuses_radians_said_to_be_degrees_and_a_quaternion_that_is_not_one(tmp_path):
+    """Angles in radians mapped as degrees were written as a table recording without a word (fit refused
+    it only later); four columns that are no unit quaternion (a temperature of 23 as q3) were normalised
+    into garbage angles. Both are refused when the file is read, naming the fix."""
+    yaw = np.linspace(0.0, 2 * np.pi * 0.9, 40)
+    rows = ["t,a,b,c,yaw,pitch,roll,T"] + [f"{0.05 * i:.2f},1,2,3,{y:.6f},0.1,-0.1,23.0" for i, y in enumerate(yaw)]
+    p = _write(tmp_path, "r.csv", "\n".join(rows) + "\n")
+    m = {"columns": {**MAG_ABC, "t": "t", "psi_t": "yaw", "theta_t": "pitch", "phi_t": "roll"}, "angles": {"unit": "deg"}}
+    with pytest.raises(RecordingFileError, match=r"column 'yaw' \(psi_t\) spans 5\.655: these look like radians \(angles\.unit = \"rad\"\)"):
+        read_recording_file(p, mapping=m)
+    m["angles"]["unit"] = "rad"
+    assert read_recording_file(p, mapping=m).psi_t.max() == pytest.approx(324.0, abs=0.01)
+    q = {"columns": {**MAG_ABC, "t": "t"}, "attitude": {"columns": ["yaw", "pitch", "roll", "T"], "order": "xyzw"}}
+    with pytest.raises(RecordingFileError, match=r"quaternion's norm is 23\.\d+ .* not 1"):
+        read_recording_file(p, mapping=q)

@@ -94,6 +94,20 @@ def _fail(message: str) -> NoReturn:
     raise typer.Exit(code=2)
 
 
+def _seed_list(text: Optional[str]) -> int | list[int] | None:
+    """``--seed``: one integer >= 0, or several joined by commas (the service seeds an analysis with
+    [run id, slot]); None when not given."""
+    if text is None:
+        return None
+    try:
+        values = [int(x) for x in text.replace("[", "").replace("]", "").split(",")]
+    except ValueError:
+        values = [-1]
+    if any(v < 0 for v in values):
+        _fail(f"--seed {text!r}: an integer >= 0, or several joined by commas (e.g. 6,0)")
+    return values[0] if len(values) == 1 else values
+
+
 def _write(path: Path, text: str) -> None:
     """Write an output file (its directory made), or end the command saying why it cannot be written
     (the up-front check cannot foresee everything: /proc refuses at the write, after the work)."""
@@ -458,13 +472,16 @@ def analyze(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the analysis JSON here."),
     html: Optional[Path] = typer.Option(None, "--html", help="Write the HTML report (self-contained, plots inline) here."),
     null_sims: int = typer.Option(200, "--null-sims", min=0, help="Simulated null recordings that calibrate the tests' false-alarm rate."),
-    seed: Optional[int] = typer.Option(None, min=0, help="Seed of the null simulations (default: the analyser's own fixed seed)."),
+    seed: Optional[str] = typer.Option(None, help="Seed of the null simulations: an integer >= 0, or several joined by "
+                                       "commas, e.g. 6,0 to repeat the service's analysis of run 6, slot 0 (its JSON's "
+                                       "\"seed\": [6, 0]); default: the analyser's own fixed seed."),
     alpha: float = typer.Option(0.01, min=1e-6, max=0.5, help="Significance after correction for the number of tests."),
     mapping: Optional[Path] = typer.Option(None, "--mapping", exists=True, dir_okay=False, help=MAPPING_HELP),
     skip_bad_rows: bool = typer.Option(False, help="Drop malformed rows instead of refusing the file (as fit does)."),
 ) -> None:
     """Find where a recording departs from the nominal model, name the missing physics, and show the
     fit before and after (held out)."""
+    seeds = _seed_list(seed)
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from physics.discrepancy import analyze as run_analysis
@@ -484,7 +501,7 @@ def analyze(
 
         try:
             a = run_analysis(rec, cal, alpha=alpha, null_sims=null_sims,
-                             rng=np.random.default_rng(seed) if seed is not None else None, progress=progress)
+                             rng=np.random.default_rng(seeds) if seeds is not None else None, progress=progress)
         except ValueError as e:  # the recording cannot support the analysis (e.g. no static hold): say why
             _fail(f"{recording}: {e}")
     print_analysis(a.result)

@@ -492,3 +492,24 @@ def test_an_output_that_cannot_be_written_after_the_work_is_one_line_not_a_trace
     r = runner.invoke(app, ["fit", str(rec), "-o", "/proc/compasscal-cal.json"])
     said = " ".join(r.output.split())
     assert r.exit_code == 2 and "cannot write /proc/compasscal-cal.json" in said and "Traceback" not in said, r.output
+
+
+def test_analyze_takes_the_services_seed_to_repeat_its_analysis(tmp_path: Path):
+    """The service seeds an analysis with [run id, slot] and says so in its JSON; the CLI took one
+    integer only, so its result could not be repeated from the command line."""
+    import numpy as np
+
+    from physics.discrepancy import analyze
+    from physics.recording import parse_recording
+
+    rec = tmp_path / "rec.csv"
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "20", "-o", str(rec)]).exit_code == 0
+    out = tmp_path / "a.json"
+    r = runner.invoke(app, ["analyze", str(rec), "--null-sims", "20", "--seed", "6,0", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    direct = analyze(parse_recording(rec.read_text()), None, null_sims=20, rng=np.random.default_rng([6, 0]))
+    got = json.loads(out.read_text())
+    assert got["tests"] == json.loads(json.dumps(direct.to_json()))["tests"] and got["tests"]
+    for bad in ("-1", "6,x", ""):
+        r = runner.invoke(app, ["analyze", str(rec), "--seed", bad])
+        assert r.exit_code == 2 and "--seed" in r.output and "several joined by commas" in " ".join(r.output.split()), r.output

@@ -262,7 +262,7 @@ def better_reading(ang: np.ndarray, mag: np.ndarray) -> tuple[float, float, str]
     simplest = sorted((t for t in alike if t[1] == fewest), key=lambda t: t[0])
     how = simplest[0][2] if len(simplest) == 1 else (
         "in one of these ways, which this recording's attitudes cannot tell apart: "
-        + " | ".join(t[2] for t in simplest[:4]) + (f" | {len(simplest) - 4} more" if len(simplest) > 4 else ""))
+        + " | ".join(t[2] for t in simplest[:8]) + (f" | {len(simplest) - 8} more" if len(simplest) > 8 else ""))
     return here, simplest[0][0], how
 
 

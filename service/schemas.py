@@ -224,7 +224,7 @@ class RecordingOut(BaseModel):
     status: str
     procedure: str
     samples: int
-    serial: str
+    serial: str | None = Field(description="its '# serial:' line; null when it has none")
 
 # -------------------------------------------------------------------------------------- stations
 

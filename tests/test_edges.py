@@ -388,3 +388,13 @@ def test_an_upload_is_stored_off_the_event_loop(api: Api, monkeypatch: pytest.Mo
         t.join(30)
     assert waited < 5, f"/health waited {waited:.1f} s for the upload's insert"
     assert done["r"].status_code == 201
+
+
+def test_a_recording_uploaded_without_a_serial_stores_none_not_an_empty_one(api: Api):
+    """It stored serials {"0": ""} and answered "serial": "" (no serial number is empty)."""
+    r = upload(api, recording_csv(serial=None))
+    assert r.status_code == 201 and r.json()["serial"] is None, r.text
+    assert api.get(f"/runs/{r.json()['id']}", role="viewer").json()["serials"] == {}
+    r = upload(api, recording_csv(serial="SN-UP"))
+    assert r.status_code == 201 and r.json()["serial"] == "SN-UP"
+    assert api.get(f"/runs/{r.json()['id']}", role="viewer").json()["serials"] == {"0": "SN-UP"}

@@ -87,10 +87,12 @@ def _store(chunks: list[bytes], caller: Caller, sessions: sessionmaker) -> dict[
         raise invalid("body", "column t: the recording's time span is not a finite number of seconds")
     with sessions() as session:
         run = Run(procedure="import", procedure_version="1", parameters={}, status="completed", operator=caller.owner,
-                  serials={"0": serial}, software_version=SOFTWARE_VERSION, meta=dict(rec.meta), table_seconds=span)
+                  # no serial: none stored (an empty one is no serial number; the run lists no unit's)
+                  serials={"0": serial} if serial else {}, software_version=SOFTWARE_VERSION, meta=dict(rec.meta),
+                  table_seconds=span)
         session.add(run)
         session.flush()
         insert_samples(session, run.id, 0, rec)
         audit(session, caller, "recording.import", f"run {run.id}", {"serial": serial, "samples": len(rec)})
         session.commit()
-        return {"id": run.id, "status": run.status, "procedure": "import", "samples": len(rec), "serial": serial}
+        return {"id": run.id, "status": run.status, "procedure": "import", "samples": len(rec), "serial": serial or None}

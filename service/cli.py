@@ -552,8 +552,12 @@ def print_analysis(result: dict[str, object]) -> None:
     he = r.get("heading_error_deg") or {}
     console.print(f"held-out improvement: [bold]{num(held.get('improvement_pct'), 3)} %[/] "
                   f"({escape(str(held.get('scheme', 'scheme not given')))})")
-    console.print(f"level heading error: RMS {num(he.get('rms_before'), 3)} deg before, {num(he.get('rms_after'), 3)} deg "
-                  f"after the fitted effects; maximum {num(he.get('before'), 3)} before, {num(he.get('after'), 3)} after")
+    if all(he.get(k) is None for k in ("rms_before", "rms_after", "before", "after")):
+        # (it printed "RMS - deg before, - deg after" for a recording that has no heading reference)
+        console.print("level heading error: not available (no level holds with a heading reference)")
+    else:
+        console.print(f"level heading error: RMS {num(he.get('rms_before'), 3)} deg before, {num(he.get('rms_after'), 3)} "
+                      f"deg after the fitted effects; maximum {num(he.get('before'), 3)} before, {num(he.get('after'), 3)} after")
     findings = r.get("findings") or []
     if not findings:
         console.print("findings: none beyond the noise")

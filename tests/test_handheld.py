@@ -347,3 +347,15 @@ def test_attitude_free_findings_carry_the_one_schema():
     assert isinstance(f["plausible"], bool)
     assert r["summary"].startswith("The model with")
     json.dumps(r)
+
+
+def test_the_cli_says_a_hand_held_recording_has_no_level_heading_error_to_show(capsys):
+    """With no heading reference, the summary printed "RMS - deg before, - deg after ..."."""
+    from physics.discrepancy import analyze
+    from service.cli import print_analysis
+
+    rec, _ = simulate_handheld(5)
+    print_analysis(analyze(rec, null_sims=20).result)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "level heading error: not available (no level holds with a heading reference)" in out, out
+    assert "RMS - deg" not in out

@@ -398,3 +398,13 @@ def test_a_recording_uploaded_without_a_serial_stores_none_not_an_empty_one(api:
     r = upload(api, recording_csv(serial="SN-UP"))
     assert r.status_code == 201 and r.json()["serial"] == "SN-UP"
     assert api.get(f"/runs/{r.json()['id']}", role="viewer").json()["serials"] == {"0": "SN-UP"}
+
+
+def test_an_upload_of_another_layout_or_as_a_form_is_told_how_to_send_it(api: Api):
+    """A logger's own CSV said only "missing required column(s)"; a multipart form was read as CSV and
+    said the same. The first is pointed to convert --mapping, the second to sending the CSV itself."""
+    r = upload(api, "tms;Bx;By;Bz\n1000;12.5;-3.1;40.2\n")
+    assert r.status_code == 422 and "compasscal convert FILE --mapping map.toml" in r.text, r.text
+    r = api.post("/recordings", role="operator", files={"file": ("rec.csv", recording_csv().encode(), "text/csv")})
+    assert r.status_code == 422 and "multipart form upload" in r.text and "--data-binary" in r.text, r.text
+    assert upload(api, recording_csv()).status_code == 201  # the CSV itself, as before

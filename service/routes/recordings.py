@@ -44,6 +44,10 @@ async def upload_recording(request: Request, caller: Caller = Depends(require("o
     ``import``, so it can be fitted and analysed like any other. 413 beyond the size limit; 422 for
     text that is not a recording or that the database could not hold (naming the line and column)."""
     limit = MAX_UPLOAD_BYTES  # read once: the limit of this request
+    if request.headers.get("content-type", "").lower().startswith("multipart/"):
+        # (a form upload read as CSV said "line 1: missing required column(s)")
+        raise invalid("body", "a multipart form upload: send the recording's CSV text itself as the body "
+                              "(e.g. curl --data-binary @rec.csv -H 'Content-Type: text/csv')")
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > limit:
         raise HTTPException(413, f"recording of {int(declared)} bytes; at most {limit} accepted")
@@ -71,7 +75,11 @@ def _store(chunks: list[bytes], caller: Caller, sessions: sessionmaker) -> dict[
     try:
         rec = parse_recording(text, max_step_chars=STEP_MAX)  # samples.step is String(32)
     except RecordingError as e:
-        raise invalid("body", str(e)) from None
+        # a file of another layout (a logger's own columns, units or separator): say how to bring it in
+        foreign = "missing required column" in str(e) or "no column line" in str(e)
+        hint = ("; a file of another layout is converted first: compasscal convert FILE --mapping map.toml -o rec.csv "
+                "(the importers' own formats: compasscal convert FILE -o rec.csv)") if foreign else ""
+        raise invalid("body", str(e) + hint) from None
     long = [c for c in rec.extra if len(c) > NAME_MAX]
     if long:  # an extra column is kept under its name, a String(64)
         raise invalid("body", f"column line: extra column name of {len(long[0])} characters, at most {NAME_MAX} "

@@ -101,7 +101,7 @@ def read_recording_file(path: Path | str, *, skip_bad_rows: bool = False,
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as e:
-        raise _fail(path, f"not UTF-8 text and not a .mat or .hdf5 file ({e.reason} at byte {e.start})") from None
+        raise _fail(path, f"not UTF-8 text and not a .mat or .hdf5 file ({e.reason} at byte {e.start + 1}, counting from 1)") from None
     first = next((line.strip() for line in text.splitlines() if line.strip()), "")
     if first.replace(" ", "").lower().startswith("fs,"):
         return _read_qmc_csv(path, text, skip_bad_rows)
@@ -876,7 +876,7 @@ def _csv_table(path: Path, m: Mapping, skip_bad_rows: bool) -> _Table:
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as e:
-        raise _fail(path, f"not UTF-8 text ({e.reason} at byte {e.start}); for a .mat/.hdf5 file set "
+        raise _fail(path, f"not UTF-8 text ({e.reason} at byte {e.start + 1}, counting from 1); for a .mat/.hdf5 file set "
                           "file.format in the mapping") from None
     lines = text.splitlines()
     if m.file.skip_rows >= len(lines):

@@ -408,3 +408,16 @@ def test_an_upload_of_another_layout_or_as_a_form_is_told_how_to_send_it(api: Ap
     r = api.post("/recordings", role="operator", files={"file": ("rec.csv", recording_csv().encode(), "text/csv")})
     assert r.status_code == 422 and "multipart form upload" in r.text and "--data-binary" in r.text, r.text
     assert upload(api, recording_csv()).status_code == 201  # the CSV itself, as before
+
+
+def test_a_byte_that_is_not_utf8_is_counted_from_1_by_the_file_reader_and_the_upload(api: Api, tmp_path):
+    """The CLI said "byte 40" where the upload said "byte 41" of the same text."""
+    from service.imports import RecordingFileError, read_recording_file
+
+    data = b"t,step\n\xff,x\n"
+    r = api.post("/recordings", role="operator", content=data, headers={"Content-Type": "text/csv"})
+    assert r.status_code == 422 and "byte 8, counting from 1" in r.text, r.text
+    p = tmp_path / "bad.csv"
+    p.write_bytes(data)
+    with pytest.raises(RecordingFileError, match="byte 8, counting from 1"):
+        read_recording_file(p)

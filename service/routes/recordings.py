@@ -67,7 +67,7 @@ def _store(chunks: list[bytes], caller: Caller, sessions: sessionmaker) -> dict[
     try:
         text = b"".join(chunks).decode("utf-8")
     except UnicodeDecodeError as e:
-        raise invalid("body", f"not UTF-8 text (byte {e.start + 1})") from None
+        raise invalid("body", f"not UTF-8 text (byte {e.start + 1}, counting from 1)") from None
     nul = text.find("\x00")
     if nul >= 0:  # PostgreSQL's text and JSON cannot hold it: refused on both databases
         line = len(_LINE_BREAK.findall(text, 0, nul)) + 1

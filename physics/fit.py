@@ -490,8 +490,7 @@ def _bad_angles(rec: Recording, i: int, noise: np.ndarray | None) -> str | None:
     neighbours' (a corrupted psi_t was blamed on my: "my = -2161.8 is 2030 LSB off the fitted model")."""
     if noise is None or i == 0 or i == len(rec) - 1:
         return None
-    ang = es.table_angles(rec)
-    before, here, after = ang[i - 1], ang[i], ang[i + 1]
+    before, here, after = np.column_stack([rec.psi_t[i - 1:i + 2], rec.theta_t[i - 1:i + 2], rec.phi_t[i - 1:i + 2]])
     if not (np.allclose(before, after) and rec.step[i - 1] == rec.step[i] == rec.step[i + 1]):
         return None
     off = np.abs(wrap180(here - before)) > 1e-3

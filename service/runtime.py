@@ -106,6 +106,13 @@ def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[s
     return out
 
 
+def slot_result(result: dict[str, Any] | None, slot: int = 0) -> dict[str, Any]:
+    """What a run's result holds of one slot's unit: serial, identity, verdict (a run that ended without
+    results: its identity alone, ``identities``); {} without either."""
+    result = result or {}
+    return (result.get("units") or {}).get(str(slot)) or (result.get("identities") or {}).get(str(slot)) or {}
+
+
 def runs_of_serial(serial: str) -> ColumnElement[bool]:
     """The runs of a unit by any of its serial numbers: typed for the run (serials is a small JSON object
     {"0": "SN-1"}, its text holds each serial JSON-quoted on both databases), reported by its unit (the
@@ -281,8 +288,7 @@ def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
             continue
         j = run_json(r)
         c = cals.get(r.id)
-        result = j["result"] or {}  # what the mounted unit reported (a run ended early: its identities alone)
-        ident = (result.get("units") or {}).get("0") or (result.get("identities") or {}).get("0") or {}
+        ident = slot_result(j["result"])  # what the mounted unit reported
         units.append({"serial": serial, "run_id": r.id, "status": j["status"], "reason": j["reason"],
                       "identified_serial": ident.get("identified_serial"), "identification": ident.get("identification"),
                       "verdict": c.verdict if c else None, "calibration_id": c.id if c else None,

@@ -51,7 +51,7 @@ from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, RunEvent, Sample, Station, utcnow
 from service.identity import DEFAULT_POLICY, Identity, UnitCheck
 from service.runtime import (ANALYSIS_FINAL, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError,
-                             analysis_topic, create_run, notify, other_workers, publish)
+                             analysis_topic, create_run, notify, other_workers, publish, slot_result)
 from service.store import insert_samples, load_recording, store_calibration
 
 log = logging.getLogger("compasscal.worker")
@@ -563,7 +563,7 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
             with ctx.sessions() as s:
                 done = s.get(Run, run.id)
                 summary[serial] = _verdict(done)
-                reported = _unit0(done).get("identified_serial")
+                reported = slot_result((done.meta or {}).get("result")).get("identified_serial")
             # the unit to take out, by what the operator typed and, when it said otherwise, what it reported
             previous = f"{serial}" + (f" (it reports {reported})" if reported and reported != serial else "") \
                 + f" ({summary[serial]})"
@@ -575,19 +575,12 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
         _save_batch(ctx, batch_id, status, summary, final=True)
 
 
-def _unit0(run: Run) -> dict[str, Any]:
-    """What a batch unit's run stored of its unit (slot 0): serial, identity, verdict (a run that ended
-    without results: its identity alone); {} without either."""
-    result = (run.meta or {}).get("result") or {}
-    return (result.get("units") or {}).get("0") or (result.get("identities") or {}).get("0") or {}
-
-
 def _verdict(run: Run) -> str:
     """One unit's line in a batch summary (keyed by the serial typed): its verdict, and the serial it was
     certified under when not that one; or why it has none."""
     if run.status != RunState.completed.value:
         return f"{run.status}: {run.reason}"
-    unit = _unit0(run)
+    unit = slot_result((run.meta or {}).get("result"))
     if "verdict" in unit:
         typed = (run.serials or {}).get("0")
         return unit["verdict"] + (f" (certified as {unit['serial']})" if unit.get("serial") and unit["serial"] != typed else "")

@@ -11,8 +11,8 @@ from pydantic import ValidationError
 from sqlalchemy import select, update
 
 from procedures.calibrate import BatchCalibrateParams
-from service.auth import Caller, audit, require
 from procedures.states import ACTIVE
+from service.auth import Caller, audit, require
 from service.db import Batch, Run, Station
 from service.deps import sessions
 from service.runtime import Conflict, Invalid, NotFound, batch_json, field_errors, invalid

@@ -28,9 +28,8 @@ from procedures.states import ACTIVE, RunState
 from service.auth import Caller, audit, require
 from service.db import Calibration, Device, Run, Station
 from service.deps import event_stream, sessions
-from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after, invalid,
-                             runs_of_serial,
-                             finish_unstarted, queue_answer, request_state, run_json, wait_for)
+from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after, finish_unstarted,
+                             invalid, queue_answer, request_state, run_json, runs_of_serial, wait_for)
 from service.schemas import (ERRORS, AnswerIn, AnswerOut, ErrorOut, Id, Index, Name, RunDetail, RunIn, RunOut, RunStateOut,
                              Serial, StateIn, StationName, content)
 from service.store import load_recording

@@ -47,7 +47,7 @@ def main() -> None:
     for path in files:
         rec = read_recording_file(path)
         t0 = time.perf_counter()
-        r = analyze(rec, rng=np.random.default_rng(args.seed) if args.seed is not None else None).result
+        r = analyze(rec, seed=args.seed).result
         dt = time.perf_counter() - t0
         worst = max(worst, dt)
         before, after = (max(v for v in r[k] if v is not None) for k in ("residual_rms_before_lsb", "residual_rms_after_lsb"))

@@ -6,6 +6,7 @@ Works on text only; reading and writing files is the caller's business.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import math
 import re
@@ -66,6 +67,21 @@ class Recording:
     def serial(self) -> str | None:
         """The unit's serial number from the metadata, if recorded."""
         return self.meta.get("serial")
+
+    def fingerprint(self) -> int:
+        """A 52-bit number (exact in JSON, whose numbers are doubles) drawn from the recording's readings, angles and times, each rounded to the
+        decimals its file keeps (`DECIMALS`): the same recording gives the same number whether it was read
+        from a file, an export of it or the database. The analyser seeds its null simulations with it."""
+        h = hashlib.sha256()
+        columns = [("t", self.t), *((c, getattr(self, c)) for c in ANGLE_COLUMNS), ("mx", self.mag),
+                   ("ax", self.acc), ("temp_c", self.temp_c)]
+        for name, values in columns:
+            if values is None:
+                h.update(b"-")
+                continue
+            v = np.round(np.asarray(values, dtype=float), DECIMALS[name]) + 0.0  # + 0.0: -0.0 hashes as 0.0
+            h.update(np.where(np.isnan(v), np.inf, v).astype("<f8").tobytes())
+        return int.from_bytes(h.digest()[:8], "little") >> 12
 
     def select(self, mask_or_index: Any) -> Recording:
         """Return a new Recording with the rows picked by a boolean mask, index array, slice or int."""

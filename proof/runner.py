@@ -77,7 +77,7 @@ def run_task(task: Task) -> tuple[int, Case, Outcome]:
     rec = case.rec.select(slice(None))  # a copy: nothing the analyser does can touch the truth
     t0 = time.perf_counter()
     try:
-        a = analyze(rec, rng=np.random.default_rng(ana), **task.analyze_kwargs)
+        a = analyze(rec, seed=ana, **task.analyze_kwargs)
     except Exception as e:  # noqa: BLE001 - a crash is a result of the proof, scored and reported
         out = Outcome(None, None, time.perf_counter() - t0, f"{type(e).__name__}: {e}")
     else:
@@ -245,7 +245,7 @@ def run_handheld_case(job: tuple[int, str | None, float]) -> dict[str, Any]:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            r = analyze(rec.select(slice(None)), rng=np.random.default_rng(seed)).result
+            r = analyze(rec.select(slice(None)), seed=seed).result
     except Exception as e:  # noqa: BLE001 - a crash is a result of the proof, scored and reported
         out.update(seconds=time.perf_counter() - t0, error=f"{type(e).__name__}: {e}", alarm=None, success=False,
                    frame=False, windows=False, findings=[])

@@ -95,8 +95,8 @@ def _fail(message: str) -> NoReturn:
 
 
 def _seed_list(text: Optional[str]) -> int | list[int] | None:
-    """``--seed``: one integer >= 0, or several joined by commas (the service seeds an analysis with
-    [run id, slot]); None when not given."""
+    """``--seed``: one integer >= 0, or several joined by commas (as an analysis JSON's ``"seed"`` may be,
+    e.g. an older service analysis's [run id, slot]); None when not given."""
     if text is None:
         return None
     try:
@@ -473,8 +473,8 @@ def analyze(
     html: Optional[Path] = typer.Option(None, "--html", help="Write the HTML report (self-contained, plots inline) here."),
     null_sims: int = typer.Option(200, "--null-sims", min=0, help="Simulated null recordings that calibrate the tests' false-alarm rate."),
     seed: Optional[str] = typer.Option(None, help="Seed of the null simulations: an integer >= 0, or several joined by "
-                                       "commas, e.g. 6,0 to repeat the service's analysis of run 6, slot 0 (its JSON's "
-                                       "\"seed\": [6, 0]); default: the analyser's own fixed seed."),
+                                       "commas (the analysis JSON's \"seed\"); default: the recording's own fingerprint, "
+                                       "so that the same recording gives the same analysis here and in the service."),
     alpha: float = typer.Option(0.01, min=1e-6, max=0.5, help="Significance after correction for the number of tests."),
     mapping: Optional[Path] = typer.Option(None, "--mapping", exists=True, dir_okay=False, help=MAPPING_HELP),
     skip_bad_rows: bool = typer.Option(False, help="Drop malformed rows instead of refusing the file (as fit does)."),
@@ -500,8 +500,7 @@ def analyze(
             bar.update(task, description=f"analyse: {stage}", completed=max(0.0, min(1.0, float(fraction))))
 
         try:
-            a = run_analysis(rec, cal, alpha=alpha, null_sims=null_sims,
-                             rng=np.random.default_rng(seeds) if seeds is not None else None, progress=progress)
+            a = run_analysis(rec, cal, alpha=alpha, null_sims=null_sims, seed=seeds, progress=progress)
         except ValueError as e:  # the recording cannot support the analysis (e.g. no static hold): say why
             _fail(f"{recording}: {e}")
     print_analysis(a.result)

@@ -667,7 +667,6 @@ def execute_analysis(ctx: WorkerContext, analysis_id: int) -> None:
                 last[:] = [now, stage]
                 _analysis_update(ctx, analysis_id, progress={"stage": stage, "percent": round(100.0 * frac, 1)})
 
-        seed = [run_id, slot]  # the same run analysed twice gets the same null simulations, so the same p-values
         null_sims = int(req.get("null_sims", 200))
         try:
             nominal = PhysCalibration.from_json(cal_json) if cal_json is not None else None
@@ -676,9 +675,11 @@ def execute_analysis(ctx: WorkerContext, analysis_id: int) -> None:
                              reason=f"calibration {cal_id} cannot be read: {e}")
             return
         try:
-            a = analyze(rec, nominal, null_sims=null_sims, rng=np.random.default_rng(seed), progress=progress)
+            # seeded by the recording's fingerprint: the same samples analysed twice, here or by
+            # `compasscal analyze` of their export, get the same null simulations, so the same p-values
+            a = analyze(rec, nominal, null_sims=null_sims, progress=progress)
             report = json_safe({**a.to_json(), "run_id": run_id, "slot": slot, "serial": rec.serial or "",
-                                "null_sims": null_sims, "seed": seed, "calibration_id": cal_id})
+                                "null_sims": null_sims, "calibration_id": cal_id})
         except ValueError as e:  # the recording cannot support the analysis: say why
             _analysis_update(ctx, analysis_id, status="failed", finished_at=utcnow(),
                              reason=f"run {run_id} slot {slot} cannot be analysed: {e}")

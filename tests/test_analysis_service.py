@@ -111,7 +111,7 @@ def fake_result(rec: Recording, alpha: float = 0.01) -> dict[str, Any]:
 
 
 def fake_analyze(rec: Recording, calibration: Any = None, *, alpha: float = 0.01, null_sims: int = 200,
-                 rng: np.random.Generator | None = None, progress: Any = None) -> FakeAnalysis:
+                 seed: Any = None, progress: Any = None) -> FakeAnalysis:
     fake_analyze.calls.append({"samples": len(rec), "calibration": calibration, "null_sims": null_sims,  # type: ignore[attr-defined]
                                "serial": rec.serial})
     for i, stage in enumerate(("compare", "locate", "name", "refit")):
@@ -196,7 +196,7 @@ def test_report_shows_where_the_mismatch_lives_as_labelled_tables_and_links_back
     from physics.discrepancy import analyze
 
     result = json.loads(json.dumps(analyze(with_magnet(simulated("SN-LOC")), null_sims=10,
-                                           rng=np.random.default_rng(4)).to_json()))
+                                           seed=4).to_json()))
     locate = result["locate"]
     assert locate["harmonics"] and locate["whiteness"]["per_axis"] and locate["frame"]
     html = analysis_html(result, None, "located")
@@ -270,7 +270,7 @@ def test_cli_analyze_with_the_real_analyser_names_a_concealed_magnet(tmp_path: P
     assert r.exit_code == 0, r.output
     out = said(r.output)
     assert "verdict: discrepancy" in out and "noise floor" in out and "held-out improvement" in out
-    expected = analyze(parse_recording(rec_path.read_text()), null_sims=30, rng=np.random.default_rng(4)).to_json()
+    expected = analyze(parse_recording(rec_path.read_text()), null_sims=30, seed=4).to_json()
     written = json.loads(out_json.read_text())
     assert written == json.loads(json.dumps(expected))
     assert "stage_hard_iron" in named(written), written["findings"]
@@ -417,9 +417,11 @@ def test_api_analysis_is_stored_and_read_back(api):
     assert "stage_hard_iron" in named(created), created["findings"]
     got = api.get(f"/analyses/{created['id']}", role="viewer")
     assert got.status_code == 200 and got.json() == created
-    # the stored result is the analyser's on the recording as stored (seeded by run and slot)
+    # the stored result is the analyser's on the recording as exported, seeded by its fingerprint: the
+    # export analysed anywhere without a seed gives the same result
     stored = parse_recording(api.get(f"/runs/{run_id}/samples", role="viewer").text)
-    expected = json.loads(json.dumps(analyze(stored, null_sims=20, rng=np.random.default_rng([run_id, 0])).to_json()))
+    expected = json.loads(json.dumps(analyze(stored, null_sims=20).to_json()))
+    assert expected["seed"] == stored.fingerprint() == rec.fingerprint()
     assert {k: v for k, v in got.json().items() if k in expected} == expected
     listed = api.get(f"/runs/{run_id}/analyses", role="viewer").json()
     effects = [f["effect"] for f in created["findings"]]

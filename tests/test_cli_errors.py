@@ -495,21 +495,39 @@ def test_an_output_that_cannot_be_written_after_the_work_is_one_line_not_a_trace
 
 
 def test_analyze_takes_the_services_seed_to_repeat_its_analysis(tmp_path: Path):
-    """The service seeds an analysis with [run id, slot] and says so in its JSON; the CLI took one
-    integer only, so its result could not be repeated from the command line."""
+    """An analysis JSON says its seed, which may be several integers (the service's of before were [run
+    id, slot]); the CLI took one integer only, so such a result could not be repeated from the command line."""
     import numpy as np
 
     from physics.discrepancy import analyze
-    from physics.recording import parse_recording
+    from physics.recording import format_recording, parse_recording
 
     rec = tmp_path / "rec.csv"
     assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "20", "-o", str(rec)]).exit_code == 0
     out = tmp_path / "a.json"
     r = runner.invoke(app, ["analyze", str(rec), "--null-sims", "20", "--seed", "6,0", "--json", str(out)])
     assert r.exit_code == 0, r.output
-    direct = analyze(parse_recording(rec.read_text()), None, null_sims=20, rng=np.random.default_rng([6, 0]))
+    direct = analyze(parse_recording(rec.read_text()), None, null_sims=20, seed=[6, 0])
     got = json.loads(out.read_text())
     assert got["tests"] == json.loads(json.dumps(direct.to_json()))["tests"] and got["tests"]
+    # without a seed: the recording's fingerprint, said in the JSON, so a file and a copy of it written
+    # another way (times carrying float noise far below the millisecond a recording keeps) are analysed alike
+    copy = parse_recording(rec.read_text())
+    copy.t = copy.t + 1e-7
+    again = tmp_path / "again.csv"
+    again.write_text(format_recording(copy))
+    assert again.read_text() != rec.read_text()
+    outs = [tmp_path / "d1.json", tmp_path / "d2.json"]
+    for path, out_path in zip((rec, again), outs):
+        r = runner.invoke(app, ["analyze", str(path), "--null-sims", "20", "--json", str(out_path)])
+        assert r.exit_code == 0, r.output
+    d1, d2 = (json.loads(p.read_text()) for p in outs)
+    assert d1["seed"] == d2["seed"] == parse_recording(rec.read_text()).fingerprint()
+    # the same null simulations: every test's p-value the same to the float noise of the times
+    assert [t["variant"] for t in d1["tests"]] == [t["variant"] for t in d2["tests"]] and d1["tests"]
+    np.testing.assert_allclose([t["p_value"] for t in d1["tests"]], [t["p_value"] for t in d2["tests"]], rtol=1e-6)
+    other = runner.invoke(app, ["analyze", str(rec), "--null-sims", "20", "--seed", "1", "--json", str(outs[1])])
+    assert other.exit_code == 0 and json.loads(outs[1].read_text())["tests"] != d1["tests"]  # the seed matters
     for bad in ("-1", "6,x", ""):
         r = runner.invoke(app, ["analyze", str(rec), "--seed", bad])
         assert r.exit_code == 2 and "--seed" in r.output and "several joined by commas" in " ".join(r.output.split()), r.output

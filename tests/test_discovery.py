@@ -530,7 +530,7 @@ def test_a_pair_of_windows_in_pure_noise_is_not_a_discovery() -> None:
     assert task.kind == "null"
     gen, ana = np.random.SeedSequence(task.seed).spawn(2)
     case = make_task_case(task, np.random.default_rng(gen))
-    r = analyze(case.rec, rng=np.random.default_rng(ana)).result
+    r = analyze(case.rec, seed=ana).result
     assert r["verdict"] == "consistent", [(f["effect"], f.get("model")) for f in r["findings"]]
 
 
@@ -544,7 +544,7 @@ def _proof_case(seed: int, index: int, kind: str):  # noqa: ANN202
     assert task.kind == kind
     gen, ana = np.random.SeedSequence(task.seed).spawn(2)
     case = make_task_case(task, np.random.default_rng(gen))
-    return case, analyze(case.rec, rng=np.random.default_rng(ana)).result
+    return case, analyze(case.rec, seed=ana).result
 
 
 def test_a_lab_window_is_not_taken_by_a_stage_gain_in_the_same_window() -> None:
@@ -673,7 +673,7 @@ def test_a_large_offset_is_placed_to_the_sample_even_at_the_end_of_the_run() -> 
     start, stop = mid + 17, len(t) - 20  # mid-hold, and a second before the last sample
     m = np.zeros(len(t), bool)
     m[start:stop] = True
-    a = analyze(_with(rec, np.outer(m, [180.0, -240.0, 320.0])), null_sims=100, rng=np.random.default_rng(0))
+    a = analyze(_with(rec, np.outer(m, [180.0, -240.0, 320.0])), null_sims=100, seed=0)
     found = [f for f in a.result["findings"] if f["effect"] == "discovered"]
     assert len(found) == 1 and found[0]["model"]["frame"] in ("sensor", "platform")
     inside = np.zeros(len(t), bool)
@@ -702,7 +702,7 @@ def test_a_spectral_line_the_twin_does_not_confirm_is_left_out() -> None:
     ctx = context(rec)
     r0 = np.asarray(rec.mag, float) - fit_nominal(ctx, np.asarray(rec.mag, float)).predict(ctx)
     assert line_search(r0, ctx, estimate_noise(r0, ctx))["p_value"] < 2e-3  # the periodogram's line
-    a = analyze(rec, alpha=0.05, null_sims=100, rng=np.random.default_rng(ana))
+    a = analyze(rec, alpha=0.05, null_sims=100, seed=ana)
     assert not [f for f in a.result["findings"] if f["effect"] == "mains_interference"], a.result["findings"]
     assert any("not confirmed by the twin" in n for n in a.result["notes"]), a.result["notes"]
 
@@ -777,7 +777,7 @@ def test_a_term_that_leaves_the_model_takes_its_share_of_the_nominal_fit_with_it
         return pred + 1e4 if len(calls) == 2 else pred  # call 1: the nominal model; 2: the model with terms
 
     monkeypatch.setattr(analysis, "_heldout", refuse_the_first_model)
-    dropped = analyze(rec, null_sims=40, rng=np.random.default_rng(1)).result
+    dropped = analyze(rec, null_sims=40, seed=1).result
     assert calls[1] > 1 and any("left out: with it the model predicted held-out data worse" in n
                                 for n in dropped["notes"]), (calls, dropped["notes"])
     assert not [f for f in dropped["findings"] if f["effect"] == "discovered"], dropped["findings"]
@@ -790,7 +790,7 @@ def test_a_term_that_leaves_the_model_takes_its_share_of_the_nominal_fit_with_it
 
     monkeypatch.setattr(analysis, "_heldout", real_heldout)
     monkeypatch.setattr(analysis, "_forward", find_nothing)
-    never = analyze(rec, null_sims=40, rng=np.random.default_rng(1)).result
+    never = analyze(rec, null_sims=40, seed=1).result
     assert not never["notes"] and not [f for f in never["findings"] if f["effect"] == "discovered"]
     for key in ("residual_rms_after_lsb",):
         assert np.allclose(dropped[key], never[key], rtol=1e-9, atol=0), (dropped[key], never[key])

@@ -266,7 +266,7 @@ def test_bad_samples_are_left_out_and_named_but_a_short_event_is_analysed() -> N
     mag[zeros] = 0.0
     mag[garbage] = rng.integers(-32768, 32767, (len(garbage), 3))
     bad = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, mag, rec.acc, rec.temp_c, dict(rec.meta))
-    r = analyze(bad, null_sims=50, rng=np.random.default_rng(0)).result
+    r = analyze(bad, null_sims=50, seed=0).result
     assert r["verdict"] == "consistent" and r["samples"] == len(rec) - 7
     assert [row["index"] for row in r["rejected_rows"]] == sorted(zeros + garbage)
     assert r["notes"][0].startswith("7 of 1080 rows left out as bad samples (3 with a sensor's three axes exactly 0; 4 far off")
@@ -274,27 +274,27 @@ def test_bad_samples_are_left_out_and_named_but_a_short_event_is_analysed() -> N
     clipped = rec.mag.copy()
     clipped[300:360, 2] = 32767.0
     cl = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, clipped, rec.acc, rec.temp_c, dict(rec.meta))
-    r = analyze(cl, null_sims=50, rng=np.random.default_rng(0)).result
+    r = analyze(cl, null_sims=50, seed=0).result
     assert r["verdict"] == "consistent" and [row["index"] for row in r["rejected_rows"]] == list(range(300, 360))
     assert f"60 saturated, at t {rec.t[300]:.1f}-{rec.t[359]:.1f} s" in r["notes"][0]
     # a magnet near the unit for the last ten samples of one hold: an event, not bad samples
     event = rec.mag.copy()
     event[290:300] += [400.0, -300.0, 250.0]
     ev = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, event, rec.acc, rec.temp_c, dict(rec.meta))
-    r = analyze(ev, null_sims=50, rng=np.random.default_rng(0)).result
+    r = analyze(ev, null_sims=50, seed=0).result
     assert "rejected_rows" not in r and r["verdict"] == "discrepancy"
     # ... nor is one arriving in a hold's last row (a lone row off its hold, but the departure carries on)
     event = rec.mag.copy()
     event[299:] += [400.0, -300.0, 250.0]
     ev = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, event, rec.acc, rec.temp_c, dict(rec.meta))
-    assert "rejected_rows" not in analyze(ev, null_sims=50, rng=np.random.default_rng(0)).result
+    assert "rejected_rows" not in analyze(ev, null_sims=50, seed=0).result
     # garbage in a hold's first or last row, the holds across those edges as the model says: bad samples
     # (left in, one row at 60 made "unexplained structure against psi_t harmonics")
     edges = rec.mag.copy()
     edges[60, 1] += 256.0  # first row of the third hold
     edges[419, 0] -= 4096.0  # last row of the fourteenth
     ed = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, edges, rec.acc, rec.temp_c, dict(rec.meta))
-    r = analyze(ed, null_sims=50, rng=np.random.default_rng(0)).result
+    r = analyze(ed, null_sims=50, seed=0).result
     assert r["verdict"] == "consistent" and [row["index"] for row in r["rejected_rows"]] == [60, 419]
 
 

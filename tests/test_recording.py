@@ -420,6 +420,30 @@ def test_round_trip(rec: Recording) -> None:
     assert format_recording(back) == text
 
 
+def test_a_recordings_fingerprint_survives_its_file_and_changes_with_a_reading() -> None:
+    """The analyser seeds its nulls with the fingerprint: an export read back, or the same numbers to the
+    file's decimals, give the same one; one reading one count off, another time base, other angles or a
+    temperature column added give another."""
+    rng = np.random.default_rng(3)
+    n = 50
+    rec = Recording.from_arrays(np.arange(n) * 0.05, ["hold"] * n, rng.uniform(-180, 180, n), rng.uniform(-90, 90, n),
+                                rng.uniform(-180, 180, n), rng.integers(-3000, 3000, (n, 3)),
+                                acc=rng.integers(-1000, 1000, (n, 3)))
+    fp = rec.fingerprint()
+    assert 0 <= fp < 2 ** 53  # exact as a JSON number
+    assert parse_recording(format_recording(rec)).fingerprint() == fp
+    noisy = rec.select(slice(None))
+    noisy.t = noisy.t + 1e-9  # float noise far below the millisecond the file keeps
+    noisy.mag = noisy.mag * (1 + 1e-13)
+    assert noisy.fingerprint() == fp
+    changed = [rec.select(slice(None)) for _ in range(4)]
+    changed[0].mag[7, 1] += 1
+    changed[1].t = changed[1].t * 1.01
+    changed[2].phi_t[3] += 0.01
+    changed[3].temp_c = np.full(n, 25.0)
+    assert len({fp, *(c.fingerprint() for c in changed)}) == 5
+
+
 def test_one_time_stamp_ahead_of_both_neighbours_is_the_bad_row() -> None:
     """A row whose t jumps ahead (1000 among 1, 2, 3, ...) is the one named, not every row after it (which
     made --skip-bad-rows throw away the rest of the recording); a row that goes back stays the one named."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, Callable, NamedTuple
 
 import numpy as np
@@ -57,13 +58,18 @@ Progress = Callable[[str, float], None]
 # --------------------------------------------------------------------------------------------------
 
 def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: float = 0.01, null_sims: int = 200,
-            rng: np.random.Generator | None = None, progress: Progress | None = None) -> Analysis:
+            seed: int | Sequence[int] | np.random.SeedSequence | None = None,
+            progress: Progress | None = None) -> Analysis:
     """Locate, name and model where ``rec`` departs from the nominal twin (module docstring).
 
     ``calibration`` (optional) is the unit's calibration as the nominal model: its parameters are
     compared with this recording's fit ("parameter_shift"). ``null_sims`` simulated nulls calibrate
-    the tests; ``alpha`` is the family-wise false-alarm rate of the verdict.
+    the tests; ``alpha`` is the family-wise false-alarm rate of the verdict. ``seed`` seeds the null
+    simulations; by default the recording's own fingerprint, so that the same recording gives the same
+    analysis wherever it is analysed (the result's ``"seed"`` says which was used).
     """
+    seed = rec.fingerprint() if seed is None else seed
+    rng = np.random.default_rng(seed)
     rec, bad = _without_bad_samples(rec)
     # many small matrix products: several BLAS threads fight over the cores and run 5-10x slower
     with threadpool_limits(1):
@@ -76,6 +82,8 @@ def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: fl
         a.result["notes"] = [bad[0], *a.result.get("notes", [])]
         a.result["rejected_rows"] = bad[1]
     a.result["findings"] = with_schema(a.result.get("findings", []))
+    if not isinstance(seed, np.random.SeedSequence):  # a program's own stream is not repeatable from the JSON
+        a.result["seed"] = seed if isinstance(seed, (int, np.integer)) else [int(s) for s in seed]
     a.result.setdefault("summary", summary(a.result))
     return a
 
@@ -180,10 +188,9 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
 
 
 def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float, null_sims: int,
-                   rng: np.random.Generator | None, progress: Progress | None) -> Analysis:
+                   rng: np.random.Generator, progress: Progress | None) -> Analysis:
     if len(rec) < MIN_SAMPLES:
         raise RecordingError(f"the analysis needs at least {MIN_SAMPLES} samples (10 s at 20 Hz), got {len(rec)}")
-    rng = rng if rng is not None else np.random.default_rng(0)
     say = progress or (lambda stage, frac: None)
     notes: list[str] = []
     if len(rec) > MAX_SAMPLES:

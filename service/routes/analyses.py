@@ -27,7 +27,7 @@ from service.schemas import ERRORS, AnalysesCreated, AnalysisIn, AnalysisLine, A
 from service.worker import ANALYSIS_QUEUE
 
 #: Keys the service adds to the analyser's result when it stores it (everything else is the result).
-STORED_KEYS = ("run_id", "slot", "serial", "calibration_id", "null_sims", "seed")
+STORED_KEYS = ("run_id", "slot", "serial", "calibration_id", "null_sims")
 
 router = APIRouter(tags=["analyses"])
 
@@ -35,7 +35,7 @@ router = APIRouter(tags=["analyses"])
 def analysis_json(row: Analysis) -> dict[str, Any]:
     """An analysis as the API shows it: its state (``queued``, ``running``, ``completed``, ``failed``
     with the reason), progress and addresses, and once completed the analyser's result (plus run_id,
-    slot, serial, calibration_id, null_sims, seed)."""
+    slot, serial, calibration_id, null_sims; the result's ``seed`` is the recording's fingerprint)."""
     req = row.request or {}
     return {"serial": req.get("serial"), "calibration_id": req.get("calibration_id"), "null_sims": req.get("null_sims"),
             **(row.report or {}), "id": row.id, "run_id": row.run_id, "slot": row.slot, "status": row.status,

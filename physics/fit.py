@@ -30,6 +30,7 @@ method needs, are refused with that reason.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from itertools import permutations, product
 from typing import Any, Callable
 
@@ -650,14 +651,26 @@ def _joint(rec: Recording, acc: es.Accel) -> Calibration:
 # Checks and quality figures
 # --------------------------------------------------------------------------------------------------
 
+def radian_like(angles: Sequence[np.ndarray]) -> tuple[int, float] | None:
+    """The column of ``angles`` (psi, theta, phi in degrees by the format) that says they are radians, and
+    its span: every angle within +-2 pi and one turning by more than a radian. None when they may be
+    degrees (a table turning by less than a degree and a half in every axis has nothing to fit anyway).
+    Empty (NaN) cells are left out. The fit and the importers' mappings judge by this one rule."""
+    fin = [np.asarray(a, float)[np.isfinite(a)] for a in angles]
+    spans = [float(np.ptp(a)) if a.size else 0.0 for a in fin]
+    if max(spans, default=0.0) > 1.0 and all(np.all(np.abs(a) <= 2 * np.pi + 1e-6) for a in fin):
+        i = int(np.argmax(spans))
+        return i, spans[i]
+    return None
+
+
 def check_angles(rec: Recording) -> None:
     """Refuse table angles that look like radians (the format says degrees)."""
-    for name in ("psi_t", "theta_t", "phi_t"):
-        a = getattr(rec, name)
-        span = float(np.ptp(a))
-        if 1.0 < span <= 2 * np.pi + 1e-6 and np.all(np.abs(a) <= 2 * np.pi + 1e-6):
-            raise RecordingError(f"column {name}: spans only {span:.3f}: table angles must be in degrees, "
-                                 "these look like radians")
+    found = radian_like([rec.psi_t, rec.theta_t, rec.phi_t])
+    if found is not None:
+        i, span = found
+        raise RecordingError(f"column {('psi_t', 'theta_t', 'phi_t')[i]}: every table angle is within +-2 pi and it "
+                             f"spans only {span:.3f}: table angles must be in degrees, these look like radians")
 
 
 def check_magnetometer(rec: Recording) -> None:

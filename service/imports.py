@@ -43,6 +43,7 @@ from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, PrivateAttr
 from pydantic_core import ErrorDetails
 from scipy.spatial.transform import Rotation
 
+from physics.fit import radian_like
 from physics.frames import yaw_pitch_roll
 from physics.recording import SKIPPED_AT_KEY, SKIPPED_KEY, Recording, RecordingError, parse_recording
 from physics.sensor import ACC_LSB_PER_G
@@ -1156,15 +1157,12 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
         f = ANGLE_UNITS[m.angles.unit]
         psi, theta, phi = (v[c] * f * (-1.0 if c in m.angles.negate else 1.0) for c in _GROUP_COLUMNS["angles"])
         angles = (psi, theta, phi)
-        fin = [a[np.isfinite(a)] for a in angles]
-        spans = [float(np.ptp(a)) if a.size else 0.0 for a in fin]
-        if (m.angles.unit == "deg" and tab.n >= 20 and max(spans) > math.pi
-                and all(np.all(np.abs(a) <= 2 * math.pi + 1e-6) for a in fin)):
-            # every angle within +-2 pi, one turning by more than pi: radians (fit refused such a file only
-            # later, "these look like radians"; a table in degrees turning that little has nothing to fit)
-            c = _GROUP_COLUMNS["angles"][int(np.argmax(spans))]
+        # refused here, when the file is read, by the fit's own rule (it would refuse the recording later)
+        found = radian_like(angles) if m.angles.unit == "deg" and tab.n >= 20 else None
+        if found is not None:
+            c = _GROUP_COLUMNS["angles"][found[0]]
             raise _fail(path, f"mapping: angles.unit is \"deg\", but every angle is within +-2 pi and column "
-                              f"{tab.labels[c]} ({c}) spans {max(spans):.3f}: these look like radians (angles.unit = \"rad\")")
+                              f"{tab.labels[c]} ({c}) spans {found[1]:.3f}: these look like radians (angles.unit = \"rad\")")
         meta["attitude_source"] = m.angles.source
         meta["angles"] = (f"psi_t (outer, z) = {'-' if 'psi_t' in m.angles.negate else ''}column {tab.labels['psi_t']}, "
                           f"theta_t (middle, y) = {'-' if 'theta_t' in m.angles.negate else ''}column {tab.labels['theta_t']}, "

@@ -634,6 +634,13 @@ def test_mapping_refuses_radians_said_to_be_degrees_and_a_quaternion_that_is_not
         read_recording_file(p, mapping=m)
     m["angles"]["unit"] = "rad"
     assert read_recording_file(p, mapping=m).psi_t.max() == pytest.approx(324.0, abs=0.01)
+    # the fit's own rule (physics.fit.radian_like): a yaw of radians turning by 2 (less than pi) is refused
+    # when the file is read too, not only by the fit later
+    short = ["t,a,b,c,yaw,pitch,roll,T"] + [f"{0.05 * i:.2f},1,2,3,{y:.6f},0.1,-0.1,23.0" for i, y in enumerate(np.linspace(0, 2, 40))]
+    p2 = _write(tmp_path, "r2.csv", "\n".join(short) + "\n")
+    m["angles"]["unit"] = "deg"
+    with pytest.raises(RecordingFileError, match=r"column 'yaw' \(psi_t\) spans 2\.000: these look like radians"):
+        read_recording_file(p2, mapping=m)
     q = {"columns": {**MAG_ABC, "t": "t"}, "attitude": {"columns": ["yaw", "pitch", "roll", "T"], "order": "xyzw"}}
     with pytest.raises(RecordingFileError, match=r"quaternion's norm is 23\.\d+ .* not 1"):
         read_recording_file(p, mapping=q)

@@ -1217,13 +1217,32 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
                   temp_c=None if temp is None else temp[keep], meta=meta, extra=extra)
 
 
+#: Significant digits an imported value keeps: a unit's factor leaves noise in a double's last bits
+#: (350 ms x 0.001 = 0.35000000000000003 s, 38.48 uT x 100 = 3847.9999999999995 counts), which an
+#: export would print; 15 digits are far below any sensor's resolution and print as the file had them.
+IMPORT_DIGITS = 15
+
+
+def _tidy(values: np.ndarray | None) -> np.ndarray | None:
+    """``values`` rounded to :data:`IMPORT_DIGITS` significant digits (NaN, 0 and values below 1e-8
+    left alone: the powers of ten that scale them would not be exact)."""
+    if values is None:
+        return None
+    x = np.asarray(values, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        digits = IMPORT_DIGITS - 1 - np.floor(np.log10(np.abs(x)))
+    ok = np.isfinite(x) & (x != 0) & np.isfinite(digits) & (digits <= 22)  # 10**22: the last exact power of ten
+    f = 10.0 ** np.where(ok, digits, 0.0)
+    return np.where(ok, np.round(x * f) / f, x)
+
+
 def _build(path: Path, *, t: np.ndarray, step: np.ndarray, mag: np.ndarray, meta: dict[str, str],
            acc: np.ndarray | None = None, angles: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
            temp_c: np.ndarray | None = None, extra: dict[str, list[str]] | None = None) -> Recording:
     n = len(t)
     psi, theta, phi = angles if angles is not None else (np.full(n, np.nan),) * 3
     try:
-        return Recording.from_arrays(t=t, step=step, psi_t=psi, theta_t=theta, phi_t=phi, mag=mag, acc=acc,
-                                     temp_c=temp_c, meta=meta, extra=extra)
+        return Recording.from_arrays(t=_tidy(t), step=step, psi_t=_tidy(psi), theta_t=_tidy(theta), phi_t=_tidy(phi),
+                                     mag=_tidy(mag), acc=_tidy(acc), temp_c=_tidy(temp_c), meta=meta, extra=extra)
     except RecordingError as e:
         raise _fail(path, str(e)) from None

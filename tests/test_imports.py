@@ -644,3 +644,18 @@ def test_mapping_refuses_radians_said_to_be_degrees_and_a_quaternion_that_is_not
     q = {"columns": {**MAG_ABC, "t": "t"}, "attitude": {"columns": ["yaw", "pitch", "roll", "T"], "order": "xyzw"}}
     with pytest.raises(RecordingFileError, match=r"quaternion's norm is 23\.\d+ .* not 1"):
         read_recording_file(p, mapping=q)
+
+
+def test_a_mapped_file_converts_without_float_noise(tmp_path):
+    """A unit's factor left noise in a double's last bits, which the recording then printed: 350 ms became
+    t = 0.35000000000000003 and 38.48 uT 3847.9999999999995 counts. Converted values print as the file
+    had them; the values themselves move by less than 1e-15 of themselves."""
+    m = {"columns": {"t": "tms", "mx": "a", "my": "b", "mz": "c"}, "time": {"unit": "ms"}, "mag": {"unit": "uT"}}
+    p = _write(tmp_path, "d.csv", "tms,a,b,c\n0,38.48,-12.07,0.3\n350,38.49,-12.06,0.29\n700,1e-12,5,6\n")
+    rec = read_recording_file(p, mapping=m)
+    text = format_recording(rec)
+    assert "0.35000000000000003" not in text and "3847.9999999999995" not in text
+    assert rec.t.tolist() == [0.0, 0.35, 0.7] and rec.mag[0].tolist() == [3848.0, -1207.0, 30.0]
+    raw = np.array([[38.48, -12.07, 0.3], [38.49, -12.06, 0.29], [1e-12, 5, 6]]) * 100
+    assert np.allclose(rec.mag, raw, rtol=1e-15, atol=0)
+    assert rec.mag[2, 0] == 1e-12 * 100  # a value too small to round by powers of ten: as computed

@@ -17,7 +17,7 @@ held-out improvement against the true model, seconds per analysis, and the open-
 to the issue's target.
 
     python benchmarks/discrepancy.py [--n 40] [--nulls 300] [--open-n 40] [--open-nulls 100] [--open-large 4] [--no-open]
-                                     [--open-plan calibrate|characterize] [--seed 1] [--workers 2] [--json out.json]
+                                     [--open-plan calibrate|sweeps|characterize] [--seed 1] [--workers 2] [--json out.json]
 """
 
 from __future__ import annotations
@@ -28,12 +28,9 @@ import sys
 import time
 
 from procedures.calibrate import characterize_plan
-from proof.generator import ordinary_plan
+from proof.generator import OPEN_PLANS
 from proof.runner import run_proof
 from proof.score import format_report
-
-#: The plans the open-world cases can run on.
-OPEN_PLANS = {"calibrate": ordinary_plan, "characterize": characterize_plan}
 
 
 def main() -> None:

@@ -387,6 +387,35 @@ def ordinary_plan() -> list[Pose | Scan]:
     return plan
 
 
+#: The speed of :func:`sweeping_plan`'s turns (deg/s): a full turn in 36 s, 20 samples per 10 deg.
+SWEEP_DPS = 10.0
+
+
+def sweeping_plan() -> list[Pose | Scan]:
+    """The ordinary plan as a station that turns without stopping would record it: the level turn's four
+    holds, then a turn about z, sweeps about y and x and a turn back about z, each continuous at
+    :data:`SWEEP_DPS` (every sample on the move, with its encoder angles), and the six accelerometer
+    poses; about 260 s. The analyser is not told the plan: its holds are what it finds still."""
+    from procedures.calibrate import ACCEL6_POSES
+
+    plan: list[Pose | Scan] = [Pose("level", a, 0.0, 0.0, 60) for a in (0.0, 90.0, 180.0, 270.0)]
+    plan += [Scan("rotate_z", "psi", 0.0, 360.0, SWEEP_DPS), Scan("sweep_y", "theta", -180.0, 180.0, SWEEP_DPS),
+             Scan("sweep_x", "phi", -180.0, 180.0, SWEEP_DPS), Scan("rotate_z_back", "psi", 180.0, -180.0, SWEEP_DPS)]
+    plan += [Pose("accel6", *a, samples=60) for a in ACCEL6_POSES]
+    return plan
+
+
+def _characterize_plan() -> list[Pose | Scan]:
+    from procedures.calibrate import characterize_plan
+
+    return characterize_plan()
+
+
+#: The plans the open-world cases can be drawn on (`compasscal prove --open-plan`).
+OPEN_PLANS: dict[str, Callable[[], list[Pose | Scan]]] = {
+    "calibrate": ordinary_plan, "sweeps": sweeping_plan, "characterize": _characterize_plan}
+
+
 def recording_span(plan: Sequence[Pose | Scan], motion: Motion = Motion()) -> tuple[float, float]:
     """``[t_first, t_end)`` of the recording ``plan`` makes: the first kept sample's time and one sample
     period after the last (half-open, so that a window ending there holds the last sample)."""

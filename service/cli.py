@@ -1123,7 +1123,8 @@ def prove(
                                help="Out-of-catalogue recordings per open-world kind (0: none; see proof.concealments)."),
     open_plan: str = typer.Option("calibrate", "--open-plan",
                                   help="Plan of the open-world cases: calibrate (level turn, calibration sweeps, six "
-                                       "accelerometer poses) or characterize."),
+                                       "accelerometer poses, all in holds), sweeps (the same turns and sweeps "
+                                       "continuous) or characterize."),
     open_nulls: int = typer.Option(0, "--open-nulls", min=0,
                                    help="Null recordings drawn as the open-world cases are (their plan and noise)."),
     open_large: int = typer.Option(0, "--open-large", min=0,
@@ -1143,13 +1144,12 @@ def prove(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from procedures.calibrate import characterize_plan
-    from proof.generator import ordinary_plan
+    from proof.generator import OPEN_PLANS
     from proof.runner import run_handheld_proof, run_proof
     from proof.score import format_handheld_report, format_report
 
-    plans = {"calibrate": ordinary_plan, "characterize": characterize_plan}
-    if open_plan not in plans:
-        raise typer.BadParameter(f"expected one of {', '.join(plans)}, got {open_plan!r}", param_hint="--open-plan")
+    if open_plan not in OPEN_PLANS:
+        raise typer.BadParameter(f"expected one of {', '.join(OPEN_PLANS)}, got {open_plan!r}", param_hint="--open-plan")
     _output_file(json_out, "--json")  # before the minutes of work whose results it keeps
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
                   TimeRemainingColumn(), console=err_console, transient=False) as bar:
@@ -1161,7 +1161,7 @@ def prove(
         # any recording on the table (nulls default > 0)
         table = n or nulls is None or nulls or open_n or open_nulls or open_large
         out = run_proof(n, seed, workers, on_progress, plan=characterize_plan(), nulls=nulls, open_n=open_n,
-                        open_plan=plans[open_plan](), open_nulls=open_nulls, open_large=open_large) if table else {}
+                        open_plan=OPEN_PLANS[open_plan](), open_nulls=open_nulls, open_large=open_large) if table else {}
         if handheld_n or handheld_nulls:
             out["handheld"] = run_handheld_proof(handheld_n, handheld_nulls, seed, workers, on_progress)
     if table:

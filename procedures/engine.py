@@ -216,6 +216,11 @@ class Engine:
             if not fut.done():
                 fut.cancel()
 
+    def waiting_for(self, prompt_id: str) -> bool:
+        """Whether the run waits for the operator's answer to prompt ``prompt_id``."""
+        fut = self._answers.get(prompt_id)
+        return fut is not None and not fut.done()
+
     def answer(self, prompt_id: str, text: str) -> bool:
         """Answer an operator prompt; False when no such prompt is waiting."""
         fut = self._answers.get(prompt_id)

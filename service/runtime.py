@@ -498,7 +498,8 @@ def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> None:
 
 def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge: bool = True) -> list[int]:
     """Runs whose station's worker stopped beating (killed, its PC off): failed with reason "worker
-    lost", the station in fault until reset. Returns the runs so ended. ``judge=False`` only checks
+    lost", the station in fault until reset; and such a station's batch, ended (`end_lost_batches`).
+    Returns the runs so ended. ``judge=False`` only checks
     that the database answers (the caller was cut off from it: the workers may have been too)."""
     now = now or utcnow()
     ended = []
@@ -520,7 +521,46 @@ def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge
                                                                     f"POST /stations/{station.name}/reset"))
                 publish(s, run.id, "state", {"state": RunState.failed.value, "reason": why})
                 ended.append(run.id)
+        # a batch between units (or whose unit's run just ended above) has no run to be caught by
+        for station in s.scalars(select(Station).where(Station.batch_id.is_not(None))):
+            if station.heartbeat_at is not None and not worker_alive(station, now):
+                end_lost_batches(s, [station.id], f"station {station.name}'s worker stopped beating", now=now)
         s.commit()
+    return ended
+
+
+#: A batch's status once the operator aborted it, until its worker has stopped it ("aborted").
+BATCH_ABORTING = "aborting"
+
+
+def end_lost_batches(s: Session, station_ids: list[int] | None, why: str, queued_too: bool = False,
+                     now: datetime | None = None) -> list[int]:
+    """End the batches of these stations (None: every station's) whose job went with a worker: those it
+    had started (a unit's run made), running or being aborted; with ``queued_too`` (the jobs went with an
+    in-memory queue) those not yet started as well, whose jobs otherwise wait in the queue for a worker.
+    Each ends ``failed`` (``aborted`` when the operator had asked for it) with every unit it had not
+    judged in its summary: the unit whose run was cut off by that run's state and reason, the rest "not
+    run"; its station is freed for the next run. Call after the lost runs are ended (their reasons are
+    read). Returns the batches so ended."""
+    q = select(Batch).where(Batch.status.in_(("queued", "running", BATCH_ABORTING)))
+    if station_ids is not None:
+        q = q.where(Batch.station_id.in_(station_ids))
+    ended = []
+    for batch in s.scalars(q):
+        runs = {(r.serials or {}).get("0"): r for r in s.scalars(select(Run).where(Run.batch_id == batch.id).order_by(Run.id))}
+        if not runs and not queued_too:
+            continue  # its job waits in the queue (a batch is "running" from its request on)
+        summary = dict(batch.summary or {})
+        for serial in batch.serials:
+            run = runs.get(serial)
+            if serial not in summary:
+                summary[serial] = (f"{run.status}: {run.reason}" if run is not None and run.status in FINAL
+                                   else f"not run: {why}")
+        batch.summary = summary
+        batch.status = "aborted" if batch.status == BATCH_ABORTING else "failed"
+        batch.finished_at = now or utcnow()
+        s.execute(update(Station).where(Station.batch_id == batch.id).values(batch_id=None))
+        ended.append(batch.id)
     return ended
 
 

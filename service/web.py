@@ -598,7 +598,9 @@ def batch_rows(session: Session, limit: int = BATCHES_LISTED) -> list[dict[str, 
         summary = {str(k): str(v) for k, v in (b.summary or {}).items()}
         counts = {v: sum(1 for r in summary.values() if r == v) for v in ("PASS", "MARGINAL", "FAIL")}
         out.append({"id": b.id, "station": station, "status": b.status, "operator": b.operator,
-                    "units": len(b.serials or []), "done": len(summary), "counts": counts,
+                    # done: the units whose run ended, as the batch's page counts them (not those never run)
+                    "units": len(b.serials or []), "done": sum(not v.startswith("not run") for v in summary.values()),
+                    "counts": counts,
                     "other": len(summary) - sum(counts.values()), "created_at": b.created_at,
                     "finished_at": b.finished_at})
     return out

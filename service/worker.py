@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import signal
 import socket
 import threading
 import time
@@ -50,8 +51,9 @@ from procedures.events import Event, PromptAnswered, Result, StateChanged
 from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, RunEvent, Sample, Station, utcnow
 from service.identity import DEFAULT_POLICY, Identity, UnitCheck
-from service.runtime import (ANALYSIS_FINAL, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict, DomainError,
-                             analysis_topic, create_run, notify, other_workers, publish, slot_result)
+from service.runtime import (ANALYSIS_FINAL, BATCH_ABORTING, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict,
+                             DomainError, analysis_topic, create_run, end_lost_batches, notify, other_workers, publish,
+                             slot_result)
 from service.store import insert_samples, load_recording, store_calibration
 
 log = logging.getLogger("compasscal.worker")
@@ -108,6 +110,8 @@ class WorkerContext:
     prompt_timeout_s: float = field(default_factory=lambda: float(os.environ.get("COMPASSCAL_PROMPT_TIMEOUT_S")
                                                                     or PROMPT_TIMEOUT_S))
     executing: dict[int, "RunControl"] = field(default_factory=dict)  # runs executing in this process
+    # set when this process is asked to stop: a batch then starts no further unit (nor waits for one to be mounted)
+    stopping: threading.Event = field(default_factory=threading.Event)
 
     def publish(self, run_id: int, kind: str, data: dict[str, Any]) -> None:
         """Append one event to the run's log (committed) and wake the streams."""
@@ -541,6 +545,10 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
     status, previous = "completed", None
     try:
         for serial in serials:
+            if ctx.stopping.is_set():  # the worker was asked to stop (SIGTERM): the unit on the table is done
+                summary.update({x: f"not run: {WORKER_STOPPED}" for x in serials if x not in summary})
+                status = "failed"
+                break
             with ctx.sessions() as s:
                 if s.get(Batch, batch_id).status == BATCH_ABORTING:  # PUT /batches/{id}/state: no further unit
                     summary.update({x: "not run: the batch was aborted" for x in serials if x not in summary})
@@ -559,7 +567,11 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
                 summary[serial], status = f"not run: station in fault ({fault})", "failed"
                 continue
             ctx.poke(run.id)
-            await execute_run(ctx, run.id)
+            watch = asyncio.create_task(_unmounted_on_stop(ctx, run.id, serial))
+            try:
+                await execute_run(ctx, run.id)
+            finally:
+                watch.cancel()
             with ctx.sessions() as s:
                 done = s.get(Run, run.id)
                 summary[serial] = _verdict(done)
@@ -575,6 +587,21 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
         _save_batch(ctx, batch_id, status, summary, final=True)
 
 
+#: Why a batch's units were not run when its worker was asked to stop.
+WORKER_STOPPED = "the station's worker was stopped; calibrate it in a new batch"
+
+
+async def _unmounted_on_stop(ctx: WorkerContext, run_id: int, serial: str) -> None:
+    """While a batch unit's run executes: once this process is asked to stop, abort the run if it is still
+    waiting for its unit to be mounted (nothing measured; the prompt would hold the worker for minutes)."""
+    while True:
+        await asyncio.sleep(0.2)
+        ctl = ctx.executing.get(run_id)
+        if ctx.stopping.is_set() and ctl is not None and ctl.engine is not None and ctl.engine.waiting_for(MOUNT_PROMPT):
+            ctl.engine.abort(f"{WORKER_STOPPED} (unit {serial} was not yet mounted)")
+            return
+
+
 def _verdict(run: Run) -> str:
     """One unit's line in a batch summary (keyed by the serial typed): its verdict, and the serial it was
     certified under when not that one; or why it has none."""
@@ -585,10 +612,6 @@ def _verdict(run: Run) -> str:
         typed = (run.serials or {}).get("0")
         return unit["verdict"] + (f" (certified as {unit['serial']})" if unit.get("serial") and unit["serial"] != typed else "")
     return f"no calibration: {unit.get('error', 'no data from slot 0')}"
-
-
-#: A batch's status once the operator aborted it, until its worker has stopped it ("aborted").
-BATCH_ABORTING = "aborting"
 
 
 def _save_batch(ctx: WorkerContext, batch_id: int, status: str, summary: dict[str, str], final: bool) -> None:
@@ -829,11 +852,9 @@ def recover(ctx: WorkerContext, stations: list[str] | None, queued_too: bool, re
                     st.state = "idle"
             publish(s, run.id, "state", {"state": RunState.failed.value, "reason": reason})
             ended.append(run.id)
-        # batches whose job went with the previous process
-        bq = update(Batch).where(Batch.status.in_(("queued", "running"))).values(status="failed", finished_at=utcnow())
-        if stations is None:
-            s.execute(bq)
-            s.execute(update(Station).values(batch_id=None))
+        # batches whose job went with the previous process (after their runs: their summaries read them)
+        ids = None if stations is None else list(s.scalars(select(Station.id).where(Station.name.in_(stations))))
+        end_lost_batches(s, ids, reason, queued_too=queued_too)
         s.commit()
     return ended
 
@@ -904,15 +925,35 @@ async def serve_worker(database_url: str, stations: list[str], analyses: bool = 
             queues.append(ANALYSIS_QUEUE)
             await _requeue_analyses(app, ctx, True)
             tasks.append(asyncio.create_task(_watch_analyses(app, ctx)))
+        worker = asyncio.create_task(app.run_worker_async(
+            queues=queues, concurrency=concurrency, name=ctx.name, wait=True, install_signal_handlers=False,
+            additional_context={"compasscal": ctx}, fetch_job_polling_interval=1.0,
+            update_heartbeat_interval=HEARTBEAT_S, shutdown_graceful_timeout=10.0))
+
+        def stop() -> None:
+            # the jobs see it at once: a batch starts no further unit and stops waiting for one to be
+            # mounted; a run measuring goes on to its end (the worker waits for its job)
+            ctx.stopping.set()
+            worker.cancel()
+        loop = asyncio.get_running_loop()
+        for sig in STOP_SIGNALS:
+            loop.add_signal_handler(sig, stop)
         try:
-            await app.run_worker_async(queues=queues, concurrency=concurrency, name=ctx.name, wait=True,
-                                       additional_context={"compasscal": ctx}, fetch_job_polling_interval=1.0,
-                                       update_heartbeat_interval=HEARTBEAT_S, shutdown_graceful_timeout=10.0)
+            await worker
+        except asyncio.CancelledError:
+            if not ctx.stopping.is_set():
+                raise
         finally:
+            for sig in STOP_SIGNALS:
+                loop.remove_signal_handler(sig)
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
     engine.dispose()
+
+
+#: The signals that stop a worker (``compasscal worker``): Ctrl-C, and what docker and systemd send.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def sqlite_service_lock(database_url: str) -> IO[bytes] | None:
@@ -1019,6 +1060,7 @@ class Jobs:
         """Abort the runs this process executes (axes stopped, samples kept), wait for them briefly,
         stop the worker thread and close the queue."""
         if self._thread is not None:
+            self.ctx.stopping.set()  # a batch starts no further unit once its unit's run is aborted here
             runs = list(self.ctx.executing)
             if runs:
                 with self.ctx.sessions() as s:

@@ -412,16 +412,20 @@ def test_batches_page_lists_batches_and_offers_operators_a_form(api):
                      summary={"U1": "PASS", "U2": "FAIL", "U3": "failed: no unit"})
         running = Batch(station_id=st.id, serials=["V1", "V2"], status="running", operator="operator-user",
                         summary={"V1": "MARGINAL"})
-        session.add_all([done, running])
+        # a batch whose worker was lost: one unit's run ended, one never ran (counted as its page counts)
+        lost = Batch(station_id=st.id, serials=["W1", "W2", "W3", "W4"], status="failed", operator="operator-user",
+                     summary={"W1": "PASS", "W2": "failed: worker lost", "W3": "not run: worker lost",
+                              "W4": "not run: worker lost"})
+        session.add_all([done, running, lost])
         session.commit()
         ids = (done.id, running.id)
     r = api.get("/ui/batches", role="viewer")
     assert r.status_code == 200
     page = Elements(r.text)
-    assert [int(t["data-batch"]) for t in page.find("tr") if "data-batch" in t] == [ids[1], ids[0]]  # newest first
+    assert [int(t["data-batch"]) for t in page.find("tr") if "data-batch" in t][1:] == [ids[1], ids[0]]  # newest first
     for batch_id in ids:
         assert page.find("a", href=f"/ui/batches/{batch_id}")
-    assert "3 of 3" in r.text and "1 of 2" in r.text
+    assert "3 of 3" in r.text and "1 of 2" in r.text and "2 of 4" in r.text
     assert not page.find("form", id="start-batch")  # viewers only read
     assert page.find("a", id="nav-batches", href="/ui/batches")
     op = Elements(api.get("/ui/batches", role="operator").text)

@@ -286,3 +286,76 @@ def test_a_station_never_has_two_workers(tmp_path: Path):
     finally:
         _kill(first)
         engine.dispose()
+
+
+def _batch(c: Client, bid: int, until: Any, timeout: float = 60.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while True:
+        b = c.call("GET", f"/batches/{bid}", "viewer").json()
+        if until(b):
+            return b
+        assert time.monotonic() < deadline, b
+        time.sleep(0.1)
+
+
+def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tmp_path: Path):
+    """kill -9 of a station's worker mid-batch left the batch "running" for good and every later run on the
+    station refused ("busy with batch 1"), whatever was reset or restarted; SIGTERM while a unit waited to be
+    mounted left the worker holding the prompt for its 15 minutes, then running the rest of the batch.
+    Now a lost worker's batch ends failed, every unit it did not judge named in its summary, the station
+    freed; a stopped worker aborts the unit not yet mounted, runs no further unit and exits."""
+    url = fresh_database("postgresql", tmp_path)
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        api, port = _api(url, tmp_path, "api")
+        procs.append(api)
+        c = Client(port, _keys(url))
+        with sim_station(reference_config(seed=5, time_scale=20)) as info:
+            r = c.call("POST", "/stations", json={"name": "lab-1", "modbus": info["modbus"], "time_scale": 20,
+                                                  "compasses": [x["url"] for x in info["compasses"]]})
+            assert r.status_code == 201, r.text
+            worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker1.log")
+            procs.append(worker)
+            body = {"station": "lab-1", "serials": ["SN-1", "SN-2", "SN-3"], "parameters": {"samples": 20},
+                    "serial_policy": "trust-typed"}
+
+            # kill -9 while the first unit is measured
+            bid = c.call("POST", "/batches", "operator", json=body).json()["id"]
+            b = _batch(c, bid, lambda b: b["prompt"] is not None)
+            assert c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator",
+                          json={"answer": "mounted"}).status_code == 200
+            first = c.wait(b["prompt"]["run_id"], lambda j: j["samples_count"] > 0)
+            _kill(worker)
+            b = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
+            lost = c.run(first["id"])
+            assert lost["status"] == "failed" and "worker lost" in lost["reason"] and lost["samples_count"] > 0, (b, lost)
+            assert b["status"] == "failed" and b["summary"]["SN-1"] == f"failed: {lost['reason']}", b
+            assert b["summary"]["SN-2"] == b["summary"]["SN-3"] == "not run: station lab-1's worker stopped beating", b
+            assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
+            listed = c.call("GET", "/batches", "viewer").json()
+            assert listed[0]["id"] == bid and listed[0]["summary"] == b["summary"]
+
+            # a new worker; the station reset (the table stopped mid-run) takes runs again
+            worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker2.log")
+            procs.append(worker)
+            deadline = time.monotonic() + 30
+            while (r := c.call("POST", "/stations/lab-1/reset", "operator")).status_code != 200:
+                assert time.monotonic() < deadline, r.text
+                time.sleep(0.5)
+
+            # SIGTERM while the next batch's first unit waits to be mounted: the worker exits at once
+            bid2 = c.call("POST", "/batches", "operator", json={**body, "serials": ["SN-4", "SN-5"]}).json()["id"]
+            b = _batch(c, bid2, lambda b: b["prompt"] is not None)
+            t0 = time.monotonic()
+            worker.send_signal(signal.SIGTERM)
+            assert worker.wait(30) == 0
+            assert time.monotonic() - t0 < 15
+            b = _batch(c, bid2, lambda b: b["status"] != "running", timeout=5)
+            stopped = c.run(b["prompt"]["run_id"] if b["prompt"] else b["units"][0]["run_id"])
+            assert stopped["status"] == "aborted" and "not yet mounted" in stopped["reason"], stopped
+            assert b["status"] == "failed" and b["summary"]["SN-4"] == f"aborted: {stopped['reason']}", b
+            assert b["summary"]["SN-5"].startswith("not run: the station's worker was stopped"), b
+            assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
+    finally:
+        for p in procs:
+            _kill(p)

@@ -15,10 +15,10 @@ from procedures.states import ACTIVE
 from service.auth import Caller, audit, require
 from service.db import Batch, Run, Station
 from service.deps import sessions
-from service.runtime import Conflict, Invalid, NotFound, batch_json, field_errors, invalid
+from service.runtime import BATCH_ABORTING, Conflict, Invalid, NotFound, batch_json, field_errors, invalid
 from service.routes.runs import change_run_state
 from service.schemas import ERRORS, BatchIn, BatchOut, BatchStateIn, Id, Index, StationName
-from service.worker import BATCH_ABORTING, station_queue
+from service.worker import station_queue
 
 router = APIRouter(tags=["batches"])
 

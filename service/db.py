@@ -202,6 +202,9 @@ class Calibration(Base):
     figures: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # what the limits judge (store.figures)
     # typed and identified serial numbers and how they were settled (service.identity.Identity.to_json)
     identity: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    # the acceptance limits the verdict was judged against (name, marginal, fail, unit, description);
+    # None for a calibration stored before they were kept
+    limits: Mapped[list[Any] | None] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     run: Mapped[Run] = relationship(back_populates="calibrations")
     device: Mapped[Device] = relationship()

@@ -140,13 +140,16 @@ def store_calibration(session: Session, run: Run, slot: int, serial: str, cal: d
     ``identity``: the typed and identified serial numbers (service.identity.Identity.to_json)."""
     dev = device(session, serial, model, firmware)
     fig = figures(cal)
-    verdict, reasons = judge(fig, list(session.scalars(select(Limit))))
+    limits = list(session.scalars(select(Limit).order_by(Limit.name)))
+    verdict, reasons = judge(fig, limits)
     status = "rejected" if verdict == "FAIL" else "current"
     if status == "current":
         session.execute(update(Calibration).where(Calibration.device_id == dev.id, Calibration.status == "current")
                         .values(status="superseded"))
     row = Calibration(device_id=dev.id, run_id=run.id, slot=slot, status=status, verdict=verdict, reasons=reasons,
-                      method=str(cal.get("method", "")), data=cal, figures=fig, identity=identity)
+                      method=str(cal.get("method", "")), data=cal, figures=fig, identity=identity,
+                      limits=[{"name": lim.name, "marginal": lim.marginal, "fail": lim.fail, "unit": lim.unit,
+                               "description": lim.description} for lim in limits])
     session.add(row)
     session.flush()
     return row

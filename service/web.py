@@ -202,6 +202,15 @@ def limits_of(session: Session) -> list[Limit]:
     return list(session.scalars(select(Limit).order_by(Limit.name)))
 
 
+def judged_limits(session: Session, row: Calibration) -> list[Limit]:
+    """The limits ``row``'s verdict was judged against (kept with it), or, for a calibration stored
+    before they were kept, today's."""
+    if row.limits is None:
+        return limits_of(session)
+    return [Limit(name=d["name"], marginal=d["marginal"], fail=d["fail"], unit=d["unit"], description=d.get("description", ""))
+            for d in row.limits]
+
+
 def limit_pairs(limits: list[Limit]) -> dict[str, tuple[float, float]]:
     """(marginal, fail) by limit name, for the plots."""
     return {lim.name: (lim.marginal, lim.fail) for lim in limits}
@@ -271,7 +280,7 @@ def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, A
     run = row.run
     cal = PhysCalibration.from_json(row.data)
     rec = load_recording(session, run, row.slot) if run is not None else None
-    limits = limits_of(session)
+    limits = judged_limits(session, row)
     snap = (run.station_snapshot if run is not None else None) or {}
     compasses = snap.get("compasses") or []
     slot_url = compasses[row.slot] if row.slot < len(compasses) else None
@@ -506,10 +515,9 @@ def run_page(request: Request, run_id: Id) -> Response:
         units: list[dict[str, Any]] = []
         errors: list[dict[str, Any]] = []
         if not active:
-            limits = limits_of(s)
             cals = s.scalars(select(Calibration).where(Calibration.run_id == run_id).order_by(Calibration.slot)).all()
             for c in cals:
-                units.append(unit_view(c, load_recording(s, row, c.slot), limits))
+                units.append(unit_view(c, load_recording(s, row, c.slot), judged_limits(s, c)))
             stored = {str(c.slot) for c in cals}
             for slot, entry in sorted(((run["result"] or {}).get("units") or {}).items()):
                 if slot not in stored and isinstance(entry, dict) and "calibration_id" not in entry:

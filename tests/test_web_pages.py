@@ -438,13 +438,8 @@ def test_batches_page_lists_batches_and_offers_operators_a_form(api):
 
 def cert_context(api: Any, serial: str) -> tuple[dict[str, Any], Any, Any, Any]:
     """A stored calibration's certificate context (service/web.py), its calibration, recording and limits."""
-    from service.db import Calibration
-    from service.web import certificate_context, limit_pairs
-
     (_, cal_id), = stored_run(api, serial)
-    with api.client.app.state.sessions() as session:
-        cert, cal, rec, limits = certificate_context(session, session.get(Calibration, cal_id))
-    return cert, cal, rec, limit_pairs(limits)
+    return cert_context_of(api, cal_id)
 
 
 def figure_texts(fig: Any) -> list[str]:
@@ -605,3 +600,50 @@ def test_pages_refuse_out_of_range_ids_and_nul_bytes(api, path: str):
     else:
         assert "text/html" in r.headers["content-type"] and "Not a page address" in r.text, r.text
         assert re.search(r"path\.\w+|query\.\w+", r.text), r.text
+
+
+def test_a_certificate_shows_the_limits_its_verdict_was_judged_against(api):
+    """A limit tightened for one calibration (FAIL) and restored afterwards made its certificate list every
+    figure PASS against today's limits, beside the verdict "FAIL (rejected)": the certificate contradicted
+    itself. A calibration keeps the limits it was judged by; its certificate, PDF, run page and JSON show
+    those. One stored before limits were kept is shown against today's."""
+    from service.db import Calibration
+
+    wide = today(api, "misalignment_deg")
+    assert api.put("/limits/misalignment_deg", role="admin", json={"marginal": 1e-4, "fail": 2e-4}).status_code == 200
+    (run_id, cal_id), = stored_run(api, "SN-JUDGED")
+    assert api.put("/limits/misalignment_deg", role="admin",
+                   json={"marginal": wide["marginal"], "fail": wide["fail"]}).status_code == 200
+    cal = api.get(f"/calibrations/{cal_id}", role="viewer").json()
+    assert cal["verdict"] == "FAIL" and any("misalignment_deg" in r for r in cal["reasons"])
+    judged = {lim["name"]: lim for lim in cal["limits"]}
+    assert judged["misalignment_deg"]["fail"] == 2e-4 and judged["bias_lsb"]["fail"] == today(api, "bias_lsb")["fail"]
+    cert, _, _, limits = cert_context_of(api, cal_id)
+    row = next(r for r in cert["limits"] if r["name"] == "misalignment_deg")
+    assert row["result"] == "FAIL" and row["fail"] == 2e-4, row
+    assert dict((n, p) for n, p in limits.items())["misalignment_deg"] == (1e-4, 2e-4)
+    page = api.get(f"/ui/calibrations/{cal_id}/certificate", role="viewer").text
+    misalignment = re.search(r'<tr data-limit="misalignment_deg">(.*?)</tr>', page, re.S).group(1)
+    assert "FAIL" in misalignment and "PASS" not in misalignment
+    assert api.get(f"/ui/runs/{run_id}", role="viewer").status_code == 200  # (its plots draw the judged limits)
+    # a calibration stored before the limits were kept: today's, as before
+    with api.client.app.state.sessions() as session:
+        session.get(Calibration, cal_id).limits = None
+        session.commit()
+    cert, _, _, limits = cert_context_of(api, cal_id)
+    assert limits["misalignment_deg"] == (wide["marginal"], wide["fail"])
+    assert api.get(f"/calibrations/{cal_id}", role="viewer").json()["limits"] is None
+
+
+def today(api: Any, name: str) -> dict[str, Any]:
+    """Limit ``name`` as in force now."""
+    return {lim["name"]: lim for lim in api.get("/limits", role="viewer").json()}[name]
+
+
+def cert_context_of(api: Any, cal_id: int) -> tuple[dict[str, Any], Any, Any, dict[str, tuple[float, float]]]:
+    from service.db import Calibration
+    from service.web import certificate_context, limit_pairs
+
+    with api.client.app.state.sessions() as session:
+        cert, cal, rec, limits = certificate_context(session, session.get(Calibration, cal_id))
+    return cert, cal, rec, limit_pairs(limits)

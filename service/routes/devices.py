@@ -23,9 +23,10 @@ router = APIRouter(tags=["devices"])
 
 
 def calibration_json(row: Calibration) -> dict[str, Any]:
-    """A stored calibration: the physics JSON plus its id, run, time, status and verdict."""
+    """A stored calibration: the physics JSON plus its id, run, time, status and verdict, and the
+    acceptance limits that verdict was judged against (null for one stored before they were kept)."""
     return {**row.data, "id": row.id, "run_id": row.run_id, "created_at": row.created_at, "status": row.status,
-            "verdict": row.verdict, "reasons": row.reasons, "serial": row.device.serial}
+            "verdict": row.verdict, "reasons": row.reasons, "serial": row.device.serial, "limits": row.limits}
 
 
 def _device(session: Session, serial: str) -> Device:

@@ -52,6 +52,27 @@ def wall_seconds_left(progress, time_scale):
     return progress["left_s"] / time_scale if left is None else left
 
 
+#: A prompt whose id starts so asks which serial number the unit is certified under (the unit reports
+#: another than the one typed); it takes one of these answers.
+SERIAL_PROMPT, SERIAL_ANSWERS = "serial-", ("typed", "identified", "skip")
+
+
+def answer(run_id, prompt_id):
+    """The operator's answer to a prompt, from the keyboard: one of SERIAL_ANSWERS to a serial prompt,
+    Enter once done to any other. Without a keyboard (stdin closed) the run is aborted, not left waiting."""
+    try:
+        if not prompt_id.startswith(SERIAL_PROMPT):
+            input("press Enter when done ")
+            return "done"
+        while True:
+            text = input(f"answer {', '.join(SERIAL_ANSWERS)}: ").strip().lower()
+            if text in SERIAL_ANSWERS:
+                return text
+    except EOFError:
+        call("PUT", f"/runs/{run_id}/state", {"state": "aborted", "reason": "no operator to answer its prompt"})
+        fail(f"run {run_id} asks the operator (prompt {prompt_id}) and there is no keyboard to answer: run aborted")
+
+
 def follow(run_id):
     """Print progress from the run's server-sent events until it ends; returns the final state."""
     time_scale = float((call("GET", f"/runs/{run_id}").get("station_snapshot") or {}).get("time_scale") or 1.0)
@@ -66,10 +87,9 @@ def follow(run_id):
                 data = json.loads(line.split(":", 1)[1])
                 if kind == "progress":
                     print(f"\r{data['percent']:5.1f} %  ~{wall_seconds_left(data, time_scale):.0f} s left", end="", flush=True)
-                elif kind == "prompt":
+                elif kind == "prompt" and not data.get("answered"):  # (an answered one comes back as said)
                     print(f"\noperator: {data['text']}")
-                    input("press Enter when done ")
-                    call("POST", f"/runs/{run_id}/prompts/{data['id']}", {"answer": "done"})
+                    call("POST", f"/runs/{run_id}/prompts/{data['id']}", {"answer": answer(run_id, data["id"])})
                 elif kind == "state":
                     state = data["state"]
     print()
@@ -90,8 +110,12 @@ print(f"run {run['id']}: {state}")
 if state != "completed":  # say why, as the run page does
     reason = call("GET", f"/runs/{run['id']}").get("reason")
     print(f"  reason: {reason or 'none given'}")
-if state == "completed":
-    cal = call("GET", f"/devices/{serial}/calibrations/current")
-    print(f"verdict {cal['verdict']}; sensitivities {cal['magnetometer']['k']}; bias {cal['magnetometer']['bias']}")
-for c in call("GET", f"/devices/{serial}/calibrations"):
+unit = ((call("GET", f"/runs/{run['id']}").get("result") or {}).get("units") or {}).get("0") or {}
+if state == "completed" and "calibration_id" in unit:
+    serial = unit.get("serial") or serial  # the serial it was certified under (the unit may report another)
+    cal = call("GET", f"/calibrations/{unit['calibration_id']}")
+    print(f"{serial}: verdict {cal['verdict']}; sensitivities {cal['magnetometer']['k']}; bias {cal['magnetometer']['bias']}")
+elif state == "completed":
+    print(f"no calibration: {unit.get('error', 'none stored')}")
+for c in call("GET", f"/devices/{serial}/calibrations") if state == "completed" and "calibration_id" in unit else []:
     print(f"{c['created_at']}  {c['status']:<10} {c['verdict']:<8} run {c['run_id']}")

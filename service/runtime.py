@@ -265,6 +265,9 @@ def run_json(row: Run) -> dict[str, Any]:
             "created_at": row.created_at, "started_at": row.started_at, "finished_at": row.finished_at,
             "table_seconds": row.table_seconds, "samples_count": row.samples_count or 0,
             "result": (row.meta or {}).get("result"), "serial_policy": (row.meta or {}).get("serial_policy"),
+            # a resumed run's samples up to its checkpoint are the run it continues; that run lists its continuations
+            "resumed_from": ((row.meta or {}).get("resume") or {}).get("run_id"),
+            "resumed_by": list((row.meta or {}).get("resumed_by") or []),
             "pause_requested": bool(live and row.pause_requested),
             "prompts": [{"id": k, "text": v} for k, v in (row.prompts or {}).items()] if live else [],
             "progress": row.progress}
@@ -436,6 +439,9 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
         s.rollback()
         s.refresh(row)
         raise Conflict(_busy(row, batch_id) or f"station {station_name} is busy")
+    if resumed:  # the run taken over names its continuations (the API, its page and certificate say both ways)
+        old = s.get(Run, resumed["run_id"])
+        old.meta = {**(old.meta or {}), "resumed_by": [*((old.meta or {}).get("resumed_by") or []), run.id]}
     publish(s, run.id, "state", {"state": RunState.queued.value, "reason": None})
     s.commit()
     return run

@@ -385,6 +385,9 @@ class RunOut(BaseModel):
                                           "identification, serial_decision, serial_note")
     serial_policy: str | None = Field(description="what the run does when a unit reports another serial number "
                                       "than the one typed")
+    resumed_from: int | None = Field(None, description="the run this one continues (its samples up to its last "
+                                                       "checkpoint are taken over), if any")
+    resumed_by: list[int] = Field(default_factory=list, description="the runs that continue this one")
     pause_requested: bool
     prompts: list[PromptOut]
     progress: dict[str, Any] | None

@@ -293,6 +293,8 @@ def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, A
         ("Turntable (Modbus)", snap.get("modbus") or "-"),
         ("Fixture slot", f"{row.slot}" + (f" ({slot_url})" if slot_url else "")),
         ("Run", f"{run.id}, {run.status}" if run else "-"),
+        *([("Resumes run", f"{resumed}: its samples up to its last checkpoint, taken over by run {run.id}")]
+          if run is not None and (resumed := ((run.meta or {}).get("resume") or {}).get("run_id")) else []),
         ("Procedure", f"{run.procedure} version {run.procedure_version}" if run else "-"),
         ("Method", row.method),
         ("Software", f"compasscal {run.software_version}" if run else "-"),

@@ -402,6 +402,17 @@ def test_an_interrupted_calibration_resumes_from_its_last_checkpoint(api: Api):
         assert live and live[0] > 0 and resumed["t"] > new.t[n - 1] and live == sorted(live), (resumed, live[:3])
         assert live[-1] <= done["table_seconds"] <= new.t[-1] + 2.0, (done["table_seconds"], new.t[n - 1], new.t[-1])
         assert new.meta.get("resumed_from") == str(first)
+        # both runs say it, both ways (before: only the CSV header and a step event did), and so do their
+        # page and the certificate, whose data came from two sessions
+        assert done["resumed_from"] == first and done["resumed_by"] == []
+        assert api.get(f"/runs/{first}", role="viewer").json()["resumed_by"] == [other["id"], done["id"]]
+        assert api.get(f"/runs/{other['id']}", role="viewer").json()["resumed_from"] == first
+        page = api.get(f"/ui/runs/{done['id']}", role="viewer").text
+        assert f'<dd id="resumed-from"><a href="/ui/runs/{first}">run {first}</a>' in page
+        assert f'<a href="/ui/runs/{done["id"]}">run {done["id"]}</a>' in api.get(f"/ui/runs/{first}", role="viewer").text
+        cal_id = done["result"]["units"]["0"]["calibration_id"]
+        cert = api.get(f"/ui/calibrations/{cal_id}/certificate", role="viewer").text
+        assert "Resumes run" in cert and f"{first}: its samples up to its last checkpoint, taken over by run {done['id']}" in cert
         # a completed run is not resumed
         r = api.post("/runs", role="operator", json={"station": "lab-1", "resume": done["id"]})
         assert r.status_code == 409 and "only a failed or aborted run" in r.json()["detail"]

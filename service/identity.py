@@ -25,7 +25,7 @@ No I/O here: :class:`UnitCheck` wraps a procedure's generator with the steps tha
 from __future__ import annotations
 
 import string
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
 
@@ -140,6 +140,9 @@ class UnitCheck:
     #: mounted before the run: the check waits for it (the table may go to its load pose before it)
     mounted_after: str | None = None
     identities: dict[int, Identity] = field(default_factory=dict)
+    #: told each slot's identity once all are settled (before the table moves): the worker keeps them,
+    #: so a run whose worker dies still names the units it measured
+    on_settled: Callable[[dict[int, Identity]], None] | None = None
     done: bool = False
     #: serials certified in this run so far -> which unit (one serial is one unit, whoever typed it)
     certified: dict[str, str] = field(default_factory=dict)
@@ -179,6 +182,8 @@ class UnitCheck:
                 for slot in self.slots:
                     self.identities[slot] = yield from self._decide(slot)
                 self.done = True
+                if self.on_settled is not None:
+                    self.on_settled(dict(self.identities))
                 if self.nothing_left:  # nothing to calibrate: the table does not move for it
                     gen.close()
                     return Outcome(notes=self.reasons())

@@ -106,6 +106,18 @@ def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[s
     return out
 
 
+#: A run's meta key holding its units' identities from the moment they are settled (service.worker).
+IDENTITIES_KEY = "identities"
+
+
+def lost_run_result(run: Run) -> None:
+    """A run ended by the loss of its worker: its result names the units it had identified (the worker
+    kept them in its meta), as a run that ends early does, where it has no result of its own."""
+    meta = run.meta or {}
+    if meta.get("result") is None and meta.get(IDENTITIES_KEY):
+        run.meta = {**meta, "result": {"identities": meta[IDENTITIES_KEY]}}
+
+
 def slot_result(result: dict[str, Any] | None, slot: int = 0) -> dict[str, Any]:
     """What a run's result holds of one slot's unit: serial, identity, verdict (a run that ended without
     results: its identity alone, ``identities``); {} without either."""
@@ -522,6 +534,8 @@ def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge
             n = s.execute(update(Run).where(Run.id == run.id, Run.status.in_(ACTIVE))
                           .values(status=RunState.failed.value, reason=why, finished_at=now)).rowcount
             if n:
+                s.refresh(run)
+                lost_run_result(run)
                 s.execute(update(Station).where(Station.id == station.id, Station.run_id == run.id)
                           .values(run_id=None, state="fault", reason=f"worker lost during run {run.id}; "
                                                                     f"POST /stations/{station.name}/reset"))

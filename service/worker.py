@@ -51,9 +51,9 @@ from procedures.events import Event, PromptAnswered, Result, StateChanged
 from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, RunEvent, Sample, Station, utcnow
 from service.identity import DEFAULT_POLICY, Identity, UnitCheck
-from service.runtime import (ANALYSIS_FINAL, BATCH_ABORTING, HEARTBEAT_S, SAMPLE_RATE_HZ, SOFTWARE_VERSION, Conflict,
-                             DomainError, analysis_topic, create_run, end_lost_batches, notify, other_workers, publish,
-                             slot_result)
+from service.runtime import (ANALYSIS_FINAL, BATCH_ABORTING, HEARTBEAT_S, IDENTITIES_KEY, SAMPLE_RATE_HZ,
+                             SOFTWARE_VERSION, Conflict, DomainError, analysis_topic, create_run, end_lost_batches,
+                             lost_run_result, notify, other_workers, publish, slot_result)
 from service.store import insert_samples, load_recording, store_calibration
 
 log = logging.getLogger("compasscal.worker")
@@ -304,7 +304,8 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
         return
     check = UnitCheck(typed={int(k): str(v) for k, v in given.items()}, slots=list(range(len(snapshot["compasses"]))),
                       policy=str(meta.get("serial_policy") or DEFAULT_POLICY), seen=seen, certified_before=under,
-                      mounted_after=MOUNT_PROMPT if name == BATCH else None)
+                      mounted_after=MOUNT_PROMPT if name == BATCH else None,
+                      on_settled=lambda ids: ctx.retry(lambda: _keep_identities(ctx, run_id, ids), f"run {run_id}"))
     control = RunControl(ctx, run_id)
     ctx.executing[run_id] = control
     follower = asyncio.create_task(control.follow())
@@ -344,6 +345,15 @@ def batch_certified(s: Session, run: Run) -> tuple[dict[str, str], dict[str, str
             reports = f", which reports {identified}" if identified and identified != serial else ""
             under.setdefault(serial, f"the unit of run {r.id} earlier in this batch{reports}")
     return seen, under
+
+
+def _keep_identities(ctx: WorkerContext, run_id: int, identities: dict[int, Identity]) -> None:
+    """The units' identities in the run's meta as soon as they are settled (``identities``): a run whose
+    worker is lost has no result to carry them, and the reaper takes them from here."""
+    with ctx.sessions() as s:
+        run = s.get(Run, run_id)
+        run.meta = {**(run.meta or {}), IDENTITIES_KEY: {str(k): i.to_json() for k, i in sorted(identities.items())}}
+        s.commit()
 
 
 async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot: dict[str, Any], proc: Any,
@@ -843,6 +853,7 @@ def recover(ctx: WorkerContext, stations: list[str] | None, queued_too: bool, re
                 continue
             cut = run.status != RunState.queued.value
             run.status, run.reason, run.finished_at = RunState.failed.value, reason, utcnow()
+            lost_run_result(run)
             st = s.scalar(select(Station).where(Station.run_id == run.id))
             if st is not None:
                 st.run_id = None

@@ -330,6 +330,11 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
             lost = c.run(first["id"])
             assert lost["status"] == "failed" and "worker lost" in lost["reason"] and lost["samples_count"] > 0, (b, lost)
             assert b["status"] == "failed" and b["summary"]["SN-1"] == f"failed: {lost['reason']}", b
+            # the unit it measured is named although its worker never ended the run: by the serial it reported
+            reported = info["station"].compasses[0].device.serial
+            assert lost["result"]["identities"]["0"]["identified_serial"] == reported != "SN-1", lost["result"]
+            assert b["units"][0]["identified_serial"] == reported, b["units"][0]
+            assert first["id"] in [r["id"] for r in c.call("GET", f"/runs?serial={reported}", "viewer").json()]
             assert b["summary"]["SN-2"] == b["summary"]["SN-3"] == "not run: station lab-1's worker stopped beating", b
             assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
             listed = c.call("GET", "/batches", "viewer").json()

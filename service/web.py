@@ -57,8 +57,10 @@ SWAGGER_CSS = "swagger-ui.css"
 LIVE_ROWS = 5000
 
 router = APIRouter(include_in_schema=False)
-#: What the search box takes: a serial number or a part of one (no NUL, at most a serial's length).
-SerialPart = Annotated[str, AfterValidator(no_nul), Field(max_length=64)]
+#: What the search box takes: a serial number or a part of one (no NUL). A query longer than a serial
+#: matches none and is told why in the API's words (check_serial); beyond SEARCH_MAX it is no query.
+SEARCH_MAX = 1000
+SerialPart = Annotated[str, AfterValidator(no_nul), Field(max_length=SEARCH_MAX)]
 
 
 # ------------------------------------------------------------------------------------------ helpers

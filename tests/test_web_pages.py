@@ -210,7 +210,11 @@ def test_device_history_certificate_and_pdf(api):
     r = api.get("/ui/search?serial=SN%2FDEV", role="viewer", follow_redirects=False)
     assert r.status_code == 200 and "text/html" in r.headers["content-type"], r.text
     assert "No serial number seen by this service contains" in r.text and "&#39;/&#39; at position 3" in r.text, r.text
-    # a serial number never seen goes to its device page, which says it is unknown
+    # longer than a serial number: said in the API's words (the page said "at most 64 items", the API
+    # "serial number of 100 characters; at most 64")
+    r = api.get("/ui/search?serial=" + "A" * 100, role="viewer", follow_redirects=False)
+    assert r.status_code == 200 and "serial number of 100 characters; at most 64" in r.text, r.text
+        # a serial number never seen goes to its device page, which says it is unknown
     r = api.get("/ui/search?serial=NO-SUCH-UNIT", role="viewer", follow_redirects=False)
     assert r.status_code == 303 and r.headers["location"] == "/ui/devices/NO-SUCH-UNIT"
 

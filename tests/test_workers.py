@@ -7,6 +7,7 @@ restarted worker stops the axes first, and the station's reset goes through it."
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -335,6 +336,13 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
             assert lost["result"]["identities"]["0"]["identified_serial"] == reported != "SN-1", lost["result"]
             assert b["units"][0]["identified_serial"] == reported, b["units"][0]
             assert first["id"] in [r["id"] for r in c.call("GET", f"/runs?serial={reported}", "viewer").json()]
+            # its page says why once (the status cell and the summary's line in the verdict cell said it twice)
+            page = c.call("GET", f"/ui/batches/{bid}", "viewer")
+            assert page.status_code == 200 and "text/html" in page.headers["content-type"], page.text[:300]
+            row = re.search(r'<tr data-serial="SN-1">(.*?)</tr>', page.text, re.S).group(1)
+            assert row.count("worker lost") == 1, row
+            row3 = re.search(r'<tr data-serial="SN-3">(.*?)</tr>', page.text, re.S).group(1)
+            assert "not run: station lab-1&#39;s worker stopped beating" in row3, row3
             assert b["summary"]["SN-2"] == b["summary"]["SN-3"] == "not run: station lab-1's worker stopped beating", b
             assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
             listed = c.call("GET", "/batches", "viewer").json()

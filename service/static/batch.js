@@ -27,15 +27,18 @@
         run.replaceChildren();
         if (u.run_id) run.append(cc.el("a", { href: `/ui/runs/${u.run_id}` }, `run ${u.run_id}`));
       }
+      const statusText = u.status + (u.reason ? `: ${u.reason}` : "");
       const status = tr.querySelector("td.status");
       if (status) {
-        status.textContent = u.status + (u.reason ? `: ${u.reason}` : "");
+        status.textContent = statusText;
         status.className = `status status-${u.status}`;
       }
       const verdict = tr.querySelector("td.verdict");
       if (verdict) {
         const over = DONE.includes(u.status) || !["queued", "running"].includes(b.status);
-        const v = u.verdict || (over ? (b.summary || {})[u.serial] || "" : "");
+        const said = over ? (b.summary || {})[u.serial] || "" : "";
+        // the summary's line of a unit whose run ended without a verdict repeats its status cell: said once
+        const v = u.verdict || (said === statusText ? "" : said);
         verdict.textContent = v;
         verdict.className = `verdict verdict-${(u.verdict || "").toLowerCase()}`;
       }

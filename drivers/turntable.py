@@ -30,6 +30,7 @@ from drivers.protocol import (
     AXIS_UNITS,
     CMD_RESULT_TEXT,
     COUNTS_PER_DEG,
+    CmdResult,
     FAULTS,
     PROTOCOL_VERSION,
     Command,
@@ -333,7 +334,10 @@ class Axis:
         if st.cmd_count == before:
             raise CommandRefused(self.name, cmd.name, None, "not acknowledged (CMD_COUNT unchanged)")
         if st.last_result != 0:
-            raise CommandRefused(self.name, cmd.name, st.last_result, st.last_result_text)
+            # refused for a fault: say which (an alarm raised while the axis held was named only "fault active")
+            why = st.last_result_text + (f" (fault 0x{st.fault_code:02X} {FAULTS.get(st.fault_code, 'unknown fault')})"
+                                         if st.last_result == CmdResult.FAULT_ACTIVE and st.fault_code else "")
+            raise CommandRefused(self.name, cmd.name, st.last_result, why)
         return st
 
     async def enable(self) -> None:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,6 +103,13 @@ class RunResult:
     # the plan's nominal table seconds from where the table stood when the run began (an adaptive
     # run's extension and other data-dependent tails not included): what table_seconds compares with
     plan_seconds: float = 0.0
+
+
+def _faults(status: Mapping[str, Any]) -> list[str]:
+    """The axes of a status poll (drivers.turntable.AxisStatus by axis) that are in fault or E-stop, in
+    words: "axis z: fault 0x28 encoder error"."""
+    return ([f"axis {name}: fault {fault_name(s.fault_code)}" for name, s in status.items() if s.fault]
+            + [f"axis {name}: E-stop" for name, s in status.items() if s.estop and not s.fault])
 
 
 class Aborted(Exception):
@@ -347,7 +354,7 @@ class Engine:
         An axis already in fault is not reset behind the operator's back: the run fails saying so."""
         table = self.station.table
         status = await table.status_all()
-        faulted = [f"axis {name}: fault {fault_name(s.fault_code)}" for name, s in status.items() if s.fault]
+        faulted = _faults(status)
         if faulted:
             raise DriverError("axis fault before the run (reset it first): " + ", ".join(faulted))
         if not all(s.enabled for s in status.values()):
@@ -470,12 +477,24 @@ class Engine:
         before = self._held if self._held is not None else await self.station.table.positions()
         parts: dict[int, list[Recording]] = {}
         await self._retry(lambda: self._read_missing(step, parts, before), CompassTimeout)
-        after = await self.station.table.positions()
+        after = await self._still_sound(step.step)
         moved = float(np.max(np.abs(np.subtract(after, before))))
         if moved > HOLD_TOLERANCE_DEG:
             raise DriverError(f"the table moved {moved:.3f} deg while {step.step} was acquiring")
         self._held = before
         return {slot: concat(recs) for slot, recs in parts.items()}
+
+    async def _still_sound(self, label: str) -> tuple[float, float, float]:
+        """After a pose's or a scan's samples: every axis's status (one poll each, as the positions
+        alone cost), refusing the samples' angles when an axis is in fault or E-stop (an encoder error
+        raised while the table held went unnoticed: the run completed and certified the unit, the
+        station idle). The positions (psi, theta, phi) otherwise."""
+        status = await self.station.table.status_all()
+        faulted = _faults(status)
+        if faulted:
+            raise DriverError(f"{', '.join(faulted)} at the end of {label}: its samples are kept, but their table "
+                              "angles cannot be trusted")
+        return tuple(s.position_deg for s in status.values())  # type: ignore[return-value]
 
     async def _read_missing(self, step: Acquire, parts: dict[int, list[Recording]], held: Any) -> None:
         """Read what each slot still lacks of ``step.samples`` (a slot that got more than it needed in
@@ -552,7 +571,7 @@ class Engine:
         out = self._keep_scan(step, got, t_begin, trace, before)
         if error is not None:
             raise error
-        after = await table.positions()
+        after = await self._still_sound(step.step)
         held = [j for j in range(3) if j != i]
         moved = max(abs(after[j] - before[j]) for j in held)
         if moved > HOLD_TOLERANCE_DEG:

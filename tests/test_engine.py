@@ -145,6 +145,30 @@ async def _run_on(cfg: StationConfig, proc: Procedure):  # noqa: ANN202
         return await Engine(station, proc, proc.validate({}), RecordingSink(None, {})).run(), None
 
 
+def test_an_axis_alarm_raised_while_the_table_holds_fails_the_run_naming_it(tmp_path: Path):
+    """The fault probe's case: an encoder error raised while the last pose acquired (the table holding,
+    no move to refuse) went unnoticed: the run completed, the unit was certified, the station read idle.
+    Each pose's samples are now followed by a status poll of every axis (in place of the positions read,
+    the same round trips): the run fails naming the fault, every sample kept."""
+    cfg = reference_config(seed=5, time_scale=20)
+    fired = {}
+    poses = 18
+
+    def control(engine: Engine, st: SimStation) -> None:
+        def on_event(e: Event, inner=engine.on_event) -> None:
+            inner(e)
+            if isinstance(e, StepStarted) and isinstance(e.step, Acquire) and engine._samples >= (poses - 1) * 60 and not fired:
+                fired["t"] = time.monotonic()  # while the last pose acquires
+                asyncio.get_running_loop().call_later(0.05, st.table.alarm, "z", 0x28)
+        engine.on_event = on_event
+    result, serials, sink, st, events, wall, status = run(cfg, "calibrate", {}, out=tmp_path, control=control)
+    assert fired and result.state is RunState.failed, result.reason
+    assert "axis z: fault 0x28 encoder error at the end of" in result.reason and "cannot be trusted" in result.reason
+    assert result.outcome is None or not result.outcome.results  # nothing certified from it
+    assert len(parse_recording(sink.path(0).read_text())) == poses * 60  # every sample kept
+    assert not any(s.moving for s in status.values())
+
+
 def test_a_compass_hiccup_is_retried_and_every_pose_keeps_exactly_its_planned_count(tmp_path: Path):
     """A compass silent for 1.5 s mid-pose (a USB hub reset): the acquisition times out, keeps what
     arrived and the retry reads only the rest, so the run completes with 60 samples in every pose."""

@@ -550,6 +550,19 @@ def test_hard_limit_fault() -> None:
     run(body())
 
 
+def test_a_move_refused_for_a_fault_names_the_fault() -> None:
+    """An alarm raised while an axis held was reported at the next move as "MOVE_ABS refused: fault
+    active", without saying which fault."""
+    async def body() -> None:
+        async with station() as (sim, table):
+            await ready(table)
+            sim.alarm("z", 0x30)
+            with pytest.raises(CommandRefused, match=r"MOVE_ABS refused: fault active \(fault 0x30 overload\)"):
+                await table.axes["z"].move_abs(10.0)
+
+    run(body())
+
+
 def test_watchdog_quick_stops_an_unpolled_axis() -> None:
     async def body() -> None:
         async with station(scale=5.0) as (sim, table):

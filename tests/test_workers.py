@@ -42,6 +42,12 @@ class Client:
     def call(self, method: str, path: str, role: str = "admin", **kw: Any) -> httpx.Response:
         return httpx.request(method, self.base + path, headers={"X-API-Key": self.keys[role]}, timeout=30, **kw)
 
+    def station(self, info: dict[str, Any], name: str) -> None:
+        """Register simulated station ``info`` (conftest.sim_station) as ``name``."""
+        r = self.call("POST", "/stations", json={"name": name, "modbus": info["modbus"], "time_scale": 20,
+                                                 "compasses": [x["url"] for x in info["compasses"]]})
+        assert r.status_code == 201, r.text
+
     def run(self, run_id: int) -> dict[str, Any]:
         return self.call("GET", f"/runs/{run_id}", "viewer").json()
 
@@ -109,9 +115,7 @@ def test_runs_survive_an_api_kill_and_a_lost_worker_is_reported(tmp_path: Path):
         keys = _keys(url)
         c1 = Client(port1, keys)
         with sim_station(reference_config(seed=4, time_scale=20)) as info:
-            r = c1.call("POST", "/stations", json={"name": "lab-1", "modbus": info["modbus"], "time_scale": 20,
-                                                   "compasses": [x["url"] for x in info["compasses"]]})
-            assert r.status_code == 201, r.text
+            c1.station(info, "lab-1")
             worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker1.log")
             procs.append(worker)
             body = {"station": "lab-1", "procedure": "calibrate", "parameters": {"samples": 20}}
@@ -225,9 +229,7 @@ def test_a_postgresql_restart_mid_run_loses_nothing(tmp_path: Path):
         procs.append(api)
         c = Client(port, _keys(url))
         with sim_station(reference_config(seed=6, time_scale=20)) as info:
-            r = c.call("POST", "/stations", json={"name": "lab-pg", "modbus": info["modbus"], "time_scale": 20,
-                                                  "compasses": [x["url"] for x in info["compasses"]]})
-            assert r.status_code == 201, r.text
+            c.station(info, "lab-pg")
             procs.append(_start(["worker", "--station", "lab-pg"], url, tmp_path / "worker.log"))
             body = {"station": "lab-pg", "procedure": "calibrate", "parameters": {"samples": 20}}
             rid = c.call("POST", "/runs", "operator", json=body).json()["id"]
@@ -312,9 +314,7 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
         procs.append(api)
         c = Client(port, _keys(url))
         with sim_station(reference_config(seed=5, time_scale=20)) as info:
-            r = c.call("POST", "/stations", json={"name": "lab-1", "modbus": info["modbus"], "time_scale": 20,
-                                                  "compasses": [x["url"] for x in info["compasses"]]})
-            assert r.status_code == 201, r.text
+            c.station(info, "lab-1")
             worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker1.log")
             procs.append(worker)
             body = {"station": "lab-1", "serials": ["SN-1", "SN-2", "SN-3"], "parameters": {"samples": 20},

@@ -587,6 +587,9 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
     """Calibrate every unit of a station with a progress bar, write recordings and calibrations to
     ``out``, print the tables; optionally check each calibration on the table and against the truth.
     Returns the number of units that failed."""
+    import asyncio
+    import signal
+
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from drivers.station import open_station
@@ -611,20 +614,45 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
             elif isinstance(e, events.StepWarning):  # e.g. bad samples flagged: said as it happens
                 bar.console.print(f"[yellow]warning:[/] {escape(e.warning)}")
 
-        async with open_station(modbus, compasses, time_scale=time_scale) as station:
-            result, serials, sink = await run_procedure(station, "calibrate", params, out_dir=out, on_event=on_event)
-            bar.update(task, description=f"calibrate: {result.state.value}")
-            check = None
-            if evaluate and result.outcome is not None:
-                cals = {slot: r["calibration"].to_json() for slot, r in result.outcome.results.items() if "calibration" in r}
-                if cals:
-                    eval_task = bar.add_task("evaluate", total=100.0, info="")
+        # Ctrl-C or SIGTERM (a terminal closed, a service manager): the run is aborted as by an operator,
+        # the axes stopped and every sample kept (SIGTERM had killed the process with an axis still turning)
+        engines: list[Any] = []
+        interrupted: list[str] = []
+        current = asyncio.current_task()
 
-                    def on_evaluate_event(e: events.Event) -> None:
-                        if isinstance(e, events.Progress):
-                            bar.update(eval_task, completed=e.percent)
+        def interrupt(name: str) -> None:
+            interrupted.append(name)
+            if engines:
+                engines[-1].abort(f"interrupted by {name}")
+            elif current is not None:
+                current.cancel()  # nothing has moved yet
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, interrupt, sig.name)
+        try:
+            async with open_station(modbus, compasses, time_scale=time_scale) as station:
+                result, serials, sink = await run_procedure(station, "calibrate", params, out_dir=out, on_event=on_event,
+                                                            engine_hook=engines.append)
+                bar.update(task, description=f"calibrate: {result.state.value}")
+                check = None
+                if evaluate and result.outcome is not None and not interrupted:
+                    cals = {slot: r["calibration"].to_json() for slot, r in result.outcome.results.items() if "calibration" in r}
+                    if cals:
+                        eval_task = bar.add_task("evaluate", total=100.0, info="")
 
-                    check, _, _ = await run_procedure(station, "evaluate", {"calibrations": cals}, on_event=on_evaluate_event)
+                        def on_evaluate_event(e: events.Event) -> None:
+                            if isinstance(e, events.Progress):
+                                bar.update(eval_task, completed=e.percent)
+
+                        check, _, _ = await run_procedure(station, "evaluate", {"calibrations": cals}, on_event=on_evaluate_event,
+                                                          engine_hook=engines.append)
+        except asyncio.CancelledError:
+            if not interrupted:
+                raise
+            _fail(f"interrupted by {interrupted[0]} before the run began: nothing moved, nothing recorded")
+        finally:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
     console.print(f"run {result.state.value}" + (f": {escape(str(result.reason))}" if result.reason else "")
                   + f" after {result.table_seconds:.1f} s of table time (the plan's nominal {result.plan_seconds:.1f} s "
                   + f"from where the table stood{', before the adaptive poses' if params.get('adaptive') else ''}), "
@@ -632,6 +660,9 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
     for slot in sorted(serials):
         if slot in sink.parts:
             console.print(f"slot {slot} ({serials[slot]}): recording {sink.path(slot)}")
+    if interrupted:  # the shell's convention: 128 + the signal's number
+        err_console.print(f"interrupted by {interrupted[0]}: the axes were stopped and the samples so far kept")
+        raise typer.Exit(code=128 + getattr(signal, interrupted[0]).value)
     if result.outcome is None:
         return len(compasses)
     failed = 0

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from physics.recording import parse_recording
@@ -204,3 +206,40 @@ def test_convert_writes_a_mapped_file_as_a_recording_the_service_takes(tmp_path:
     # a file no reader knows, without a mapping: one line naming the way out, exit 2
     r = runner.invoke(app, ["convert", str(src), "-o", str(out)])
     assert r.exit_code == 2 and "--mapping" in r.output
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_calibrate_stopped_by_a_signal_stops_the_axes_keeps_the_samples_and_says_so(tmp_path: Path, sig: str):
+    """SIGTERM (a closed terminal, a service manager) killed `compasscal calibrate` with an axis still
+    turning and nothing said; Ctrl-C stopped the axes but exited 130 without a word. Now either aborts the
+    run as an operator would: the axes stopped, the samples so far written, what happened said, and the
+    shell's exit code (128 + the signal)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import sim_station
+    from drivers.sim.config import reference_config
+
+    with sim_station(reference_config(seed=3, time_scale=10)) as info:
+        out = tmp_path / "run"
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "calibrate", "--modbus", info["modbus"],
+                                 "--compass", info["compasses"][0]["url"], "--time-scale", "10", "-o", str(out)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).parent.parent,
+                                env={**os.environ, "COLUMNS": "200"})
+        table = info["station"].table
+        deadline = time.monotonic() + 60
+        while not any(ax.mode == "move" for ax in table.axes.values()) or not list(out.glob("*.csv")):
+            assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()
+            time.sleep(0.01)  # moving on from a pose whose samples are written
+        proc.send_signal(getattr(signal, sig))
+        stdout, stderr = proc.communicate(timeout=30)
+        time.sleep(0.3)
+        assert proc.returncode == 128 + getattr(signal, sig).value, stdout + stderr
+        assert all(ax.mode not in ("move", "jog") for ax in table.axes.values()), {n: ax.mode for n, ax in table.axes.items()}
+    said = " ".join((stdout + stderr).split())
+    assert f"run aborted: interrupted by {sig}" in said and f"interrupted by {sig}: the axes were stopped" in said, said
+    [csv] = out.glob("*.csv")
+    assert csv.name in said  # where they are
+    assert len(parse_recording(csv.read_text())) >= 60

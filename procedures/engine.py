@@ -105,6 +105,10 @@ class RunResult:
     plan_seconds: float = 0.0
 
 
+#: Wall seconds between the table's status polls while a run stands paused.
+PAUSED_WATCH_S = 1.0
+
+
 def _faults(status: Mapping[str, Any]) -> list[str]:
     """The axes of a status poll (drivers.turntable.AxisStatus by axis) that are in fault or E-stop, in
     words: "axis z: fault 0x28 encoder error"."""
@@ -394,7 +398,7 @@ class Engine:
         if isinstance(step, Checkpoint):
             if not self._resume.is_set():
                 self._set_state(RunState.paused)
-                await self._resume.wait()
+                await self._paused()
                 self._check_abort()
                 self._set_state(RunState.running)
             return None
@@ -483,6 +487,19 @@ class Engine:
             raise DriverError(f"the table moved {moved:.3f} deg while {step.step} was acquiring")
         self._held = before
         return {slot: concat(recs) for slot, recs in parts.items()}
+
+    async def _paused(self) -> None:
+        """Wait for the operator's resume (or abort) while watching the table: an axis that faults, is
+        E-stopped or stops answering while the run stands paused fails it at once (it was said only
+        when the operator resumed)."""
+        while True:
+            try:
+                await asyncio.wait_for(self._resume.wait(), PAUSED_WATCH_S)
+                return
+            except asyncio.TimeoutError:
+                faulted = _faults(await self.station.table.status_all())
+                if faulted:
+                    raise DriverError(f"{', '.join(faulted)} while the run was paused") from None
 
     async def _still_sound(self, label: str) -> tuple[float, float, float]:
         """After a pose's or a scan's samples: every axis's status (one poll each, as the positions

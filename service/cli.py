@@ -633,7 +633,8 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
             async with open_station(modbus, compasses, time_scale=time_scale) as station:
                 result, serials, sink = await run_procedure(station, "calibrate", params, out_dir=out, on_event=on_event,
                                                             engine_hook=engines.append)
-                bar.update(task, description=f"calibrate: {result.state.value}")
+                # the bar's last line says how it ended, not the time it had left ("failed ... ~16 s left")
+                bar.update(task, description=f"calibrate: {result.state.value}", info=f"{result.samples} samples kept")
                 check = None
                 if evaluate and result.outcome is not None and not interrupted:
                     cals = {slot: r["calibration"].to_json() for slot, r in result.outcome.results.items() if "calibration" in r}

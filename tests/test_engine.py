@@ -24,7 +24,7 @@ from physics.sensor import random_unit
 from physics.simulate import truth_from_json
 from physics.table import Motion, move_seconds
 from procedures.calibrate import PROCEDURES
-from procedures.engine import Engine, RecordingSink, Replay, RunState, run_procedure
+from procedures.engine import PAUSED_WATCH_S, Engine, RecordingSink, Replay, RunState, run_procedure
 from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, PromptAnswered, PromptAsked, Result, SamplesStored, StateChanged, StepRetried,
                                StepStarted, StepWarning)
 from procedures.steps import Acquire, Checkpoint, Compute, Move, Outcome, Park, Procedure, Prompt
@@ -259,6 +259,31 @@ def test_pause_resume_and_abort_at_checkpoints():
     assert seen == ["running", "paused", "running", "aborted"]
     assert result.state is RunState.aborted and result.reason == "operator pressed abort"
     assert result.samples == 3 * 60
+
+
+def test_a_fault_while_paused_fails_the_run_at_once():
+    """An axis alarm while the run stood paused was said only when the operator resumed; the run and the
+    station looked healthy meanwhile. The paused engine polls the table's status once a second."""
+    cfg = reference_config(seed=5, time_scale=20)
+    seen: dict[str, float] = {}
+
+    def control(engine: Engine, st: SimStation) -> None:
+        inner = engine.on_event
+
+        def on_event(e: Event) -> None:
+            inner(e)
+            if isinstance(e, StateChanged) and e.state is RunState.paused:
+                seen["paused"] = time.monotonic()
+                asyncio.get_running_loop().call_later(0.2, st.table.alarm, "y", 0x28)
+            if isinstance(e, StateChanged) and e.state is RunState.failed:
+                seen["failed"] = time.monotonic()
+            if isinstance(e, SamplesStored) and e.count == 60:
+                engine.pause()
+        engine.on_event = on_event
+    result, *_ = run(cfg, "rotate_z", {"samples": 60}, control=control)
+    assert result.state is RunState.failed and "axis y: fault 0x28 encoder error while the run was paused" in result.reason
+    assert seen["failed"] - seen["paused"] < 0.2 + 2 * PAUSED_WATCH_S + 1.0  # not left for the operator to find
+    assert result.samples == 60
 
 
 def test_a_resumed_run_counts_no_more_table_time_than_its_samples_span():

@@ -168,6 +168,9 @@ def publish(session: Session, run_id: int, kind: str, data: dict[str, Any]) -> N
             if data["state"] in FINAL:
                 run.prompts = {}
                 run.reason = data.get("reason")
+                if run.progress and data["state"] != RunState.completed.value:
+                    # an ended run has no time left (its last progress still counted some: "~16 s left")
+                    run.progress = {**run.progress, "left_s": 0.0, "left_wall_s": 0.0}
     notify(session, run_id)
 
 

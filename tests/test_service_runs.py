@@ -271,6 +271,8 @@ def test_an_axis_fault_mid_run_fails_it_and_the_station_until_reset(api: Api):
         j = wait_run(api, r.json()["id"])
         assert j["status"] == "failed" and "overload" in j["reason"] and "axis y" in j["reason"]
         assert j["samples_count"] == 9 * 20  # the level turn and the first sweep pose
+        # an ended run has no time left (its last progress event still counted some)
+        assert j["progress"]["left_s"] == j["progress"]["left_wall_s"] == 0.0, j["progress"]
         st = api.get("/stations/lab-1", role="viewer").json()
         assert st["state"] == "fault" and "overload" in st["fault"] and st["run_id"] is None
         assert api.post("/runs", role="operator", json={"station": "lab-1"}).status_code == 409

@@ -329,14 +329,14 @@ class Engine:
             self._set_state(RunState.completed)
             self.on_event(Result(tuple(sorted(outcome.results)) if outcome else ()))
         except Aborted:
-            await self._stop_axes()
-            self._set_state(RunState.aborted, self._abort)
+            stopped = await self._stop_axes()
+            self._set_state(RunState.aborted, "; ".join(filter(None, (self._abort, stopped))))
         except (DriverError, asyncio.TimeoutError) as e:
-            await self._stop_axes()
-            self._set_state(RunState.failed, _reason(e))
+            stopped = await self._stop_axes()
+            self._set_state(RunState.failed, "; ".join(filter(None, (_reason(e), stopped))))
         except BaseException as e:  # a bug or a cancellation: still stop the table, keep the data
-            await self._stop_axes()
-            self._set_state(RunState.failed, _reason(e))
+            stopped = await self._stop_axes()
+            self._set_state(RunState.failed, "; ".join(filter(None, (_reason(e), stopped))))
             if isinstance(e, (asyncio.CancelledError, KeyboardInterrupt)):
                 raise
         finally:
@@ -377,10 +377,11 @@ class Engine:
             except (DriverError, asyncio.TimeoutError) as e:
                 if not isinstance(step, Park):
                     raise
-                await self._stop_axes()
+                stopped = await self._stop_axes()
                 self._held = None
-                self.on_event(StepWarning(f"the table did not reach its rest pose ({_reason(e)}): axes stopped; the run's "
-                                          "data and result are whole; reset the station before the next run"))
+                self.on_event(StepWarning(f"the table did not reach its rest pose ({_reason(e)}): "
+                                          f"{stopped or 'axes stopped'}; the run's data and result are whole; reset the "
+                                          "station before the next run"))
             return self._held
         if isinstance(step, Settle):
             await asyncio.sleep(step.seconds / self.station.time_scale)
@@ -751,11 +752,16 @@ class Engine:
         if self._abort is not None:
             raise Aborted(self._abort)
 
-    async def _stop_axes(self) -> None:
+    async def _stop_axes(self) -> str | None:
+        """Stop every axis; what went wrong (said as a warning too), or None. A run that ends so carries it
+        in its reason after its own (it was said only in the events: a table off its bus may still turn)."""
         try:
             await asyncio.wait_for(self.station.table.stop_all(), timeout=2.0)
         except Exception as e:  # noqa: BLE001 - report it, but the run's own reason comes first
-            self.on_event(StepWarning(f"stopping the axes failed: {_reason(e)}"))
+            why = f"stopping the axes failed: {_reason(e)}"
+            self.on_event(StepWarning(why))
+            return why
+        return None
 
     def _set_state(self, state: RunState, reason: str | None = None) -> None:
         self.state, self.reason = state, reason

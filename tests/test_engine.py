@@ -140,6 +140,29 @@ def test_a_fault_on_the_way_to_the_rest_pose_is_a_warning_and_the_run_keeps_its_
     assert result.state is RunState.failed and "0x30 overload" in result.reason
 
 
+def test_a_table_that_cannot_be_stopped_is_said_in_the_runs_reason():
+    """Every axis controller gone silent mid-move (the table's bus cut): the run fails for the move and
+    its reason says the axes could not be stopped either (said only as an event before, while the run's
+    reason named the move alone: a table that may still be turning)."""
+    proc = Procedure("far", "1", PROCEDURES["rotate_z"].params, lambda params: (yield Move(170.0)))
+    cfg = reference_config(seed=3, time_scale=5)
+
+    async def main():
+        async with on_sim(cfg) as (st, station):
+            events: list[Event] = []
+            engine = Engine(station, proc, proc.validate({}), RecordingSink(None, {}), on_event=events.append)
+            loop = asyncio.get_running_loop()
+            loop.call_later(0.3, lambda: [st.table.silence(a, True) for a in "zyx"])
+            result = await engine.run()
+            for a in "zyx":
+                st.table.silence(a, False)
+            return result, events
+    result, events = asyncio.run(asyncio.wait_for(main(), 30))
+    assert result.state is RunState.failed
+    assert "stopping the axes failed" in result.reason and not result.reason.startswith("stopping"), result.reason
+    assert any(isinstance(e, StepWarning) and e.warning.startswith("stopping the axes failed") for e in events)
+
+
 async def _run_on(cfg: StationConfig, proc: Procedure):  # noqa: ANN202
     async with on_sim(cfg) as (st, station):
         return await Engine(station, proc, proc.validate({}), RecordingSink(None, {})).run(), None

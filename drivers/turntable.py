@@ -36,6 +36,7 @@ from drivers.protocol import (
     Command,
     Reg,
     Status,
+    fault_name,
     from_words,
     status_names,
     to_i16,
@@ -335,7 +336,7 @@ class Axis:
             raise CommandRefused(self.name, cmd.name, None, "not acknowledged (CMD_COUNT unchanged)")
         if st.last_result != 0:
             # refused for a fault: say which (an alarm raised while the axis held was named only "fault active")
-            why = st.last_result_text + (f" (fault 0x{st.fault_code:02X} {FAULTS.get(st.fault_code, 'unknown fault')})"
+            why = st.last_result_text + (f" (fault {fault_name(st.fault_code)})"
                                          if st.last_result == CmdResult.FAULT_ACTIVE and st.fault_code else "")
             raise CommandRefused(self.name, cmd.name, st.last_result, why)
         return st

@@ -329,14 +329,11 @@ class Engine:
             self._set_state(RunState.completed)
             self.on_event(Result(tuple(sorted(outcome.results)) if outcome else ()))
         except Aborted:
-            stopped = await self._stop_axes()
-            self._set_state(RunState.aborted, "; ".join(filter(None, (self._abort, stopped))))
+            await self._stop_and_end(RunState.aborted, self._abort)
         except (DriverError, asyncio.TimeoutError) as e:
-            stopped = await self._stop_axes()
-            self._set_state(RunState.failed, "; ".join(filter(None, (_reason(e), stopped))))
+            await self._stop_and_end(RunState.failed, _reason(e))
         except BaseException as e:  # a bug or a cancellation: still stop the table, keep the data
-            stopped = await self._stop_axes()
-            self._set_state(RunState.failed, "; ".join(filter(None, (_reason(e), stopped))))
+            await self._stop_and_end(RunState.failed, _reason(e))
             if isinstance(e, (asyncio.CancelledError, KeyboardInterrupt)):
                 raise
         finally:
@@ -498,21 +495,24 @@ class Engine:
                 await asyncio.wait_for(self._resume.wait(), PAUSED_WATCH_S)
                 return
             except asyncio.TimeoutError:
-                faulted = _faults(await self.station.table.status_all())
-                if faulted:
-                    raise DriverError(f"{', '.join(faulted)} while the run was paused") from None
+                await self._sound_status("while the run was paused")
 
     async def _still_sound(self, label: str) -> tuple[float, float, float]:
         """After a pose's or a scan's samples: every axis's status (one poll each, as the positions
         alone cost), refusing the samples' angles when an axis is in fault or E-stop (an encoder error
         raised while the table held went unnoticed: the run completed and certified the unit, the
         station idle). The positions (psi, theta, phi) otherwise."""
+        status = await self._sound_status(f"at the end of {label}: its samples are kept, but their table angles "
+                                          "cannot be trusted")
+        return tuple(s.position_deg for s in status.values())  # type: ignore[return-value]
+
+    async def _sound_status(self, when: str) -> Mapping[str, Any]:
+        """Every axis's status; DriverError naming each axis in fault or E-stop, then ``when``."""
         status = await self.station.table.status_all()
         faulted = _faults(status)
         if faulted:
-            raise DriverError(f"{', '.join(faulted)} at the end of {label}: its samples are kept, but their table "
-                              "angles cannot be trusted")
-        return tuple(s.position_deg for s in status.values())  # type: ignore[return-value]
+            raise DriverError(f"{', '.join(faulted)} {when}")
+        return status
 
     async def _read_missing(self, step: Acquire, parts: dict[int, list[Recording]], held: Any) -> None:
         """Read what each slot still lacks of ``step.samples`` (a slot that got more than it needed in
@@ -762,6 +762,11 @@ class Engine:
             self.on_event(StepWarning(why))
             return why
         return None
+
+    async def _stop_and_end(self, state: RunState, reason: str | None) -> None:
+        """Stop the axes and end the run in ``state``: its reason, then any failure to stop them."""
+        stopped = await self._stop_axes()
+        self._set_state(state, "; ".join(filter(None, (reason, stopped))))
 
     def _set_state(self, state: RunState, reason: str | None = None) -> None:
         self.state, self.reason = state, reason

@@ -627,7 +627,8 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
             elif current is not None:
                 current.cancel()  # nothing has moved yet
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        stops = (signal.SIGINT, signal.SIGTERM)
+        for sig in stops:
             loop.add_signal_handler(sig, interrupt, sig.name)
         try:
             async with open_station(modbus, compasses, time_scale=time_scale) as station:
@@ -652,7 +653,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                 raise
             _fail(f"interrupted by {interrupted[0]} before the run began: nothing moved, nothing recorded")
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in stops:
                 loop.remove_signal_handler(sig)
     console.print(f"run {result.state.value}" + (f": {escape(str(result.reason))}" if result.reason else "")
                   + f" after {result.table_seconds:.1f} s of table time (the plan's nominal {result.plan_seconds:.1f} s "

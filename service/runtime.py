@@ -554,6 +554,8 @@ def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge
 
 #: A batch's status once the operator aborted it, until its worker has stopped it ("aborted").
 BATCH_ABORTING = "aborting"
+#: How a batch summary's line of a unit that was never run begins (the reason follows).
+NOT_RUN = "not run: "
 
 
 def end_lost_batches(s: Session, station_ids: list[int] | None, why: str, queued_too: bool = False,
@@ -578,7 +580,7 @@ def end_lost_batches(s: Session, station_ids: list[int] | None, why: str, queued
             run = runs.get(serial)
             if serial not in summary:
                 summary[serial] = (f"{run.status}: {run.reason}" if run is not None and run.status in FINAL
-                                   else f"not run: {why}")
+                                   else NOT_RUN + why)
         batch.summary = summary
         batch.status = "aborted" if batch.status == BATCH_ABORTING else "failed"
         batch.finished_at = now or utcnow()

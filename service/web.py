@@ -37,7 +37,7 @@ from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_se
 from service.db import Analysis, Batch, Calibration, Device, Limit, Run, RunEvent, Sample, Station
 from service.identity import CHOICES, check_serial, is_serial_prompt
 from service.schemas import Id, Index, Serial, no_nul
-from service.runtime import runs_of_serial
+from service.runtime import NOT_RUN, runs_of_serial
 from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
@@ -611,7 +611,7 @@ def batch_rows(session: Session, limit: int = BATCHES_LISTED) -> list[dict[str, 
         counts = {v: sum(1 for r in summary.values() if r == v) for v in ("PASS", "MARGINAL", "FAIL")}
         out.append({"id": b.id, "station": station, "status": b.status, "operator": b.operator,
                     # done: the units whose run ended, as the batch's page counts them (not those never run)
-                    "units": len(b.serials or []), "done": sum(not v.startswith("not run") for v in summary.values()),
+                    "units": len(b.serials or []), "done": sum(not v.startswith(NOT_RUN) for v in summary.values()),
                     "counts": counts,
                     "other": len(summary) - sum(counts.values()), "created_at": b.created_at,
                     "finished_at": b.finished_at})

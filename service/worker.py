@@ -51,7 +51,7 @@ from procedures.events import Event, PromptAnswered, Result, StateChanged
 from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, RunEvent, Sample, Station, utcnow
 from service.identity import DEFAULT_POLICY, Identity, UnitCheck
-from service.runtime import (ANALYSIS_FINAL, BATCH_ABORTING, HEARTBEAT_S, IDENTITIES_KEY, SAMPLE_RATE_HZ,
+from service.runtime import (ANALYSIS_FINAL, BATCH_ABORTING, HEARTBEAT_S, IDENTITIES_KEY, NOT_RUN, SAMPLE_RATE_HZ,
                              SOFTWARE_VERSION, Conflict, DomainError, analysis_topic, create_run, end_lost_batches,
                              lost_run_result, notify, other_workers, publish, slot_result)
 from service.store import insert_samples, load_recording, store_calibration
@@ -347,12 +347,17 @@ def batch_certified(s: Session, run: Run) -> tuple[dict[str, str], dict[str, str
     return seen, under
 
 
+def _identities_json(identities: dict[int, Identity]) -> dict[str, Any]:
+    """Each slot's identity as a run keeps it (by slot as text)."""
+    return {str(k): i.to_json() for k, i in sorted(identities.items())}
+
+
 def _keep_identities(ctx: WorkerContext, run_id: int, identities: dict[int, Identity]) -> None:
     """The units' identities in the run's meta as soon as they are settled (``identities``): a run whose
     worker is lost has no result to carry them, and the reaper takes them from here."""
     with ctx.sessions() as s:
         run = s.get(Run, run_id)
-        run.meta = {**(run.meta or {}), IDENTITIES_KEY: {str(k): i.to_json() for k, i in sorted(identities.items())}}
+        run.meta = {**(run.meta or {}), IDENTITIES_KEY: _identities_json(identities)}
         s.commit()
 
 
@@ -428,7 +433,7 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
             except Exception as e:  # noqa: BLE001 - the data is kept; the run says what went wrong
                 fin = _Finish(RunState.failed.value, f"storing the calibrations failed: {_reason(e)}")
         if "units" not in fin.summary and check.identities:  # ended without results after naming its units: whom
-            fin.summary["identities"] = {str(k): i.to_json() for k, i in sorted(check.identities.items())}
+            fin.summary["identities"] = _identities_json(check.identities)
         fin.summary = {**fin.summary, "samples": result.samples}
         return fin, result.table_seconds
 
@@ -556,12 +561,12 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
     try:
         for serial in serials:
             if ctx.stopping.is_set():  # the worker was asked to stop (SIGTERM): the unit on the table is done
-                summary.update({x: f"not run: {WORKER_STOPPED}" for x in serials if x not in summary})
+                summary.update({x: NOT_RUN + WORKER_STOPPED for x in serials if x not in summary})
                 status = "failed"
                 break
             with ctx.sessions() as s:
                 if s.get(Batch, batch_id).status == BATCH_ABORTING:  # PUT /batches/{id}/state: no further unit
-                    summary.update({x: "not run: the batch was aborted" for x in serials if x not in summary})
+                    summary.update({x: NOT_RUN + "the batch was aborted" for x in serials if x not in summary})
                     status = "aborted"
                     break
                 row = s.scalar(select(Station).where(Station.name == name))
@@ -571,10 +576,10 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
                                                         {"0": serial}, operator, ctx.software_version, batch_id=batch_id,
                                                         serial_policy=serial_policy)
                 except DomainError as e:
-                    summary[serial] = f"not run: {e.detail}"
+                    summary[serial] = NOT_RUN + e.detail
                     continue
             if fault:
-                summary[serial], status = f"not run: station in fault ({fault})", "failed"
+                summary[serial], status = NOT_RUN + f"station in fault ({fault})", "failed"
                 continue
             ctx.poke(run.id)
             watch = asyncio.create_task(_unmounted_on_stop(ctx, run.id, serial))

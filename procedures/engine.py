@@ -487,15 +487,26 @@ class Engine:
         return {slot: concat(recs) for slot, recs in parts.items()}
 
     async def _paused(self) -> None:
-        """Wait for the operator's resume (or abort) while watching the table: an axis that faults, is
-        E-stopped or stops answering while the run stands paused fails it at once (it was said only
-        when the operator resumed)."""
+        """Wait for the operator's resume (or abort) while watching the station: an axis that faults, is
+        E-stopped or stops answering, or a streaming compass that stops talking, while the run stands
+        paused fails it at once (both were said only when the operator resumed)."""
         while True:
             try:
                 await asyncio.wait_for(self._resume.wait(), PAUSED_WATCH_S)
                 return
             except asyncio.TimeoutError:
                 await self._sound_status("while the run was paused")
+                if self._streaming:
+                    await self._still_talking("while the run was paused")
+
+    async def _still_talking(self, when: str) -> None:
+        """Every compass sends samples: one sample of each read, retried as an acquisition's read is
+        (a silent or vanished compass raises the read's error, then ``when``)."""
+        try:
+            await self._retry(lambda: self.station.fixture.read_all(1, timeout=None), FixtureError)
+        except FixtureError as e:
+            timeouts = all(isinstance(err, CompassTimeout) for err in e.errors.values())
+            raise (CompassTimeout if timeouts else CompassError)(f"{e} {when}") from e
 
     async def _still_sound(self, label: str) -> tuple[float, float, float]:
         """After a pose's or a scan's samples: every axis's status (one poll each, as the positions

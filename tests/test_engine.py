@@ -309,6 +309,34 @@ def test_a_fault_while_paused_fails_the_run_at_once():
     assert result.samples == 60
 
 
+def test_a_compass_that_goes_silent_while_paused_fails_the_run_at_once():
+    """A compass that stopped talking while the run stood paused was found only when the operator
+    resumed. The paused engine reads a sample of each streaming compass once a second."""
+    cfg = reference_config(seed=5, time_scale=20)
+    seen: dict[str, float] = {}
+
+    def control(engine: Engine, st: SimStation) -> None:
+        inner = engine.on_event
+
+        def on_event(e: Event) -> None:
+            inner(e)
+            if isinstance(e, StateChanged) and e.state is RunState.paused:
+                seen["paused"] = time.monotonic()
+                asyncio.get_running_loop().call_later(0.2, st.compasses[0].go_silent, True)
+            if isinstance(e, StateChanged) and e.state is RunState.failed:
+                seen["failed"] = time.monotonic()
+            if isinstance(e, SamplesStored) and e.count == 60:
+                engine.pause()
+        engine.on_event = on_event
+    result, *_, status = run(cfg, "rotate_z", {"samples": 60}, control=control)
+    assert result.state is RunState.failed, result.reason
+    assert "CompassTimeout" in result.reason and "no sample" in result.reason and "while the run was paused" in result.reason
+    # one watch, then the read's stale second and its retry's: not left for the operator to find
+    assert seen["failed"] - seen["paused"] < 0.2 + 2 * PAUSED_WATCH_S + 2 * 1.3 + 1.0
+    assert result.samples == 60
+    assert not any(s.moving for s in status.values())
+
+
 def test_a_resumed_run_counts_no_more_table_time_than_its_samples_span():
     """A run resuming an interrupted one replays its samples up to a checkpoint from where the
     interrupted run left the table (here the far end of a whole calibration): the replayed steps count

@@ -39,16 +39,32 @@ class _Params(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_bool_numbers(cls, v: Any, info: ValidationInfo) -> Any:
-        # pydantic's lax mode reads true as 1 (``"samples": true`` was one sample): a mistake, not a number
+        # pydantic's lax mode reads true as 1 (``"samples": true`` was one sample) and "60" as 60: a
+        # script's mistake either way (the API checks a request whole), not a number
         kinds = get_args(cls.model_fields[info.field_name].annotation) or (cls.model_fields[info.field_name].annotation,)
-        if isinstance(v, bool) and bool not in kinds and (int in kinds or float in kinds):
-            raise ValueError("a number is required, not true or false")
+        if (int in kinds or float in kinds) and bool not in kinds and str not in kinds:
+            if isinstance(v, bool):
+                raise ValueError("a number is required, not true or false")
+            if isinstance(v, str):
+                raise ValueError(f"a number is required, not the string {v!r}")
         return v
 
     samples: int = Field(60, ge=1, le=10_000, description="samples averaged at each pose")
     # The drive reports IN_POSITION only once the axis has settled in its window; this is extra
     # margin for the unit's own output filter (none at AVG 1).
     settle_s: float = Field(PROCEDURE_SETTLE_S, ge=0, le=60, description="wait after each move is in position, table seconds")
+
+
+def _step(default: float, what: str) -> Any:
+    """A full turn's step (deg): at least three poses a turn, and none finer than 1 deg (a z step of
+    0.001 asked 360,000 poses; one of 1e-300 failed on the table)."""
+    return Field(default, ge=1.0, le=120.0, description=f"{what}, deg (1 to 120: at least three poses a turn)")
+
+
+def _angle(default: float, what: str) -> Any:
+    """An angle the table is sent to (deg): within a turn of its zero either way (a sweep azimuth of
+    -720.5 drove the table round twice to get there)."""
+    return Field(default, ge=-360.0, le=360.0, description=f"{what}, deg (-360 to 360)")
 
 
 def _turn(step_deg: float) -> np.ndarray:
@@ -71,9 +87,9 @@ class CalibrateParams(_Params):
     y point along the field, found from the level turn (sweep_psi_deg is not used).
     """
 
-    z_step_deg: float = Field(45.0, gt=0, le=120, description="a turn needs at least three poses")
-    tilt_step_deg: float = Field(60.0, gt=0, le=120, description="a turn needs at least three poses")
-    sweep_psi_deg: float = 315.0
+    z_step_deg: float = _step(45.0, "azimuth step of the level turn")
+    tilt_step_deg: float = _step(60.0, "step of the turns about y and x")
+    sweep_psi_deg: float = _angle(315.0, "azimuth of the turns about y and x")
     method: str = "joint"
     adaptive: StrictBool = Field(False, description="after the plan, add the poses that lower the predicted heading error "
                            "fastest until every unit meets both targets together at 95 % confidence or budget_s ends (joint method)")
@@ -465,9 +481,9 @@ def _poses(n: int) -> str:
 class RotateParams(_Params):
     """A turn about z at fixed tilt."""
 
-    step_deg: float = Field(45.0, gt=0, le=120)
-    theta_deg: float = 0.0
-    phi_deg: float = 0.0
+    step_deg: float = _step(45.0, "azimuth step")
+    theta_deg: float = _angle(0.0, "tilt about y")
+    phi_deg: float = _angle(0.0, "tilt about x")
 
 
 def rotate_z(p: RotateParams) -> ProcedureGen:
@@ -482,8 +498,8 @@ class SweepParams(_Params):
     """A full turn of one axis (the others held)."""
 
     axis: Literal["z", "y", "x"] = "y"
-    step_deg: float = Field(30.0, gt=0, le=120)
-    psi_deg: float = 315.0
+    step_deg: float = _step(30.0, "step of the turn")
+    psi_deg: float = _angle(315.0, "azimuth of a turn about y or x")
 
 
 def sweep(p: SweepParams) -> ProcedureGen:
@@ -527,7 +543,7 @@ def accel6(p: Accel6Params) -> ProcedureGen:
 class LevelParams(_Params):
     """Base tilt by reversal (a level turn), then optionally level the platform at psi = 0."""
 
-    step_deg: float = Field(90.0, gt=0, le=120)
+    step_deg: float = _step(90.0, "azimuth step of the reversals")
     apply: bool = True
 
 
@@ -557,10 +573,10 @@ class EvaluateParams(_Params):
     """Check given calibrations on the table: a level turn and every heading at pitch and roll up to the limit."""
 
     calibrations: dict[int, dict[str, Any]] = Field(description="slot -> calibration JSON (physics format)")
-    heading_step_deg: float = Field(45.0, gt=0, le=120)
+    heading_step_deg: float = _step(45.0, "azimuth step of the level turn")
     max_tilt_deg: float = Field(60.0, ge=0, le=80)
-    tilt_step_deg: float = Field(60.0, gt=0)
-    tilted_heading_step_deg: float = Field(90.0, gt=0, le=120)
+    tilt_step_deg: float = Field(60.0, ge=1.0, le=160.0, description="step of pitch and roll from -max_tilt_deg, deg (1 to 160)")
+    tilted_heading_step_deg: float = _step(90.0, "azimuth step of the tilted poses")
     # The level turn is what the 0.02 deg target is about: enough samples that a pose's own noise is
     # well below it; the tilted poses check the 0.05 deg target with fewer.
     samples: int = Field(160, ge=1, le=10_000, description="samples per level pose")

@@ -12,7 +12,7 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Any, Union
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from physics.recording import Recording
 from physics.sensor import Unit
@@ -108,6 +108,11 @@ class Outcome:
 ProcedureGen = Generator[Step, Reply, Outcome]
 
 
+#: The longest plan a run may have, nominal table seconds: a day. A step or a count mistyped by orders of
+#: magnitude is refused before a station is claimed, not found on the table days later.
+MAX_PLAN_S = 24 * 3600.0
+
+
 @dataclass(frozen=True)
 class Procedure:
     """A named, versioned procedure with its parameter schema (validated before a run starts)."""
@@ -122,8 +127,16 @@ class Procedure:
     reserve: Callable[[Any], float] | None = None
 
     def validate(self, parameters: dict[str, Any] | None) -> BaseModel:
-        """Validated parameters (pydantic raises, naming each bad field)."""
-        return self.params.model_validate(parameters or {})
+        """Validated parameters (pydantic raises, naming each bad field; a plan longer than
+        :data:`MAX_PLAN_S` is refused as a whole, naming its length)."""
+        params = self.params.model_validate(parameters or {})
+        seconds = sum(step_seconds(self.plan(params)))
+        if seconds > MAX_PLAN_S:
+            msg = (f"the plan would take {seconds / 3600:,.0f} h of table time (nominal); a run may plan at most "
+                   f"{MAX_PLAN_S / 3600:.0f} h: check its steps and sample counts")
+            raise ValidationError.from_exception_data(self.params.__name__, [
+                {"type": "value_error", "loc": (), "input": parameters, "ctx": {"error": ValueError(msg)}}])
+        return params
 
     def plan(self, params: BaseModel) -> list[Step]:
         """The steps of a run whose acquisitions all return nothing: the run's length, for progress and

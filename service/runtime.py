@@ -141,6 +141,16 @@ def invalid(field: str, problem: str) -> Invalid:
     return Invalid([{"field": field, "problem": problem}])
 
 
+def station_filter(s: Session, name: str) -> int:
+    """The id of the station a list is filtered by; a 422 naming ``query.station`` when there is none
+    (a misspelt name listed nothing, as if the station had made no run)."""
+    sid = s.scalar(select(Station.id).where(Station.name == name))
+    if sid is None:
+        known = s.scalars(select(Station.name).order_by(Station.name)).all()
+        raise invalid("query.station", f"no station {name!r}; known: {', '.join(known) or 'none'}")
+    return sid
+
+
 # -------------------------------------------------------------------------------------- events
 
 def publish(session: Session, run_id: int, kind: str, data: dict[str, Any]) -> None:

@@ -84,6 +84,13 @@ def _not_bool(value: Any) -> Any:
     return value
 
 
+def _not_bool_or_text(value: Any) -> Any:
+    # a body's count: lax mode also reads "20" as 20, where the body checks its numbers whole
+    if isinstance(value, str):
+        raise ValueError(f"a number is required, not the string {value!r}")
+    return _not_bool(value)
+
+
 def unstorable(value: Any) -> str | None:
     """What in a request value (free-form objects included) no database column may hold: a NUL
     character in a string or key, an infinite or NaN number (Python's JSON parser reads ``Infinity``
@@ -307,13 +314,24 @@ def _distinct_serials(serials: list[str]) -> list[str]:
     return serials
 
 
+class ProcedureOut(BaseModel):
+    """A procedure a run can take: its name and version, what it does, and its parameters' JSON Schema
+    (each field's type, default, range and meaning: what ``parameters`` of ``POST /runs`` accepts)."""
+
+    name: str
+    version: str
+    doc: str
+    parameters: dict[str, Any]
+
+
 class RunIn(In):
     """A run to start."""
 
     station: StationName
     procedure: str | None = Field(None, min_length=1, max_length=32,
                                   description="default calibrate (with resume: the resumed run's)")
-    parameters: dict[str, Any] = Field(default_factory=dict)
+    parameters: dict[str, Any] = Field(default_factory=dict, description="the procedure's parameters (GET /procedures "
+                                       "gives each one's type, default and range); omitted: its defaults")
     serials: dict[str, Serial] | None = Field(None, max_length=MAX_SLOTS, description='slot -> serial, e.g. {"0": "SN-1"}; '
                                               "omitted: the compasses' own serial numbers. A serial number: " + SERIAL_RULE)
     resume: Id | None = Field(None, description="a failed or aborted run of this station to continue from the "
@@ -506,7 +524,7 @@ class AnalysisIn(In):
     """What to analyse; every field optional (an empty body analyses every unit of the run)."""
 
     slot: Index | None = Field(None, description="the fixture slot (unit) to analyse; default: every slot with samples")
-    null_sims: Annotated[int, Field(ge=0, le=5000), BeforeValidator(_not_bool)] = Field(
+    null_sims: Annotated[int, Field(ge=0, le=5000), BeforeValidator(_not_bool_or_text)] = Field(
         200, description="simulated null recordings calibrating the tests' false-alarm rate")
     calibration_id: Id | None = Field(None, description="a stored calibration as the unit's nominal model (the "
                                       "recording's own fit is compared with it: shifted parameters are reported); "

@@ -12,7 +12,7 @@ from physics.sensor import random_unit, reference_unit
 from physics.simulate import World
 from physics.table import TableGeometry
 from procedures.calibrate import PROCEDURES, calibration_poses, CalibrateParams
-from procedures.steps import Acquire, Checkpoint, Compute, Move, Settle
+from procedures.steps import MAX_PLAN_S, Acquire, Checkpoint, Compute, Move, Settle, step_seconds
 from conftest import FakeEngine
 
 
@@ -53,6 +53,19 @@ def test_params_are_validated_with_the_field_named():
         PROCEDURES["calibrate"].validate({"method": "magic"})
     with pytest.raises(ValidationError, match="samplez"):
         PROCEDURES["calibrate"].validate({"samplez": 3})
+    # every step and angle has a range a table can run: a step of 1e-300 failed on the table, an azimuth
+    # of 1e308 after the level turn, -720.5 turned the table twice round (every procedure alike)
+    for name, bad in (("calibrate", {"tilt_step_deg": 1e-300}), ("calibrate", {"sweep_psi_deg": 1e308}),
+                      ("calibrate", {"sweep_psi_deg": -720.5}), ("rotate_z", {"theta_deg": 400}),
+                      ("sweep", {"psi_deg": -361}), ("level", {"step_deg": 0.5}),
+                      ("evaluate", {"tilt_step_deg": 0.01, "calibrations": {}}), ("calibrate", {"samples": "60"})):
+        with pytest.raises(ValidationError, match=next(iter(bad))):
+            PROCEDURES[name].validate(bad)
+    PROCEDURES["calibrate"].validate({"sweep_psi_deg": -45.0, "z_step_deg": 1.0, "samples": 60.0})  # within range
+    # a plan of days (a step and a count each within range) is refused whole, naming its length
+    with pytest.raises(ValidationError, match=r"the plan would take [\d,]+ h of table time"):
+        PROCEDURES["calibrate"].validate({"z_step_deg": 1, "tilt_step_deg": 1, "samples": 10_000})
+    assert sum(step_seconds(PROCEDURES["calibrate"].plan(PROCEDURES["calibrate"].validate({})))) < MAX_PLAN_S / 100
 
 
 def test_rotate_z_turns_about_z_at_fixed_tilt():

@@ -10,12 +10,12 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from pydantic import ValidationError
 from sqlalchemy import select, update
 
-from procedures.calibrate import BatchCalibrateParams
+from procedures.calibrate import BATCH, PROCEDURES
 from procedures.states import ACTIVE
 from service.auth import Caller, audit, require
 from service.db import Batch, Run, Station
 from service.deps import sessions
-from service.runtime import BATCH_ABORTING, Conflict, Invalid, NotFound, batch_json, field_errors, invalid
+from service.runtime import BATCH_ABORTING, Conflict, Invalid, NotFound, batch_json, field_errors, invalid, station_filter
 from service.routes.runs import change_run_state
 from service.schemas import ERRORS, BatchIn, BatchOut, BatchStateIn, Id, Index, StationName
 from service.worker import station_queue
@@ -28,7 +28,7 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
     """Calibrate units in turn on slot 0 of a station (operator). Each unit's run first prompts
     ``mount`` (answer it with ``POST /runs/{id}/prompts/mount``); a failed unit does not stop the batch."""
     try:
-        BatchCalibrateParams.model_validate({**body.parameters, "serial": body.serials[0]})
+        PROCEDURES[BATCH].validate({**body.parameters, "serial": body.serials[0]})
     except ValidationError as e:
         raise Invalid(field_errors(e.errors(), ("body", "parameters"))) from None
     for key in ("serial", "unmount"):
@@ -69,14 +69,13 @@ async def list_batches(request: Request, station: StationName | None = None,
                        limit: int = Query(50, ge=1, le=1000), offset: Index = 0,
                        _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
     """Batches, newest first, filtered by station name and status (running, aborting, completed, aborted, failed)."""
-    q = select(Batch)
-    if station is not None:
-        q = q.join(Station, Station.id == Batch.station_id).where(Station.name == station)
-    if status is not None:
-        q = q.where(Batch.status == status)
-
     def read() -> list[dict[str, Any]]:
+        q = select(Batch)
+        if status is not None:
+            q = q.where(Batch.status == status)
         with sessions(request)() as s:
+            if station is not None:
+                q = q.where(Batch.station_id == station_filter(s, station))
             rows = s.scalars(q.order_by(Batch.created_at.desc(), Batch.id.desc()).limit(limit).offset(offset)).all()
             return [batch_json(s, b) for b in rows]
     return await asyncio.to_thread(read)

@@ -24,13 +24,14 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from physics.recording import format_recording
+from procedures.calibrate import PROCEDURES
 from procedures.states import ACTIVE, RunState
 from service.auth import Caller, audit, require
-from service.db import Calibration, Device, Run, Station
+from service.db import Calibration, Device, Run
 from service.deps import event_stream, sessions
 from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after, finish_unstarted,
-                             invalid, queue_answer, request_state, run_json, runs_of_serial, wait_for)
-from service.schemas import (ERRORS, AnswerIn, AnswerOut, ErrorOut, Id, Index, Name, RunDetail, RunIn, RunOut, RunStateOut,
+                             invalid, queue_answer, request_state, run_json, runs_of_serial, station_filter, wait_for)
+from service.schemas import (ERRORS, AnswerIn, AnswerOut, ErrorOut, Id, Index, Name, ProcedureOut, RunDetail, RunIn, RunOut, RunStateOut,
                              Serial, StateIn, StationName, content)
 from service.store import load_recording
 from service.worker import station_queue
@@ -43,6 +44,15 @@ def _get_run(s: Session, run_id: int) -> Run:
     if row is None:
         raise NotFound(f"no run {run_id}")
     return row
+
+
+@router.get("/procedures", response_model=list[ProcedureOut], responses=ERRORS)
+def list_procedures(caller: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
+    """The procedures a run can take (viewer), each with its parameters' JSON Schema: the names,
+    types, defaults and ranges ``parameters`` of ``POST /runs`` accepts (``POST /batches`` takes
+    those of ``calibrate``)."""
+    return [{"name": p.name, "version": p.version, "doc": p.doc, "parameters": p.params.model_json_schema()}
+            for p in PROCEDURES.values()]
 
 
 @router.post("/runs", status_code=202, response_model=RunOut, responses=ERRORS)
@@ -76,13 +86,9 @@ async def list_runs(request: Request, station: StationName | None = None, status
     """Runs, newest first, filtered by station name, status, procedure and unit serial number (typed for
     the run, reported by its unit, or certified under)."""
     q = select(Run)
-    if station is not None:
-        q = q.join(Station, Station.id == Run.station_id).where(Station.name == station)
     if status is not None:
         q = q.where(Run.status == status.value)
     if procedure is not None:
-        from procedures.calibrate import PROCEDURES
-
         known = sorted([*PROCEDURES, "import"])  # (import: an uploaded recording's run, routes/recordings.py)
         if procedure not in known:  # (an unknown one listed nothing, as if no run had been made)
             raise invalid("query.procedure", f"unknown procedure {procedure!r}; known: {', '.join(known)}")
@@ -90,6 +96,8 @@ async def list_runs(request: Request, station: StationName | None = None, status
     if serial is not None:
         q = q.where(runs_of_serial(serial))
     with sessions(request)() as s:
+        if station is not None:
+            q = q.where(Run.station_id == station_filter(s, station))
         rows = s.scalars(q.order_by(Run.created_at.desc(), Run.id.desc()).limit(limit).offset(offset)).all()
         return [run_json(r) for r in rows]
 

@@ -125,6 +125,18 @@ def slot_result(result: dict[str, Any] | None, slot: int = 0) -> dict[str, Any]:
     return (result.get("units") or {}).get(str(slot)) or (result.get("identities") or {}).get(str(slot)) or {}
 
 
+def unit_serial(run: Run, slot: int) -> str:
+    """The serial number the unit in ``slot`` of a run goes by: the one its identity check settled on (the
+    operator's answer, the unit's own when none was typed), else the one typed ("" if neither). Its
+    exported samples and its analyses are labelled with it: the typed serial an operator rejected
+    labelled them, and a re-import would have filed them under it."""
+    meta = run.meta or {}
+    for entry in (slot_result(meta.get("result"), slot), (meta.get(IDENTITIES_KEY) or {}).get(str(slot)) or {}):
+        if entry.get("serial"):
+            return str(entry["serial"])
+    return str((run.serials or {}).get(str(slot)) or "")
+
+
 def runs_of_serial(serial: str) -> ColumnElement[bool]:
     """The runs of a unit by any of its serial numbers: typed for the run (serials is a small JSON object
     {"0": "SN-1"}, its text holds each serial JSON-quoted on both databases), reported by its unit (the

@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
 from service.db import Calibration, Device, Limit, Run, Sample, SampleExtra
+from service.runtime import unit_serial
 
 
 
@@ -66,9 +67,12 @@ def load_recording(session: Session, run: Run, slot: int) -> Recording | None:
     if not rows:
         return None
     a = np.array([[np.nan if v is None else v for i, v in enumerate(r) if i != 1] for r in rows], dtype=float)
-    meta = {"serial": str(run.serials.get(str(slot), "")), "run_id": str(run.id), "procedure": run.procedure,
+    meta = {"serial": unit_serial(run, slot), "run_id": str(run.id), "procedure": run.procedure,
             "procedure_version": run.procedure_version, "operator": run.operator, "slot": str(slot)}
     meta.update({k: str(v) for k, v in (run.meta or {}).items() if isinstance(v, (str, int, float))})
+    typed = str((run.serials or {}).get(str(slot)) or "")
+    if typed and typed != meta["serial"]:  # the serial typed for a unit that reported another, kept beside it
+        meta["typed_serial"] = typed
     extra = {e.name: list(e.values) for e in session.scalars(
         select(SampleExtra).where(SampleExtra.run_id == run.id, SampleExtra.slot == slot).order_by(SampleExtra.id))
         if len(e.values) == len(rows)}

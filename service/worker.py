@@ -349,7 +349,7 @@ def batch_certified(s: Session, run: Run) -> tuple[dict[str, str], dict[str, str
 
 def _identities_json(identities: dict[int, Identity]) -> dict[str, Any]:
     """Each slot's identity as a run keeps it (by slot as text)."""
-    return {str(k): i.to_json() for k, i in sorted(identities.items())}
+    return {str(k): {"serial": i.serial, **i.to_json()} for k, i in sorted(identities.items())}
 
 
 def _keep_identities(ctx: WorkerContext, run_id: int, identities: dict[int, Identity]) -> None:

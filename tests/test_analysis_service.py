@@ -474,6 +474,13 @@ def test_api_analysis_uses_the_run_calibration_or_the_one_asked(api, fake):
     [a] = analysed(api, upload(api, 'SN-NEW'))
     assert a["calibration_id"] is None
     assert fake.calls[-1]["calibration"] is None
+    # another unit's calibration is refused: every difference between two units would be a "parameter shift"
+    r = api.post(f"/runs/{later}/analysis", role="operator", json={"calibration_id": api.get(
+        "/devices/SN-CAL/calibrations/current", role="viewer").json()["id"]})
+    assert r.status_code == 202
+    r = api.post(f"/runs/{upload(api, 'SN-OTHER')}/analysis", role="operator", json={"calibration_id": current})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.calibration_id", r.text
+    assert f"calibration {current} is of unit SN-CAL, not of the unit of run" in r.text and "(SN-OTHER)" in r.text
 
 
 def test_api_analysis_roles_and_errors(api, fake):

@@ -191,6 +191,28 @@ def test_a_platform_magnet_shows_as_a_parameter_shift_against_the_units_calibrat
     assert shift and shift[0]["parameters"]["bias_lsb"][0] == pytest.approx(-60.0, abs=3.0)
     assert analyze(rec, replace(cal, mag=LinearSensor(cal.mag.M_o, cal.mag.k, np.array(nominal["bias"]))),
                    null_sims=0).result["verdict"] == "consistent"
+    # the summary says what was found: a shift the nominal model absorbs (it said "the departures are
+    # reported as unexplained structure, and the nominal model stands", with no unexplained finding)
+    assert [f["effect"] for f in r["findings"]] == [fx.PARAMETER_SHIFT]
+    assert r["summary"].startswith("The nominal parameters themselves depart from the unit's calibration") and "unexplained" not in r["summary"]
+
+
+def test_a_recording_that_cannot_determine_the_nominal_says_so() -> None:
+    """A level turn alone (a run failed after it) leaves the z axis's part of M and the field free: its own fit
+    (k of 333 where the unit has 1100) was called "consistent" with the unit's calibration, unjudged and
+    unsaid. The result says the nominal is undetermined, in its summary and notes."""
+    rng = np.random.default_rng(3)
+    unit = random_unit(rng)
+    rec = simulate_recording(unit, calibration_poses(), World(), rng=rng)
+    level = rec.step == "rotate_z"
+    part = Recording.from_arrays(rec.t[level], rec.step[level], rec.psi_t[level], rec.theta_t[level], rec.phi_t[level],
+                                 rec.mag[level], rec.acc[level], rec.temp_c[level], dict(rec.meta))
+    r = analyze(part, null_sims=0).result
+    assert r["nominal_determined"] is False
+    assert r["summary"].startswith("These attitudes cannot determine the unit's nominal model")
+    assert any("of the nominal model's 14 parameters" in n and "free" in n for n in r["notes"])
+    whole = analyze(rec, null_sims=0).result
+    assert whole["nominal_determined"] is True and not whole["summary"].startswith("These attitudes")
 
 
 def test_too_short_a_recording_is_refused_with_the_reason() -> None:

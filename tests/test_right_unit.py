@@ -101,6 +101,10 @@ def test_prompt_policy_asks_the_operator_before_the_table_moves(api: Api):
         assert api.get("/devices/SN-TYPED", role="viewer").status_code == 404
         page = api.get(f"/ui/runs/{rid}", role="viewer").text
         assert "the unit reports <strong>GAO2017-REF</strong>" in page and "SN-TYPED" in page
+        # its exported samples go by the serial it was certified as, the rejected one beside it (they said
+        # "serial: SN-TYPED", and a re-import would have filed them under it)
+        header = [line for line in api.get(f"/runs/{rid}/samples?slot=0", role="viewer").text.splitlines() if line[:1] == "#"]
+        assert f"# serial: {UNIT}" in header and "# typed_serial: SN-TYPED" in header, header
 
 
 def test_refuse_policy_fails_the_slot_with_the_reason(api: Api):

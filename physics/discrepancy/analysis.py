@@ -402,7 +402,12 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         "untestable": untestable + discovery_untestable,
         "locate": locate(ctx, r00, noise.floor, candidates, Q0, z, null, generic_first),
         "notes": notes,
+        "nominal_determined": not _free_nominal(A0),
     }
+    if not result["nominal_determined"]:
+        notes.append(f"these attitudes leave {_free_nominal(A0)} of the nominal model's 14 parameters (M, b, the field's "
+                     "direction) free (a calibration needs turns about more than one axis): the nominal shown is not "
+                     "the unit's, and it is neither judged nor compared with a calibration")
     result["summary"] = summary(result)
     say("done", 1.0)
     # the rows analysed (the recording's, or their block averages when it was decimated)
@@ -819,9 +824,15 @@ def _nominal_json(nom: Nominal) -> dict[str, Any]:
             "declination_deg": dec}
 
 
+def _free_nominal(A0: np.ndarray) -> int:
+    """How many of the nominal model's parameters (M, b, the field's direction) the recording's attitudes
+    leave free (0: all determined; a level turn alone leaves the z axis's)."""
+    return int(A0.shape[1] - np.linalg.matrix_rank(A0 / np.maximum(np.linalg.norm(A0, axis=0), 1e-300), tol=1e-6))
+
+
 def _parameter_findings(nom: Nominal, cal: Calibration | None, A0: np.ndarray, ctx: Context) -> list[dict[str, Any]]:
     """Absorbed effects show as implausible nominal parameters, or as shifts from the unit's calibration."""
-    if np.linalg.matrix_rank(A0 / np.maximum(np.linalg.norm(A0, axis=0), 1e-300), tol=1e-6) < A0.shape[1]:
+    if _free_nominal(A0):
         return []  # the attitudes cannot determine M, b and the field: nothing to judge them by
     M_o, k = split_matrix(nom.M)
     problems: dict[str, Any] = {}

@@ -84,6 +84,16 @@ def summary(result: dict[str, Any]) -> str:
     before = _mean(ho.get("rms_before_lsb"))
     after = _mean(ho.get("rms_after_lsb"))
     modelled = [f for f in result.get("findings", []) if f.get("effect") not in ("unexplained", "parameter_shift")]
+    # a recording that cannot determine the unit's nominal model says so first: its own fit is no unit's
+    free = "" if result.get("nominal_determined", True) else (
+        "These attitudes cannot determine the unit's nominal model (M, b and the field), so its parameters are "
+        "neither the unit's nor judged against a calibration. ")
+    return free + _verdict_sentence(result, modelled, before, after)
+
+
+def _verdict_sentence(result: dict[str, Any], modelled: list[dict[str, Any]], before: float, after: float) -> str:
+    """The summary's sentence on the findings (see :func:`summary`)."""
+    kinds = {f.get("effect") for f in result.get("findings", [])}
     if result.get("verdict") == "consistent":
         # what this recording cannot show is part of the answer: a hold at one attitude tests almost nothing
         missing = sorted({u.get("effect", "") for u in result.get("untestable", []) if u.get("effect") != "discovered"})
@@ -94,9 +104,13 @@ def summary(result: dict[str, Any]) -> str:
                 [f"{inputs} of the dictionary's inputs or frames"] if inputs else [])
             blind = f" It cannot show {' and '.join(parts)}: see untestable for what each needs."
         return "The recording is consistent with the nominal model: nothing departs from it beyond the noise." + blind
+    shifted = ("The nominal parameters themselves depart from the unit's calibration or from a plausible unit: "
+               "see the parameter shift, which the nominal model absorbs (nothing of it is left in the residual).")
+    if kinds == {"parameter_shift"}:
+        return shifted
     if not modelled or not np.isfinite(before) or not after < before:
         return ("Nothing we can model improves the fit held-out: the departures are reported as unexplained "
-                "structure, and the nominal model stands.")
+                "structure, and the nominal model stands." + (" " + shifted if "parameter_shift" in kinds else ""))
     head = result.get("heading_error_deg") or {}
     h = ""
     if head.get("rms_before") is not None and head.get("rms_after") is not None:

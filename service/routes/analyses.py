@@ -22,7 +22,7 @@ from procedures.states import ACTIVE
 from service.auth import Caller, audit, require
 from service.db import Analysis, Calibration, Device, Run, Sample
 from service.deps import event_stream
-from service.runtime import ANALYSIS_FINAL, Conflict, NotFound, analysis_topic, invalid
+from service.runtime import ANALYSIS_FINAL, Conflict, NotFound, analysis_topic, invalid, unit_serial
 from service.schemas import ERRORS, AnalysesCreated, AnalysisIn, AnalysisLine, AnalysisOut, Id, content
 from service.worker import ANALYSIS_QUEUE
 
@@ -81,12 +81,17 @@ def _plan(s: Session, run_id: int, body: AnalysisIn) -> tuple[Run, dict[int, int
         if len(slots) > 1:
             raise invalid("body.slot", "required with calibration_id: run "
                           f"{run_id} has samples from slots {', '.join(map(str, slots))}")
+        # another unit's calibration makes every difference between two units a "parameter shift"
+        owner, unit = s.get(Device, cal.device_id).serial, unit_serial(run, slots[0])
+        if unit and owner != unit:
+            raise invalid("body.calibration_id", f"calibration {cal.id} is of unit {owner}, not of the unit of run "
+                                                 f"{run_id} slot {slots[0]} ({unit}): give one of {unit}'s calibrations")
         return run, {slots[0]: cal.id}
     plan: dict[int, int | None] = {}
     for slot in slots:
         cal_id = s.scalar(select(Calibration.id).where(Calibration.run_id == run_id, Calibration.slot == slot)
                           .order_by(Calibration.id.desc()).limit(1))
-        serial = str((run.serials or {}).get(str(slot)) or "")
+        serial = unit_serial(run, slot)
         if cal_id is None and serial:  # e.g. a characterize run: the unit's calibration in force
             cal_id = s.scalar(select(Calibration.id).join(Device, Device.id == Calibration.device_id)
                               .where(Device.serial == serial, Calibration.status == "current"))
@@ -110,7 +115,7 @@ async def create_analysis(run_id: Id, request: Request, response: Response, body
             run, plan = _plan(s, run_id, body)
             rows = [Analysis(run_id=run_id, slot=slot, status="queued", report=None,
                              request={"null_sims": body.null_sims, "calibration_id": cal_id,
-                                      "serial": str((run.serials or {}).get(str(slot)) or ""), "operator": caller.owner})
+                                      "serial": unit_serial(run, slot), "operator": caller.owner})
                     for slot, cal_id in plan.items()]
             s.add_all(rows)
             s.flush()

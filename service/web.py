@@ -562,6 +562,10 @@ def live_samples(request: Request, run_id: Id, slot: Index = 0, after: int = Que
                          "rows": [[r[1], *(None if v is None else round(float(v), 4) for v in r[2:])] for r in rows]})
 
 
+#: Runs a unit's page lists (newest first); GET /runs?serial= pages through all of them.
+DEVICE_RUNS_LISTED = 200
+
+
 @router.get("/ui/devices/{serial}", response_class=HTMLResponse)
 def device_page(request: Request, serial: Serial) -> Response:
     """A unit's calibration history (newest first) and its trends, each with its certificate."""
@@ -570,18 +574,23 @@ def device_page(request: Request, serial: Serial) -> Response:
         return who
     with request.app.state.sessions() as s:
         dev = s.scalar(select(Device).where(Device.serial == serial))
-        if dev is None:
-            seen = s.scalars(select(Run.id).where(runs_of_serial(serial)).order_by(Run.id).limit(20)).all()
+        # every run that named the unit (typed, reported by it, or certified under it): a unit whose
+        # calibration failed has runs and no certificate, and its page was a 404 the run pages linked to
+        runs = [{"id": r.id, "created_at": r.created_at, "procedure": r.procedure, "status": r.status,
+                 "reason": r.reason or "", "batch_id": r.batch_id}
+                for r in s.scalars(select(Run).where(runs_of_serial(serial))
+                                   .order_by(Run.created_at.desc(), Run.id.desc()).limit(DEVICE_RUNS_LISTED))]
+        if dev is None and not runs:
             return _error_page(request, who, 404, "Unknown serial number",
-                               f"No device has been certified under serial number {serial!r} by this service."
-                               + (f" Runs that named it (typed, or reported by their unit): "
-                                  f"{', '.join(f'/ui/runs/{i}' for i in seen)}." if seen else ""))
+                               f"No run of this service has named serial number {serial!r}, and no device is "
+                               "certified under it.")
         rows = s.scalars(select(Calibration).where(Calibration.device_id == dev.id)
-                         .order_by(Calibration.created_at.desc(), Calibration.id.desc())).all()
+                         .order_by(Calibration.created_at.desc(), Calibration.id.desc())).all() if dev else []
         history = [{"id": c.id, "run_id": c.run_id, "created_at": c.created_at, "status": c.status,
                     "verdict": c.verdict, "reasons": list(c.reasons or []), "method": c.method,
                     "figures": c.figures or {}, "data": c.data} for c in rows]
-        device = {"serial": dev.serial, "model": dev.model, "firmware": dev.firmware, "created_at": dev.created_at}
+        device = ({"serial": dev.serial, "model": dev.model, "firmware": dev.firmware, "created_at": dev.created_at}
+                  if dev else {"serial": serial, "model": None, "firmware": None, "created_at": None})
         # each figure's column in one fixed-point format, the certificate's (never 0.016 above 0.009694)
         decimals = {lim.name: limit_decimals(lim.unit, lim.marginal) for lim in limits_of(s)}
     for h in history:
@@ -594,7 +603,7 @@ def device_page(request: Request, serial: Serial) -> Response:
             trends[key] = plots.svg(fig, f"trend trend-{key}", f"{labels[key]} of {serial}")
     current = next((h for h in history if h["status"] == "current"), None)
     return _render(request, who, "device.html", title=f"Device {serial}", device=device, history=history,
-                   trends=trends, current=current)
+                   trends=trends, current=current, runs=runs, runs_listed=DEVICE_RUNS_LISTED)
 
 
 #: Batches the batches page lists (newest first); older ones stay reachable by their own page.

@@ -321,9 +321,14 @@ def test_a_batch_never_certifies_two_units_under_one_serial(api: Api):
         runs = {u["serial"]: u["run_id"] for u in b["units"]}
         listed = lambda serial: sorted(r["id"] for r in api.get(f"/runs?serial={serial}", role="viewer").json())  # noqa: E731
         assert listed("SN-T") == sorted(runs.values()) and listed("SN-S") == [runs["SN-S"]] and listed("SN-U") == [runs["SN-T"]]
-        # a serial no unit was certified under, but a unit reported: its page says where it was seen
+        # a serial no unit was certified under, but a unit reported: its page (which run pages link to; it
+        # was a 404) lists the runs that named it, and says it was never certified
         page = api.get("/ui/devices/SN-U", role="viewer")
-        assert page.status_code == 404 and f"/ui/runs/{runs['SN-T']}" in page.text, page.text
+        assert page.status_code == 200 and 'id="uncertified"' in page.text, page.text
+        assert f'href="/ui/runs/{runs["SN-T"]}"' in page.text and "no calibrations" in page.text
+        # a certified unit's page lists its runs too (the one that certified it and the one refused under it)
+        page = api.get("/ui/devices/SN-T", role="viewer").text
+        assert all(f'<tr data-run="{i}"' in page for i in runs.values()), page
         cals = api.get("/devices/SN-T/calibrations", role="viewer").json()
         assert [c["status"] for c in cals] == ["current"], cals  # the first unit's, still current
         units = {u["serial"]: u for u in b["units"]}

@@ -762,6 +762,10 @@ LOAD_POSE = (0.0, 0.0, 0.0)
 MOUNT_PROMPT = "mount"
 
 
+#: The parameters a batch sets for each of its units (never a request's; no part of the calibration's plan).
+BATCH_SETS = ("serial", "unmount")
+
+
 class BatchCalibrateParams(CalibrateParams):
     """The calibration of one unit of a batch: the operator is asked to mount it first."""
 

@@ -655,6 +655,28 @@ def residual_time_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_
     return fig
 
 
+def samples_figure(rec: Recording) -> Figure:
+    """A recording's magnetometer readings against time, one row per axis, coloured by step: what a run
+    that ended without a calibration measured before it stopped (the steps it reached, where it stopped)."""
+    codes, steps = _step_codes(rec.step)
+    keep = _thin(len(rec))
+    colors = _step_colors(codes[keep])
+    fig = Figure(figsize=(11, 5.2))
+    axes = fig.subplots(3, 1, sharex=True)
+    for i, ax in enumerate(axes):
+        ax.scatter(rec.t[keep], rec.mag[keep, i], c=colors, s=2, lw=0, rasterized=True)
+        ax.set_ylabel(f"{AXIS_NAMES[i]} (LSB)", fontsize=8)
+        ax.grid(True, lw=0.4, alpha=0.6)
+        ax.tick_params(labelsize=7)
+    axes[-1].set_xlabel("time t (s)", fontsize=8)
+    import matplotlib.lines as mlines
+    handles = [mlines.Line2D([], [], ls="", marker="o", ms=4, color=_step_colors(np.array([k]))[0], label=s)
+               for k, s in enumerate(steps[:16])]  # of fifty steps a legend hides the data
+    fig.legend(handles=handles, loc="lower center", ncol=min(8, len(handles)), fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.08 if len(handles) <= 8 else 0.12, 1, 1))
+    return fig
+
+
 def residual_angle_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_NAMES) -> Figure | None:
     """Residuals against each table angle (columns psi_t, theta_t, phi_t), one row per sensor axis,
     before (red) and after (blue): the harmonics a stage magnet or an axis error leaves. None

@@ -31,13 +31,14 @@ from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
+from procedures.calibrate import BATCH_SETS
 from procedures.states import ACTIVE
 from service import plots
 from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_session, require, start_session
 from service.db import Analysis, Batch, Calibration, Device, Limit, Run, RunEvent, Sample, Station
 from service.identity import CHOICES, check_serial, is_serial_prompt
 from service.schemas import Id, Index, Serial, no_nul
-from service.runtime import NOT_RUN, runs_of_serial
+from service.runtime import NOT_RUN, runs_of_serial, unit_serial
 from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
@@ -307,7 +308,9 @@ def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, A
         "firmware": dev.firmware, "verdict": row.verdict, "status": row.status, "reasons": list(row.reasons or []),
         "info": info, **calibration_tables(cal), "field": field_lines(cal, row.data), "staged": staged_rows(cal),
         "notes": list(cal.notes), "limits": limit_rows(limits, row.figures), "software_version": _software_version(),
-        "issued": _when(datetime.now(timezone.utc)), "parameters": (run.parameters if run else {}) or {},
+        # issued when the calibration was stored: every copy of one certificate (page, PDF, a reprint) says the same
+        "issued": _when(row.created_at),
+        "parameters": {k: v for k, v in ((run.parameters if run else {}) or {}).items() if k not in BATCH_SETS},
         "snapshot": snap, "identity": row.identity,
     }
     return cert, cal, rec, limits
@@ -538,11 +541,22 @@ def run_page(request: Request, run_id: Id) -> Response:
         snap = row.station_snapshot or {}
         time_scale = float(snap.get("time_scale") or 1.0)
         last_step, live_step = step_view(s, run_id)
+        # an ended run's samples, by slot: to download, and drawn where no calibration shows them (a run that
+        # failed or was aborted keeps what it measured; the page showed neither)
+        recorded = []
+        if not active and row.samples_count:
+            drawn = {u["slot"] for u in units}
+            for slot in s.scalars(select(Sample.slot).where(Sample.run_id == run_id).distinct().order_by(Sample.slot)):
+                rec = load_recording(s, row, slot) if slot not in drawn else None
+                recorded.append({"slot": slot, "serial": unit_serial(row, slot), "samples": len(rec) if rec else None,
+                                 "svg": plots.svg(plots.samples_figure(rec), "samples-plot",
+                                                  f"Samples of run {run_id}, slot {slot}, against time") if rec else ""})
         from service.routes.analyses import analysis_summary
         analyses = [analysis_summary(a) for a in s.scalars(select(Analysis).where(Analysis.run_id == run_id).order_by(Analysis.id))]
     return _render(request, who, "run.html", title=f"Run {run_id}", run=run, active=active, units=units,
                    errors=errors, identities=identities, percent=percent, time_scale=time_scale, last_step=last_step, live_step=live_step,
-                   left_wall_s=(wall_seconds_left(progress, time_scale) if active else 0.0), analyses=analyses)
+                   left_wall_s=(wall_seconds_left(progress, time_scale) if active else 0.0), analyses=analyses,
+                   recorded=recorded)
 
 
 @router.get("/ui/runs/{run_id}/samples.json")

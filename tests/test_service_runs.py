@@ -5,6 +5,7 @@ and a batch answered prompt by prompt."""
 
 from __future__ import annotations
 
+import re
 import time
 from typing import Any
 
@@ -298,6 +299,10 @@ def test_an_axis_fault_mid_run_fails_it_and_the_station_until_reset(api: Api):
         assert j["samples_count"] == 9 * 20  # the level turn and the first sweep pose
         # an ended run has no time left (its last progress event still counted some)
         assert j["progress"]["left_s"] == j["progress"]["left_wall_s"] == 0.0, j["progress"]
+        # its page draws what it kept and links the samples (it showed neither), its step line the last step
+        page = api.get(f"/ui/runs/{j['id']}", role="viewer").text
+        assert f'href="/runs/{j["id"]}/samples?slot=0"' in page and "180 kept" in page and 'class="samples-plot"' in page
+        assert '<span class="label">last step</span>' in page
         st = api.get("/stations/lab-1", role="viewer").json()
         assert st["state"] == "fault" and "overload" in st["fault"] and st["run_id"] is None
         assert api.post("/runs", role="operator", json={"station": "lab-1"}).status_code == 409
@@ -349,6 +354,10 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
             assert u["table_seconds"] == run["table_seconds"] > 0 and u["target"] is None  # not adaptive
             cur = api.get(f"/devices/{u['serial']}/calibrations/current", role="viewer").json()
             assert cur["run_id"] == u["run_id"]
+            # its certificate lists the calibration's parameters, not the batch's own (serial, unmount = None)
+            params = re.search(r'<p class="params-line">(.*?)</p>', api.get(
+                f"/ui/calibrations/{cur['id']}/certificate", role="viewer").text, re.S).group(1)
+            assert "samples = 20" in params and "unmount" not in params and "serial =" not in params, params
         assert api.get("/stations/lab-1", role="viewer").json()["batch_id"] is None
         assert len(audited(api, "run.prompt")) == 2 and len(audited(api, "batch.start")) == 1
         # listed, newest first, filtered by station and status
@@ -439,6 +448,12 @@ def test_an_interrupted_calibration_resumes_from_its_last_checkpoint(api: Api):
         cal_id = done["result"]["units"]["0"]["calibration_id"]
         cert = api.get(f"/ui/calibrations/{cal_id}/certificate", role="viewer").text
         assert "Resumes run" in cert and f"{first}: its samples up to its last checkpoint, taken over by run {done['id']}" in cert
+        # issued when the calibration was stored: a second copy says the same (each render said its own time)
+        issued = re.search(r"Issued ([^<]+?) by compasscal", cert).group(1)
+        stored = api.get(f"/calibrations/{cal_id}", role="viewer").json()["created_at"]
+        assert issued.replace(" UTC", "") in stored.replace("T", " "), (issued, stored)
+        time.sleep(1.1)
+        assert f"Issued {issued} by" in api.get(f"/ui/calibrations/{cal_id}/certificate", role="viewer").text
         # a completed run is not resumed
         r = api.post("/runs", role="operator", json={"station": "lab-1", "resume": done["id"]})
         assert r.status_code == 409 and "only a failed or aborted run" in r.json()["detail"]

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from pydantic import ValidationError
 from sqlalchemy import select, update
 
-from procedures.calibrate import BATCH, PROCEDURES
+from procedures.calibrate import BATCH, BATCH_SETS, PROCEDURES
 from procedures.states import ACTIVE
 from service.auth import Caller, audit, require
 from service.db import Batch, Run, Station
@@ -31,7 +31,7 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
         PROCEDURES[BATCH].validate({**body.parameters, "serial": body.serials[0]})
     except ValidationError as e:
         raise Invalid(field_errors(e.errors(), ("body", "parameters"))) from None
-    for key in ("serial", "unmount"):
+    for key in BATCH_SETS:
         if key in body.parameters:
             raise invalid(f"body.parameters.{key}", "set by the batch for each unit")
     with sessions(request)() as s:

@@ -30,6 +30,7 @@ method needs, are refused with that reason.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from itertools import permutations, product
 from typing import Any, Callable
@@ -133,6 +134,8 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
             cal = run(work)
     except (es.InsufficientData, RecordingError) as e:
         if not rejected or str(e).startswith("too few good samples"):
+            raise
+        if _same_refusal(run, rec, e):  # the rows dropped are not why (65 of 57,203 were blamed for a missing sweep)
             raise
         raise _too_few(rec, rejected, e) from None
     cal.serial = rec.serial
@@ -563,6 +566,19 @@ def _require_good(rec: Recording, rejected: dict[int, str]) -> None:
                              f"({_reason_counts(rejected)}; first at sample indices {index_list(sorted(rejected))}), "
                              f"leaving {good}; the fit needs at least {100 * MIN_GOOD_FRACTION:.0f} % good rows. "
                              "Check the magnetometer's connection and supply, then record again")
+
+
+def _same_refusal(run: Callable[[Recording], Calibration], rec: Recording, e: Exception) -> bool:
+    """Whether the fit refuses every row of ``rec`` (the bad ones kept) as it refused the good ones (``e``:
+    the same kind of refusal, by its words up to the first number): then the dropped rows are not the reason."""
+    try:
+        run(rec)
+    except (es.InsufficientData, RecordingError) as again:
+        words = lambda x: re.split(r"\d", str(x), maxsplit=1)[0]  # noqa: E731
+        return type(again) is type(e) and words(again) == words(e)
+    except (ValueError, np.linalg.LinAlgError):  # the bad rows broke the fit another way: they are why
+        return False
+    return False
 
 
 def _too_few(rec: Recording, rejected: dict[int, str], e: Exception) -> Exception:

@@ -52,6 +52,10 @@ TWO_AXIS_TILT_RANGE_DEG = (10.0, 70.0)
 #: maxmin: each body axis must come within this angle of the field and of its opposite. The extreme
 #: reading is then at least k cos(tol), so k is at most 1 - cos(tol) (1.5 % at 10 deg) too small.
 MAXMIN_TOL_DEG = 10.0
+#: maxmin without table angles (a hand-held recording): the same check judged from the readings alone, the
+#: field's direction at each axis's largest and smallest reading; looser, as single readings and a scale taken
+#: from the same extremes are noisier (the public hand-held logs come within 15 deg, a level spin's z axis 45).
+MAXMIN_FREE_TOL_DEG = 20.0
 #: twelve_position: a face counts when one body axis is within this of the vertical (deg).
 TWELVE_FACE_TOL_DEG = 2.0
 
@@ -335,6 +339,8 @@ def maxmin(rec: Recording, acc: Accel) -> Calibration:
     means = _pose_means(inverse, np.asarray(rec.mag, dtype=float))
     mx, mn = means.max(axis=0), means.min(axis=0)
     bias, k = (mx + mn) / 2.0, (mx - mn) / 2.0
+    if not rec.has_angles:
+        return _maxmin_free(rec, acc, means, bias, k)
     R = platform_attitude(keys[:, 0], keys[:, 1], keys[:, 2])  # nominal table: body axes in the base frame
     flat = k <= 0
     if flat.any():
@@ -368,6 +374,32 @@ def maxmin(rec: Recording, acc: Accel) -> Calibration:
         "maxmin: closest approach of each axis to the field / its opposite (deg): "
         + ", ".join(f"{AXES[i]} {off_along[i]:.1f}/{off_against[i]:.1f}" for i in range(3)),
     ]
+    return _base("maxmin", rec, acc, LinearSensor(np.eye(3), k, bias), notes)
+
+
+def _maxmin_free(rec: Recording, acc: Accel, means: np.ndarray, bias: np.ndarray, k: np.ndarray) -> Calibration:
+    """maxmin on a recording without table angles: each axis's span is checked by the field's direction at
+    its own largest and smallest reading (scaled by the estimate itself), which must lie within
+    MAXMIN_FREE_TOL_DEG of the axis (a level spin's z axis, which never saw the field, was given k = 270
+    where x and y had 1500, and a calibration was written)."""
+    off = np.full((3, 2), 90.0)
+    if np.all(k > 0):
+        h = (means - bias) / k
+        for i in range(3):
+            for j, at in enumerate((np.argmax(means[:, i]), np.argmin(means[:, i]))):
+                off[i, j] = np.degrees(np.arccos(min(1.0, abs(h[at, i]) / max(np.linalg.norm(h[at]), 1e-300))))
+    bad = [i for i in range(3) if off[i].max() > MAXMIN_FREE_TOL_DEG]
+    if bad:
+        raise InsufficientData(
+            f"maxmin: every sensor axis must point along and against the field (within {MAXMIN_FREE_TOL_DEG:.0f} deg, "
+            "judged from the readings: the recording has no table angles), or its bias and scale (max + min) / 2, "
+            "(max - min) / 2 are wrong.\n  " + "\n  ".join(
+                f"{AXES[i]} axis: at its largest and smallest readings the field is {off[i, 0]:.0f} and {off[i, 1]:.0f} deg "
+                "off it: turn the unit so that this axis points along and against the field" for i in bad))
+    notes = ["maxmin: bias and scale from the max/min of each axis; M_o = I, so misalignment and non-orthogonality "
+             "stay in the heading; no table angles: the span checked from the readings alone.",
+             "maxmin: the field's angle off each axis at its largest/smallest reading (deg): "
+             + ", ".join(f"{AXES[i]} {off[i, 0]:.1f}/{off[i, 1]:.1f}" for i in range(3))]
     return _base("maxmin", rec, acc, LinearSensor(np.eye(3), k, bias), notes)
 
 

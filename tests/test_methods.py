@@ -13,6 +13,7 @@ from physics.errorsep import Accel, InsufficientData, accelerometer
 from physics.frames import rot_x, rot_y, rot_z
 from physics.heading import wrap180
 from physics.methods import TWELVE_POSITIONS, deviation5, ellipsoid, maxmin, twelve_position, two_axis
+from physics.recording import Recording
 from physics.sensor import LinearSensor, Unit, random_unit, reference_unit
 from physics.simulate import Pose, World, simulate_recording
 from procedures.calibrate import PROCEDURES, calibration_poses, twelve_position_poses
@@ -260,6 +261,23 @@ def test_maxmin_refuses_when_an_axis_misses_the_field():
     rec = _rec(unit, _level_poses(15.0))
     with pytest.raises(InsufficientData, match=r"(?s)maxmin.*z axis.*sweep about the y axis.*x axis"):
         maxmin(rec, _true_acc(unit))
+
+
+def test_maxmin_without_table_angles_checks_the_span_from_the_readings():
+    """A hand-held recording of a level spin: z never saw the field. maxmin wrote a calibration with k_z a
+    fifth of x's (its check needs the table angles, and NaN passed it); now it is judged from the readings.
+    A recording whose axes each met the field (the maxmin plan's poses, angles dropped) still calibrates."""
+    unit = reference_unit(mag_noise_lsb=3.0)
+
+    def hand_held(rec: Recording) -> Recording:
+        nan = np.full(len(rec), np.nan)
+        return Recording.from_arrays(rec.t, rec.step, nan, nan, nan, rec.mag, rec.acc, rec.temp_c, dict(rec.meta))
+
+    with pytest.raises(InsufficientData, match=r"(?s)no table angles.*z axis: at its largest and smallest readings"):
+        maxmin(hand_held(_rec(unit, _level_poses(15.0))), _true_acc(unit))
+    cal = maxmin(hand_held(_rec(unit, _maxmin_poses(MAXMIN_WORLD), MAXMIN_WORLD)), _true_acc(unit))
+    np.testing.assert_allclose(cal.mag.k, unit.mag.k, rtol=0.01)
+    assert any("the span checked from the readings alone" in n for n in cal.notes)
 
 
 def test_maxmin_refuses_default_poses_and_names_the_axes(reference_default):

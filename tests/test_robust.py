@@ -186,6 +186,20 @@ def test_losing_a_whole_sweep_to_bad_rows_names_the_bad_rows_as_the_reason() -> 
     assert fit(rec, "joint").quality["rejected"] == 150
 
 
+def test_a_refusal_the_bad_rows_did_not_cause_keeps_its_own_reason() -> None:
+    """A recording that lacks a sweep, with a few bad rows besides: the refusal is the missing sweep, as
+    with every row kept (it was "too few good samples remain: after dropping 5 bad row(s)", blaming rows
+    that had nothing to do with it; 65 of a public file's 57,203 were blamed for maxmin's missing turns)."""
+    whole = _recording()
+    rec, _ = corrupt(whole.select(whole.step != "sweep_y"), 0.01, "zeros")
+    for method in ("error-separation", "maxmin"):
+        with pytest.raises(InsufficientData) as e:
+            fit(rec, method)
+        assert not str(e.value).startswith("too few good samples"), (method, str(e.value))
+    with pytest.raises(InsufficientData, match="(?s)no sweep about the table's y axis"):
+        fit(rec, "error-separation")
+
+
 def test_clean_recordings_and_physical_effects_lose_no_rows() -> None:
     """Tens of LSB of settling lag are physics for the discrepancy analysis, not bad samples."""
     rec, _ = simulate_timeline(UNIT, calibration_poses(), WORLD, effects=[effects.TimeLag(0.5)], rng=np.random.default_rng(0))

@@ -6,6 +6,7 @@ import json
 import os
 import re
 import socket
+from collections import Counter
 from enum import Enum
 from pathlib import Path
 from typing import Any, NoReturn, Optional
@@ -145,21 +146,30 @@ def _plot_file(path: Optional[Path], option: str = "--plot") -> None:
         _fail(f"{option} {path}: name the picture's format by its extension, one of {', '.join('.' + k for k in known)}")
 
 
-def _output_file(path: Optional[Path], option: str, make_parents: bool = False) -> None:
+def _output_file(path: Optional[Path], option: str) -> None:
     """Refuse, before any work, an output file that cannot be written: a directory, a parent directory
-    that does not exist (created only with ``make_parents``) or that this user cannot write to."""
+    that does not exist (never created: a mistyped directory is said, as every command does), a file
+    in the way of its directory, or a place this user cannot write to."""
     if path is None:
         return
     if path.is_dir():
         _fail(f"{option} {path}: is a directory; give a file name")
     parent = path.parent
-    if make_parents:
-        _output_dir(parent, option)
-        return
     if not parent.is_dir():
+        blocker = next((p for p in (parent, *parent.parents) if p.exists()), None)
+        if blocker is not None and not blocker.is_dir():
+            _fail(f"{option} {path}: {blocker} is a file, not a directory")
         _fail(f"{option} {path}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
         _fail(f"{option} {path}: not writable")
+    if not path.exists():
+        # some places pass the permission check and still refuse a file (/proc, a read-only mount for
+        # root): try creating it now rather than after the work (an existing file is left untouched)
+        try:
+            path.open("x").close()
+        except OSError as e:
+            _fail(f"{option} {path}: cannot create a file there ({e.strerror or e})")
+        path.unlink()
 
 
 def _output_dir(path: Path, option: str) -> None:
@@ -178,6 +188,15 @@ def _port(value: Optional[int], option: str, any_free: bool = False) -> None:
     low = 0 if any_free else 1
     if value is not None and not low <= value <= 65535:
         _fail(f"{option} must be a TCP port, {low}-65535, got {value}")
+
+
+def _time_scale(value: Optional[float], option: str = "--time-scale") -> None:
+    """A time scale the simulator can honour: > 0 and at most drivers.sim.config.MAX_TIME_SCALE (the
+    service's limit for a station too); 1e9 was taken and reported billions of seconds of table time."""
+    from drivers.sim.config import MAX_TIME_SCALE
+
+    if value is not None and not 0 < value <= MAX_TIME_SCALE:
+        _fail(f"{option} {value:g}: give a number > 0 and <= {MAX_TIME_SCALE:g} (1: real time; 20: twenty times faster)")
 
 
 def _listen(host: str, port: int, option: str = "--port") -> socket.socket:
@@ -486,8 +505,8 @@ def analyze(
 
     from physics.discrepancy import analyze as run_analysis
 
-    _output_file(json_out, "--json", make_parents=True)
-    _output_file(html, "--html", make_parents=True)
+    _output_file(json_out, "--json")
+    _output_file(html, "--html")
     rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
     if skip_bad_rows:
         _note_skipped(rec, recording)
@@ -582,6 +601,33 @@ def print_analysis(result: dict[str, object]) -> None:
     for note in r.get("notes") or []:
         console.print(f"[dim]note: {escape(text(note))}[/]")
 
+
+def output_names(serials: dict[int, str]) -> tuple[dict[int, str], list[str]]:
+    """The name each slot's files (``<name>.csv``, ``.cal.json``, ``.png``) take in the output directory,
+    and one note per slot not named by its serial. A serial that cannot name a file (the serial rule of
+    service.identity: no '/', so "../evil/SN 1" would write outside the directory) gives ``slot<N>``;
+    a name two slots would share gets ``-slot<N>`` on each, so neither overwrites the other."""
+    from service.identity import check_serial
+
+    names: dict[int, str] = {}
+    notes: list[str] = []
+    for slot, serial in sorted(serials.items()):
+        try:
+            names[slot] = check_serial(serial)
+        except ValueError as e:
+            names[slot] = f"slot{slot}"
+            notes.append(f"slot {slot}: its unit's serial {serial!r} cannot name a file ({e}); "
+                         f"its files are named slot{slot}.*")
+    shared = {name for name, n in Counter(names.values()).items() if n > 1}
+    for name in sorted(shared):
+        slots = [slot for slot in sorted(names) if names[slot] == name]
+        for slot in slots:
+            names[slot] = f"{name}-slot{slot}"
+        notes.append(f"slots {', '.join(map(str, slots))}: their units report the same serial {name}; their files are "
+                     f"named " + ", ".join(f"{names[slot]}.*" for slot in slots))
+    return names, notes
+
+
 async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_scale: float, params: dict[str, object],
                              truth: list[dict[str, object]] | None, evaluate: bool) -> int:
     """Calibrate every unit of a station with a progress bar, write recordings and calibrations to
@@ -593,7 +639,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from drivers.station import open_station
-    from procedures.engine import run_procedure
+    from procedures.engine import RecordingSink, run_procedure
     from procedures import events
     from procedures.steps import Acquire, Compute
     from service.plots import calibration_figure
@@ -618,6 +664,18 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
         # the axes stopped and every sample kept (SIGTERM had killed the process with an axis still turning)
         engines: list[Any] = []
         interrupted: list[str] = []
+        names: dict[int, str] = {}
+        name_notes: list[str] = []
+
+        def name_files(engine: Any) -> None:
+            """The calibration's engine, before it records anything: its files named safely in ``out``."""
+            engines.append(engine)
+            if isinstance(engine.sink, RecordingSink):  # it names them by serial, whatever the unit reports
+                chosen, notes = output_names(engine.serials)
+                names.update(chosen)
+                name_notes.extend(notes)
+                engine.sink.names = names
+
         current = asyncio.current_task()
 
         def interrupt(name: str) -> None:
@@ -633,7 +691,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
         try:
             async with open_station(modbus, compasses, time_scale=time_scale) as station:
                 result, serials, sink = await run_procedure(station, "calibrate", params, out_dir=out, on_event=on_event,
-                                                            engine_hook=engines.append)
+                                                            engine_hook=name_files)
                 # the bar's last line says how it ended, not the time it had left ("failed ... ~16 s left")
                 bar.update(task, description=f"calibrate: {result.state.value}", info=f"{result.samples} samples kept")
                 check = None
@@ -659,9 +717,11 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                   + f" after {result.table_seconds:.1f} s of table time (the plan's nominal {result.plan_seconds:.1f} s "
                   + f"from where the table stood{', before the adaptive poses' if params.get('adaptive') else ''}), "
                   + f"{result.samples} samples kept")
+    for note in name_notes:
+        _note(note)
     for slot in sorted(serials):
         if slot in sink.parts:
-            console.print(f"slot {slot} ({serials[slot]}): recording {sink.path(slot)}")
+            console.print(f"slot {slot} ({escape(str(serials[slot]))}): recording {escape(str(sink.path(slot)))}")
     if interrupted:  # the shell's convention: 128 + the signal's number
         err_console.print(f"interrupted by {interrupted[0]}: the axes were stopped and the samples so far kept")
         raise typer.Exit(code=128 + getattr(signal, interrupted[0]).value)
@@ -674,11 +734,11 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
             failed += 1
             continue
         cal = r["calibration"]
-        path = out / f"{serials[slot]}.cal.json"
+        path, figure = out / f"{names[slot]}.cal.json", out / f"{names[slot]}.png"
         _write(path, json.dumps(json_safe(cal.to_json()), indent=2))
         print_calibration(cal)
-        calibration_figure(sink.recording(slot), cal, out / f"{serials[slot]}.png")
-        console.print(f"calibration written to {path}, plot to {out / f'{serials[slot]}.png'}")
+        calibration_figure(sink.recording(slot), cal, figure)
+        console.print(f"calibration written to {path}, plot to {figure}")
         if "precision" in cal.quality:
             pr = cal.quality["precision"]
             colour = "green" if pr["met"] else "yellow"
@@ -701,20 +761,29 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
 
 def _station_urls(modbus: str, compasses: list[str]) -> None:
     """Refuse, before connecting anything, a table or compass URL the drivers cannot use."""
+    from urllib.parse import urlsplit
+
     import serial
 
     from drivers.modbus import BusURL
 
     try:
-        BusURL.parse(modbus)
+        bus = BusURL.parse(modbus)
     except ValueError as e:
         _fail(f"--modbus {modbus}: {e}; expected tcp://HOST:PORT, rtu+tcp://HOST:PORT, serial:///dev/ttyX?baud=N "
               "or a device path")
+    if bus.kind in ("tcp", "rtu+tcp") and urlsplit(modbus).port is None:
+        # (the driver would try 502 and say only "cannot connect")
+        _fail(f"--modbus {modbus}: no port; give {bus.kind}://{bus.host}:PORT (Modbus TCP's usual port is 502)")
     for url in compasses:
         try:
             serial.serial_for_url(url, do_not_open=True)  # checks the URL's scheme without opening anything
         except ValueError as e:
             _fail(f"--compass {url}: {e}; expected a device path or socket://HOST:PORT")
+    for url, n in Counter(compasses).items():
+        if n > 1:  # two slots cannot read one compass (the API refuses it too)
+            slots = [str(i) for i, u in enumerate(compasses) if u == url]
+            _fail(f"--compass {url}: compass URL given for two slots ({' and '.join(slots)}); give each slot its own compass")
 
 
 def _procedure_params(procedure: str, parameters: dict[str, Any]) -> dict[str, Any]:
@@ -778,8 +847,7 @@ def calibrate(
 ) -> None:
     """Run the calibration procedure on a station (real or simulated) and calibrate every unit in its fixture."""
     _station_urls(modbus, compass)
-    if time_scale is not None and not time_scale > 0:
-        _fail(f"--time-scale must be > 0, got {time_scale:g}")
+    _time_scale(time_scale)
     if control is not None:
         time_scale = _control_time_scale(control, time_scale)
     time_scale = 1.0 if time_scale is None else time_scale
@@ -813,8 +881,7 @@ def demo(
     from drivers.sim.config import ConfigError, load_config, reference_config
     from drivers.sim.station import SimStation
 
-    if not time_scale > 0:
-        _fail(f"--time-scale must be > 0, got {time_scale:g}")
+    _time_scale(time_scale)
     if api:
         _port(port, "--port")
     else:
@@ -945,13 +1012,12 @@ def sim(
     _port(modbus_port, "--modbus-port", any_free=True)
     _port(compass_tcp_port, "--compass-tcp-port", any_free=True)
     _output_file(truth, "--truth")
+    _time_scale(time_scale)
     try:
         cfg = load_config(config) if config else default_config(seed)
     except ConfigError as e:
         _fail(str(e))
     if time_scale is not None:
-        if not time_scale > 0:
-            _fail(f"--time-scale must be > 0, got {time_scale}")
         cfg.world.time_scale = time_scale
     if seed is not None:
         cfg.world.seed = seed
@@ -1183,6 +1249,11 @@ def prove(
 
     if open_plan not in OPEN_PLANS:
         raise typer.BadParameter(f"expected one of {', '.join(OPEN_PLANS)}, got {open_plan!r}", param_hint="--open-plan")
+    # any recording on the table (nulls default > 0)
+    table = bool(n or nulls is None or nulls or open_n or open_nulls or open_large)
+    if not table and not (handheld_n or handheld_nulls):  # (it printed "nothing to prove" and exit 0)
+        _fail("--n 0 --nulls 0: nothing to prove; give --n or --nulls > 0 (or --open-n, --open-nulls, --open-large, "
+              "--handheld-n or --handheld-nulls)")
     _output_file(json_out, "--json")  # before the minutes of work whose results it keeps
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
                   TimeRemainingColumn(), console=err_console, transient=False) as bar:
@@ -1191,8 +1262,6 @@ def prove(
         def on_progress(done: int, total: int, kind: str) -> None:
             bar.update(task, completed=done, total=total, info=kind)
 
-        # any recording on the table (nulls default > 0)
-        table = n or nulls is None or nulls or open_n or open_nulls or open_large
         out = run_proof(n, seed, workers, on_progress, plan=characterize_plan(), nulls=nulls, open_n=open_n,
                         open_plan=OPEN_PLANS[open_plan](), open_nulls=open_nulls, open_large=open_large) if table else {}
         if handheld_n or handheld_nulls:
@@ -1205,8 +1274,6 @@ def prove(
         console.print(format_handheld_report(hh["score"]), markup=False, highlight=False, soft_wrap=True)
         console.print(f"{len(hh['cases'])} hand-held recordings in {hh['config']['wall_s']:.0f} s", markup=False,
                       highlight=False)
-    if not out:
-        console.print("nothing to prove: every count is 0", markup=False, highlight=False)
     if json_out is not None:
         _write(json_out, json.dumps(out, indent=1))
         console.print(f"score and cases written to {json_out}")

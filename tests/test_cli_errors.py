@@ -12,7 +12,9 @@ import sys
 from pathlib import Path
 from typing import Iterator
 
+import numpy as np
 import pytest
+import typer
 from typer.testing import CliRunner
 
 import service.cli as cli
@@ -484,14 +486,30 @@ def test_a_file_without_its_column_line_or_of_one_row_is_refused_for_what_it_is(
     assert r.exit_code != 0 and "1 data row(s)" in said and "dead or disconnected" not in said, r.output
 
 
-def test_an_output_that_cannot_be_written_after_the_work_is_one_line_not_a_traceback(tmp_path: Path):
-    """/proc passes the up-front check (its directory exists and is writable to root) but refuses the
-    write, after the analysis: that was a traceback and exit 1."""
+def test_an_output_that_cannot_be_written_is_refused_before_the_work(tmp_path: Path, monkeypatch):
+    """/proc passes the permission check (its directory exists and is writable to root) but refuses a
+    file: that was a traceback and exit 1, then one line after the whole fit; now the file is tried up
+    front, before the fit (and an existing output is left untouched by the check)."""
     rec = tmp_path / "rec.csv"
-    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "10", "-o", str(rec)]).exit_code == 0
-    r = runner.invoke(app, ["fit", str(rec), "-o", "/proc/compasscal-cal.json"])
-    said = " ".join(r.output.split())
-    assert r.exit_code == 2 and "cannot write /proc/compasscal-cal.json" in said and "Traceback" not in said, r.output
+    assert runner.invoke(app, ["simulate", "--unit", "reference", "--samples", "3", "-o", str(rec)]).exit_code == 0
+
+    def never(*a, **k):
+        raise AssertionError("the fit ran before its output was checked")
+
+    monkeypatch.setattr(cli, "fit_recording", never)
+    refused(["fit", str(rec), "-o", "/proc/compasscal-cal.json"], "--output /proc/compasscal-cal.json")
+    assert not Path("/proc/compasscal-cal.json").exists()
+    # a file where its directory should be is said to be one (not "directory rec.csv does not exist")
+    refused(["fit", str(rec), "-o", str(rec / "c.json")], "--output", f"{rec} is a file, not a directory")
+    refused(["fit", str(rec), "-o", str(rec / "sub" / "c.json")], f"{rec} is a file, not a directory")
+    monkeypatch.undo()
+    out = tmp_path / "c.json"
+    r = runner.invoke(app, ["fit", str(rec), "-o", str(out)])
+    assert r.exit_code == 0 and out.exists(), r.output
+    # after the work, a write that fails anyway is still one line (cli._write), not a traceback
+    with pytest.raises(typer.Exit) as e:
+        cli._write(Path("/proc/compasscal-cal.json"), "{}")
+    assert e.value.exit_code == 2
 
 
 def test_analyze_takes_the_services_seed_to_repeat_its_analysis(tmp_path: Path):
@@ -531,3 +549,157 @@ def test_analyze_takes_the_services_seed_to_repeat_its_analysis(tmp_path: Path):
     for bad in ("-1", "6,x", ""):
         r = runner.invoke(app, ["analyze", str(rec), "--seed", bad])
         assert r.exit_code == 2 and "--seed" in r.output and "several joined by commas" in " ".join(r.output.split()), r.output
+
+
+# -- the probe's findings (calibrate's file names, station configs, outputs, time scale) ---------------
+
+def _fake_calibration_run(monkeypatch: pytest.MonkeyPatch, serials: dict[int, str]) -> None:
+    """``calibrate`` on a fake station whose units report ``serials``: the real recording sink and the
+    CLI's writing of each slot's files, a simulated recording and its fit as every slot's calibration."""
+    import contextlib
+    from types import SimpleNamespace
+
+    import drivers.station
+    import procedures.engine
+    from physics.fit import fit
+    from physics.sensor import reference_unit
+    from physics.simulate import World, simulate_recording
+    from procedures.calibrate import CalibrateParams, calibration_poses
+
+    rec = simulate_recording(reference_unit(3.0, 4.0), calibration_poses(CalibrateParams(samples=3)), World(55.0, 23.0),
+                             rng=np.random.default_rng(0))
+    cal = fit(rec, "joint")
+
+    @contextlib.asynccontextmanager
+    async def fake_station(*a, **k):
+        yield None
+
+    async def fake_run(station, name, params, *, out_dir=None, on_event=lambda e: None, engine_hook=lambda e: None):
+        sink = procedures.engine.RecordingSink(out_dir, dict(serials), {})
+        engine_hook(SimpleNamespace(sink=sink, serials=dict(serials), abort=lambda reason: None))
+        for slot in serials:
+            sink.add(slot, rec)  # as the engine does after each acquisition
+        result = SimpleNamespace(state=SimpleNamespace(value="completed"), reason=None, table_seconds=1.0,
+                                 plan_seconds=1.0, samples=len(rec) * len(serials),
+                                 outcome=SimpleNamespace(results={slot: {"calibration": cal} for slot in serials}))
+        return result, dict(serials), sink
+
+    monkeypatch.setattr(drivers.station, "open_station", fake_station)
+    monkeypatch.setattr(procedures.engine, "run_procedure", fake_run)
+
+
+def test_calibrate_names_each_units_files_inside_the_output_directory(tmp_path: Path, monkeypatch):
+    """A unit reporting "../evil/SN 1" had its recording, calibration and plot written outside -o DIR (or
+    the run failed with FileNotFoundError after the table had moved); two units reporting one serial
+    overwrote each other's files. Now: slot<N> for a serial that cannot name a file (service.identity's
+    rule), <serial>-slot<N> for a shared one, each said in one note; the run itself succeeds."""
+    out = tmp_path / "out"
+    _fake_calibration_run(monkeypatch, {0: "../evil/SN 1", 1: "SN-1", 2: "SN-1", 3: "SN 2"})
+    urls = [f"socket://127.0.0.1:{p}" for p in (1, 2, 3, 4)]
+    r = runner.invoke(app, ["calibrate", "--modbus", "tcp://127.0.0.1:1", *[x for u in urls for x in ("--compass", u)],
+                            "-o", str(out)])
+    assert r.exit_code == 0, (r.output, r.exception)
+    assert not (tmp_path / "evil").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        f"{name}{ext}" for name in ("slot0", "SN-1-slot1", "SN-1-slot2", "SN 2") for ext in (".csv", ".cal.json", ".png"))
+    notes = [ln for ln in r.stderr.splitlines() if ln.startswith("note:")]
+    assert len(notes) == 2, r.stderr
+    assert "slot 0" in notes[0] and "'../evil/SN 1'" in notes[0] and "slot0.*" in notes[0]
+    assert "SN-1-slot1.*" in notes[1] and "SN-1-slot2.*" in notes[1]
+    assert "recording" + str(out / "slot0.csv") in "".join(r.stdout.split())  # (rich wraps a long path anywhere)
+    # the rule itself, directly
+    names, said = cli.output_names({0: "", 1: "A/B", 2: "SN-9", 3: " SN-9 "})
+    assert names == {0: "slot0", 1: "slot1", 2: "SN-9-slot2", 3: "SN-9-slot3"} and len(said) == 3
+
+
+def test_calibrate_refuses_one_compass_for_two_slots_and_a_modbus_url_without_port(tmp_path: Path, started: list):
+    """The same --compass twice made both slots share a port (reconnect storms, tracebacks, slot 1
+    overwriting slot 0's files); tcp://HOST without a port said only "cannot connect" later."""
+    base = ["calibrate", "--modbus", "tcp://127.0.0.1:1", "-o", str(tmp_path)]
+    refused([*base, "--compass", "/dev/pts/0", "--compass", "/dev/pts/0"],
+            "--compass /dev/pts/0", "given for two slots (0 and 1)")
+    refused([*base, "--compass", "socket://127.0.0.1:1", "--compass", "socket://127.0.0.1:2", "--compass", "socket://127.0.0.1:1"],
+            "--compass socket://127.0.0.1:1", "two slots (0 and 2)")
+    for url in ("tcp://127.0.0.1", "rtu+tcp://gateway"):
+        refused(["calibrate", "--modbus", url, "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)],
+                f"--modbus {url}", "no port", ":PORT")
+    assert started == []
+    assert runner.invoke(app, [*base, "--compass", "socket://127.0.0.1:1", "--compass", "socket://127.0.0.1:2"]).exit_code == 0
+
+
+UNIT = '[[unit]]\nserial = "SN-1"\nmag_k = [3000.0, 3100.0, 3200.0]\n'
+
+
+@pytest.mark.parametrize("toml, words", [
+    ("[world]\nseed = -1\n" + UNIT, ["world.seed", "greater than or equal to 0", "an integer >= 0"]),
+    ("[world]\ninclination_deg = \"55\"\n" + UNIT, ["world.inclination_deg", "got str '55'", "a number of degrees"]),
+    ("[world]\ntime_scale = 1e9\n" + UNIT, ["world.time_scale", "<= 1000"]),
+    ("[table]\nhomed = 1\n" + UNIT, ["table.homed", "got int 1", "true or false"]),
+    (UNIT.replace("3100.0", "-1.0"), ["unit[0].mag_k[1]", "greater than 0", "3 sensitivities"]),
+    (UNIT.replace("3100.0", "0.0"), ["unit[0].mag_k[1]", "greater than 0"]),
+    (UNIT.replace("3100.0", "1e300"), ["unit[0].mag_k[1]", "less than or equal to 32767"]),
+    (UNIT.replace("3100.0", "nan"), ["unit[0].mag_k[1]", "finite"]),
+    (UNIT + "mag_angles_deg = [[0, 90, 90], [0, 90, 90], [90, 90, 0]]\n", ["unit[0]", "mag_angles_deg", "do not span space"]),
+    (UNIT + "mag_angles_deg = [[90, 90, 90], [90, 0, 90], [90, 90, 0]]\n", ["mag_angles_deg", "sensor axis 0", "90 deg"]),
+    (UNIT + "mag_M_o = [[1, 0, 0], [1, 0, 0], [0, 0, 1]]\n", ["mag_M_o", "do not span space"]),
+    (UNIT + '[[fault]]\nkind = "axis_alarm"\naxis = "y"\nat_angle_deg = 10.0\nat_s = 3.0\n',
+     ["fault[0]", "at_angle_deg or at_s, not both"]),
+])
+def test_a_station_config_value_of_the_wrong_kind_or_range_is_refused_naming_the_key(
+        tmp_path: Path, nothing_starts: None, toml: str, words: list[str]):
+    """seed = -1 was a traceback from numpy; "55" for a number, 1 for true, a sensitivity of 0, -1 or
+    1e300, a singular orientation and a fault with two triggers were all simulated."""
+    config = tmp_path / "station.toml"
+    config.write_text(toml)
+    refused(["sim", "--config", str(config)], "station.toml", *words)
+    refused(["demo", "--config", str(config), "-o", str(tmp_path / "out")], *words)
+
+
+def test_the_readmes_station_config_is_one_the_simulator_takes():
+    """The README's example (with the ranges its comments give) is valid, and an integer is a number."""
+    from drivers.sim.config import parse_config
+
+    text = (ROOT / "README.md").read_text()
+    example = text.split("```toml\n", 1)[1].split("```", 1)[0]
+    import tomllib
+
+    cfg = parse_config(tomllib.loads(example))
+    assert cfg.unit[0].mag_k == [3268.0, 3163.4, 3201.5] and cfg.fault[0].at_angle_deg == 100.0
+    assert parse_config(tomllib.loads(UNIT.replace("3100.0", "3100"))).unit[0].mag_k[1] == 3100.0
+
+
+def test_analyze_refuses_a_missing_output_directory_as_the_other_commands_do(tmp_path: Path):
+    """analyze created --json's and --html's missing directories (a mistyped path went unnoticed) while
+    fit, simulate, convert and prove refuse them."""
+    rec = tmp_path / "rec.csv"
+    rec.write_text("")
+    for option in ("--json", "--html"):
+        refused(["analyze", str(rec), option, str(tmp_path / "nonexistent" / "a.out")], option, "does not exist")
+        refused(["fit", str(rec), "-o", str(tmp_path / "nonexistent" / "a.out")], "--output", "does not exist")
+    assert not (tmp_path / "nonexistent").exists()
+
+
+def test_time_scale_is_bounded_alike_for_every_command(tmp_path: Path, nothing_starts: None, started: list):
+    """demo --time-scale 1e9 ran and reported billions of seconds of table time; one rule (> 0, at most
+    drivers.sim.config.MAX_TIME_SCALE, as the service's stations) for demo, sim and calibrate."""
+    from drivers.sim.config import MAX_TIME_SCALE
+
+    assert MAX_TIME_SCALE == 1000
+    base = ["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1", "-o", str(tmp_path)]
+    for value in ("1e9", "1001", "0", "-1", "nan"):
+        for args in (["demo", "-o", str(tmp_path / "d")], ["sim"], base):
+            refused([*args, "--time-scale", value], "--time-scale", "<= 1000")
+    assert started == []
+    assert runner.invoke(app, [*base, "--time-scale", "1000"]).exit_code == 0 and started[-1][3] == 1000
+
+
+def test_prove_refuses_a_proof_of_nothing(monkeypatch):
+    """--n 0 --nulls 0 (and no open-world or hand-held cases) proved nothing and exited 0."""
+    import proof.runner
+
+    def never(*a, **k):
+        raise AssertionError("the proof ran")
+
+    monkeypatch.setattr(proof.runner, "run_proof", never)
+    monkeypatch.setattr(proof.runner, "run_handheld_proof", never)
+    refused(["prove", "--n", "0", "--nulls", "0"], "--n 0 --nulls 0", "nothing to prove", "--open-n", "--handheld-n")

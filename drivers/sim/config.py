@@ -12,16 +12,34 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
 
 from physics.effects import CATALOGUE, CONCEAL, Effect, make_effect
 from physics.sensor import ACC_LSB_PER_G, LinearSensor, Unit, angles_to_Mo, random_unit, reference_unit
 from physics.simulate import World
 from physics.table import TableGeometry
 
-Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+#: A number as TOML writes one (an integer is taken, a string such as "55" refused rather than read), finite.
+Num = Annotated[float, Strict(), AllowInfNan(False)]
+#: An integer (not a float, a bool or a string).
+Int = Annotated[int, Strict()]
+#: A count of the compass's wire (a signed 16-bit integer): a larger sensitivity, bias or noise saturates
+#: every reading, so no lab could calibrate such a unit (drivers/compass.py refuses counts beyond it).
+FULL_SCALE_LSB = 32767.0
+#: Fastest simulated station: motion, sample rates and settle times this many times faster than real
+#: time, as the service accepts for a station's time_scale (service/schemas.py).
+MAX_TIME_SCALE = 1000.0
+#: Smallest |det| of a sensor's direction cosines: below it two axes are (nearly) parallel or all three
+#: (nearly) in one plane, and the unit could not measure a field along every direction.
+MIN_ORIENTATION_DET = 0.1
+
+Vec2 = Annotated[list[Num], Field(min_length=2, max_length=2)]
+Vec3 = Annotated[list[Num], Field(min_length=3, max_length=3)]
 Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
+#: Three sensitivities, LSB per lab field (or per g): > 0 and within the wire's full scale.
+Sens3 = Annotated[list[Annotated[Num, Field(gt=0, le=FULL_SCALE_LSB)]], Field(min_length=3, max_length=3)]
+#: Three biases in LSB, within the wire's full scale.
+Bias3 = Annotated[list[Annotated[Num, Field(ge=-FULL_SCALE_LSB, le=FULL_SCALE_LSB)]], Field(min_length=3, max_length=3)]
 
 #: Expected form of each key, quoted in error messages.
 FORMS: dict[str, str] = {
@@ -30,16 +48,23 @@ FORMS: dict[str, str] = {
     "base_tilt_deg": "[about x, about y] in degrees, e.g. [0.05, -0.03]",
     "nonperp_deg": "[z-y pair, y-x pair] departures from 90 deg, degrees",
     "encoder_zero_deg": "[z, y, x] true angle when the encoder reads 0, degrees",
-    "time_scale": "a number > 0 (20 runs 20 times faster than real time)",
+    "time_scale": f"a number > 0 and <= {MAX_TIME_SCALE:g} (20 runs 20 times faster than real time)",
+    "temperature_c": "the lab's temperature, deg C, e.g. 23.0",
+    "seed": "an integer >= 0, e.g. 1",
+    "homed": "true or false",
+    "enabled": "true or false",
+    "start_deg": "[z, y, x] angles the table starts at, degrees",
     "serial": 'a string, e.g. "SN-0001"',
     "mag_M_o": "a 3x3 direction-cosine matrix, rows = sensor axes, e.g. [[1,0,0],[0,1,0],[0,0,1]]",
     "mag_angles_deg": "a 3x3 matrix of angles between sensor and body axes (the paper's Table 1)",
-    "mag_k": "3 sensitivities, LSB per lab field, e.g. [3268.0, 3163.4, 3201.5]",
-    "mag_bias": "3 biases in LSB, e.g. [423.2, -480.5, 301.2]",
+    "mag_k": f"3 sensitivities > 0 and <= {FULL_SCALE_LSB:g}, LSB per lab field, e.g. [3268.0, 3163.4, 3201.5]",
+    "mag_bias": f"3 biases in LSB, -{FULL_SCALE_LSB:g} to {FULL_SCALE_LSB:g}, e.g. [423.2, -480.5, 301.2]",
+    "mag_noise_lsb": f"the magnetometer's noise, LSB, 0 to {FULL_SCALE_LSB:g}, e.g. 3.0",
     "acc_M_o": "a 3x3 direction-cosine matrix",
     "acc_angles_deg": "a 3x3 matrix of angles, degrees",
-    "acc_k": "3 sensitivities, LSB per g, e.g. [16384.0, 16384.0, 16384.0]",
-    "acc_bias": "3 biases in LSB",
+    "acc_k": f"3 sensitivities > 0 and <= {FULL_SCALE_LSB:g}, LSB per g, e.g. [16384.0, 16384.0, 16384.0]",
+    "acc_bias": f"3 biases in LSB, -{FULL_SCALE_LSB:g} to {FULL_SCALE_LSB:g}",
+    "acc_noise_lsb": f"the accelerometer's noise, LSB, 0 to {FULL_SCALE_LSB:g}, e.g. 4.0",
     "warmup_c": "degrees C the unit warms up by after power-on, e.g. 4.0",
     "warmup_tau_s": "the warm-up's time constant in seconds, > 0, e.g. 300",
     "id": "one of " + ", ".join(CONCEAL),
@@ -47,6 +72,10 @@ FORMS: dict[str, str] = {
     "kind": "one of " + ", ".join(
         ["axis_alarm", "axis_silent", "stuck_encoder", "estop", "compass_silent", "garbage",
          "fused_line", "truncated_line", "compass_reset", "port_vanish", "bad_readings"]),
+    "axis": '"z", "y" or "x"',
+    "at_s": "simulated seconds after the start, >= 0, e.g. 30.0",
+    "at_angle_deg": "axis_alarm: the axis's angle in degrees at which it alarms, e.g. 100.0",
+    "code": "the alarm code, 1 to 0xFFFF, e.g. 0x30",
     "count": "bad_readings: how many consecutive readings are wrong, >= 1",
     "pattern": "bad_readings: \"zeros\" (a brown-out), \"random\" (corrupted values) or \"bitflip\" (one bit of one axis)",
 }
@@ -59,16 +88,16 @@ class _Strict(BaseModel):
 class WorldConfig(_Strict):
     """The lab and the table's geometry."""
 
-    inclination_deg: float = Field(55.0, ge=-90, le=90)
-    declination_deg: float = 23.0
+    inclination_deg: Num = Field(55.0, ge=-90, le=90)
+    declination_deg: Num = 23.0
     base_tilt_deg: Vec2 = [0.0, 0.0]
     nonperp_deg: Vec2 = [0.0, 0.0]
     encoder_zero_deg: Vec3 = [0.0, 0.0, 0.0]
-    temperature_c: float = 23.0
-    warmup_c: float = 0.0
-    warmup_tau_s: float = Field(300.0, gt=0)
-    time_scale: float = Field(1.0, gt=0)
-    seed: int | None = None
+    temperature_c: Num = 23.0
+    warmup_c: Num = 0.0
+    warmup_tau_s: Num = Field(300.0, gt=0)
+    time_scale: Num = Field(1.0, gt=0, le=MAX_TIME_SCALE)
+    seed: Int | None = Field(None, ge=0)  # numpy's generators take no negative seed
 
     def world(self) -> World:
         """The physics world this describes."""
@@ -80,12 +109,26 @@ class WorldConfig(_Strict):
 class TableConfig(_Strict):
     """The turntable's controllers."""
 
-    units: dict[Literal["z", "y", "x"], int] = {"z": 1, "y": 2, "x": 3}
+    units: dict[Literal["z", "y", "x"], Int] = {"z": 1, "y": 2, "x": 3}
     framer: Literal["tcp", "rtu"] = "tcp"
-    homed: bool = False
-    enabled: bool = False
+    homed: Annotated[bool, Strict()] = False  # (lax, 1 and "yes" were taken for true)
+    enabled: Annotated[bool, Strict()] = False
     start_deg: Vec3 = [0.0, 0.0, 0.0]
     hard_limits_deg: dict[Literal["z", "y", "x"], Vec2] = {}
+
+
+def orientation_problem(cosines: np.ndarray) -> str | None:
+    """What makes a sensor's 3x3 direction cosines (rows: sensor axes) unusable, or None: a row of zeros
+    (an axis at 90 deg to every body axis) or axes that do not span space (|det| of the normalised rows
+    below :data:`MIN_ORIENTATION_DET`)."""
+    norms = np.linalg.norm(cosines, axis=1)
+    if not np.all(norms > 1e-6):
+        return f"sensor axis {int(np.argmin(norms))} is at 90 deg to every body axis"
+    det = abs(float(np.linalg.det(cosines / norms[:, None])))
+    if det < MIN_ORIENTATION_DET:
+        return (f"the three sensor axes do not span space (|det| {det:.3g} < {MIN_ORIENTATION_DET:g}: two axes "
+                "parallel or all three in one plane)")
+    return None
 
 
 class UnitConfig(_Strict):
@@ -97,24 +140,33 @@ class UnitConfig(_Strict):
     transport: Literal["pty", "tcp"] = "pty"
     mag_M_o: Mat3 | None = None
     mag_angles_deg: Mat3 | None = None
-    mag_k: Vec3
-    mag_bias: Vec3 = [0.0, 0.0, 0.0]
-    mag_noise_lsb: float = Field(0.0, ge=0)
+    mag_k: Sens3  # required: a unit's scale has no ideal value
+    mag_bias: Bias3 = [0.0, 0.0, 0.0]
+    mag_noise_lsb: Num = Field(0.0, ge=0, le=FULL_SCALE_LSB)
     acc_M_o: Mat3 | None = None
     acc_angles_deg: Mat3 | None = None
-    acc_k: Vec3 = [ACC_LSB_PER_G] * 3
-    acc_bias: Vec3 = [0.0, 0.0, 0.0]
-    acc_noise_lsb: float = Field(0.0, ge=0)
+    acc_k: Sens3 = [ACC_LSB_PER_G] * 3
+    acc_bias: Bias3 = [0.0, 0.0, 0.0]
+    acc_noise_lsb: Num = Field(0.0, ge=0, le=FULL_SCALE_LSB)
 
     @model_validator(mode="after")
     def _one_orientation(self) -> "UnitConfig":
         for s in ("mag", "acc"):
-            if getattr(self, f"{s}_M_o") is not None and getattr(self, f"{s}_angles_deg") is not None:
+            M_o, angles = getattr(self, f"{s}_M_o"), getattr(self, f"{s}_angles_deg")
+            if M_o is not None and angles is not None:
                 raise ValueError(f"give {s}_M_o or {s}_angles_deg, not both")
-            M_o = getattr(self, f"{s}_M_o")
             if M_o is not None and not np.allclose(np.linalg.norm(np.array(M_o), axis=1), 1.0, atol=1e-3):
                 raise ValueError(f"{s}_M_o: each row must be a unit vector (direction cosines); "
                                  f"put the scale in {s}_k")
+            if angles is not None:
+                problem = orientation_problem(np.cos(np.radians(np.array(angles))))
+                if problem:
+                    raise ValueError(f"{s}_angles_deg: {problem} (expected {FORMS[f'{s}_angles_deg']}, "
+                                     "each sensor axis near one body axis, e.g. [[0,90,90],[90,0,90],[90,90,0]])")
+            elif M_o is not None:
+                problem = orientation_problem(np.array(M_o))
+                if problem:
+                    raise ValueError(f"{s}_M_o: {problem} (expected {FORMS[f'{s}_M_o']})")
         return self
 
     def unit(self) -> Unit:
@@ -140,12 +192,12 @@ class FaultConfig(_Strict):
 
     kind: FaultKind
     axis: Literal["z", "y", "x"] | None = None
-    slot: int | None = Field(None, ge=0)
-    at_s: float | None = Field(None, ge=0)
-    at_angle_deg: float | None = None
-    code: int = Field(0x20, ge=1, le=0xFFFF)
-    nbytes: int = Field(40, ge=1)
-    count: int = Field(1, ge=1)
+    slot: Int | None = Field(None, ge=0)
+    at_s: Num | None = Field(None, ge=0)
+    at_angle_deg: Num | None = None
+    code: Int = Field(0x20, ge=1, le=0xFFFF)
+    nbytes: Int = Field(40, ge=1)
+    count: Int = Field(1, ge=1)
     pattern: Literal["zeros", "random", "bitflip"] = "zeros"
 
     @model_validator(mode="after")
@@ -156,6 +208,8 @@ class FaultConfig(_Strict):
             raise ValueError(f"fault {self.kind} needs slot = <the compass's slot number>")
         if self.at_angle_deg is not None and self.kind != "axis_alarm":
             raise ValueError("at_angle_deg applies to axis_alarm only; use at_s")
+        if self.at_angle_deg is not None and self.at_s is not None:  # (at_s was silently ignored)
+            raise ValueError("give at_angle_deg or at_s, not both (one fault fires once)")
         return self
 
 
@@ -343,5 +397,8 @@ def _describe(err: dict[str, object]) -> str:
         msg = "unknown key (check its spelling)"
     elif err.get("type") == "missing":
         msg = "missing"
+    elif str(err.get("type", "")).endswith("_type"):  # the wrong kind of value: say what was given
+        given = err.get("input")
+        msg = f"{msg}, got {type(given).__name__} {given!r}"
     form = f" (expected {FORMS[key.split('[')[0]]})" if key else ""
     return f"{name}: {msg}{form}"

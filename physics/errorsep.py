@@ -589,7 +589,9 @@ def accelerometer(rec: Recording) -> Accel:
     recording without accelerometer columns gives a level base and no model.
     """
     if rec.acc is None:
-        return Accel(None, np.zeros(2), notes=("no accelerometer data: base taken as level, heading levelled by table angles",))
+        levelled = ("heading levelled by table angles" if rec.has_angles else
+                    "no table angles either, so headings are not levelled (they are a level unit's)")
+        return Accel(None, np.zeros(2), notes=(f"no accelerometer data: base taken as level, {levelled}",))
     if not rec.has_angles:  # (its fit against the table's attitudes on empty angles ended in "SVD did not converge")
         return Accel(None, np.zeros(2), notes=("accelerometer not calibrated: it is calibrated against the table's "
                                                "angles, and this recording has none",))

@@ -166,9 +166,16 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
                                  "table angles are degrees of the right axes, or whether more samples are garbage than "
                                  f"the fit can drop (up to half of each pose's samples, {100 * MODEL_BREAKDOWN:.0f} % of "
                                  "the rows off the model)")
-        cal.notes.append(message + (f": a limitation of the {method} method on this recording" if spread > MAX_FIELD_SPREAD
-                                    else ": physics the model leaves out (compasscal analyze names it), or readings "
-                                         "and angles that do not belong together; the calibration is not to be trusted"))
+        if spread > MAX_FIELD_SPREAD:
+            why = f": a limitation of the {method} method on this recording"
+        elif method not in ROBUST_METHODS:  # a comparison method's simpler model misfits a clean recording too
+            why = (f": the {method} method's model leaves out part of what the joint fit models (the sensor's "
+                   "alignment to the body, or more), so this residual is the method's, not the recording's; the "
+                   "joint fit (--method joint) says whether the recording holds physics its model leaves out")
+        else:
+            why = (": physics the model leaves out (compasscal analyze names it), or readings and angles that do not "
+                   "belong together; the calibration is not to be trusted")
+        cal.notes.append(message + why)
     return cal
 
 

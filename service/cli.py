@@ -386,10 +386,15 @@ def print_calibration(cal: Calibration) -> None:
     for row in tables["table2"]:
         t2.add_row(*row)
     console.print(t2)
+    he = cal.quality.get("heading_error_deg", {})
+    if not np.isfinite(cal.inclination_deg):  # a method of the magnetometer alone, without table angles
+        console.print("field: not determined (no table angles); no level turn to give staged heading errors")
+        for note in cal.notes:
+            console.print(f"[dim]note: {escape(note)}[/]")
+        return
     console.print(f"field: I = {pm(cal.inclination_deg, sig.get('inclination_deg'), 4)} deg, "
                   f"D = {pm(cal.declination_deg, sig.get('declination_deg'), 4)} deg; "
                   f"base tilt (about x, about y) = {cal.base_tilt_deg[0]:.4f}, {cal.base_tilt_deg[1]:.4f} deg")
-    he = cal.quality.get("heading_error_deg", {})
     t3 = Table(title="Staged heading error on the recording's level turn (max |error|, deg; Fig. 5)")
     labels = {"raw": "raw", "bias": "bias removed", "sensitivity": "+ sensitivity", "full": "+ non-orthogonality (full)",
               "tilted_full": "full, tilted poses (|pitch|, |roll| <= 60)"}

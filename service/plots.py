@@ -21,7 +21,11 @@ STAGE_LABELS = {"raw": "raw", "bias": "bias removed", "sensitivity": "+ sensitiv
 
 
 def calibration_figure(rec: Recording, cal: Calibration, path: Path) -> None:
-    """Staged heading error against heading on the level turn (Fig. 5) and residuals per sample by step."""
+    """Staged heading error against heading on the level turn (Fig. 5) and residuals per sample by step;
+    for a recording without table angles, what the magnetometer alone shows (:func:`_angle_free_figure`)."""
+    if not rec.has_angles:
+        _angle_free_figure(rec, cal, path)
+        return
     f_b = es.specific_force(rec, cal.acc)
     level = (np.abs(rec.theta_t) < 0.01) & (np.abs(rec.phi_t) < 0.01)
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
@@ -47,6 +51,27 @@ def calibration_figure(rec: Recording, cal: Calibration, path: Path) -> None:
         axes[2].text(start, 1.0, str(s), transform=axes[2].get_xaxis_transform(), fontsize=7, va="bottom")
     axes[2].set(title="Model residuals by sample", xlabel="sample", ylabel="raw - model (LSB)")
     axes[2].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _angle_free_figure(rec: Recording, cal: Calibration, path: Path) -> None:
+    """A hand-held recording's calibration (no table angles, so no heading error to draw): the calibrated
+    field's magnitude at each sample, which a good calibration holds at 1, and the readings' horizontal
+    components raw and calibrated (an off-centre ellipse made a centred circle)."""
+    h = cal.mag.correct(np.asarray(rec.mag, dtype=float))
+    mag = np.linalg.norm(h, axis=1)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    axes[0].plot(mag, ".", ms=2)
+    axes[0].axhline(1.0, color="0.5", lw=0.8)
+    axes[0].set(title=f"Calibrated field magnitude ({cal.method}; rms spread {100 * np.std(mag) / np.mean(mag):.2f} %)",
+                xlabel="sample", ylabel="|h| (field units)")
+    raw = (rec.mag - cal.mag.bias) / np.mean(cal.mag.k)
+    axes[1].plot(raw[:, 0], raw[:, 1], ".", ms=2, label="raw (bias off, one scale)")
+    axes[1].plot(h[:, 0], h[:, 1], ".", ms=2, label="calibrated")
+    axes[1].set(title="x and y components", xlabel="x", ylabel="y", aspect="equal")
+    axes[1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

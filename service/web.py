@@ -174,7 +174,8 @@ def calibration_tables(cal: PhysCalibration) -> dict[str, Any]:
     rms = list((cal.quality or {}).get("residual_rms_lsb") or [None] * 3) + [None] * 3
     table1 = [[name, *(pm(ang[i, j], s_ang[i, j], 4) for j in range(3))] for i, name in enumerate(AXES)]
     table2 = [[name, pm(cal.mag.k[i], s_k[i], 3), pm(cal.mag.bias[i], s_b[i], 3),
-               "-" if rms[i] is None else f"{float(rms[i]):.2f}"] for i, name in enumerate(AXES)]
+               "-" if rms[i] is None or not np.isfinite(float(rms[i])) else f"{float(rms[i]):.2f}"]  # (nan: no model residual)
+              for i, name in enumerate(AXES)]
     return {"table1": table1, "table2": table2}
 
 

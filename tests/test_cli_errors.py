@@ -9,6 +9,7 @@ import re
 import socket
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -387,7 +388,7 @@ def test_example_script_with_a_wrong_url_says_so_in_one_line():
     assert r.stderr.count("\n") == 1 and "COMPASSCAL_URL" in r.stderr
 
 
-def test_fit_of_a_recording_without_table_angles_names_the_methods_that_need_none():
+def test_fit_of_a_recording_without_table_angles_names_the_methods_that_need_none(tmp_path: Path):
     """The QMC logger's hand-held file (data/real) has no table angles: the default joint fit is refused in
     one line saying so and which methods calibrate without them (before: "SVD did not converge"), and
     the ellipsoid method calibrates it."""
@@ -396,6 +397,16 @@ def test_fit_of_a_recording_without_table_angles_names_the_methods_that_need_non
     refused(["fit", str(qmc), "--method", "error-separation"], "method error-separation needs the table's angles")
     r = runner.invoke(app, ["fit", str(qmc), "--method", "ellipsoid"])
     assert r.exit_code == 0 and "method ellipsoid" in r.output, r.output
+    # what it prints and draws is what the magnetometer alone shows: no "nan" residuals, no level turn, no
+    # "heading levelled by table angles" (it has none), and a plot drawn without a warning
+    said = " ".join(r.output.split())
+    assert "nan" not in said and "field: not determined (no table angles)" in said, said
+    assert "heading levelled by table angles" not in said and "no table angles either" in said
+    plot = tmp_path / "q.png"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = runner.invoke(app, ["fit", str(qmc), "--method", "ellipsoid", "--plot", str(plot)])
+    assert r.exit_code == 0 and plot.stat().st_size > 10_000, (r.output, r.exception)
 
 
 def test_fit_refuses_swapped_angle_columns_and_writes_strict_json(tmp_path: Path):

@@ -1001,6 +1001,7 @@ def sim(
     config: Optional[Path] = typer.Option(None, "--config", help=escape("Station TOML (world, table, [[unit]], [[effect]], [[fault]]). Default: one random unit on an ideal table.")),
     modbus_port: int = typer.Option(0, help="Modbus TCP port of the table (0: any free port)."),
     compass_tcp_port: Optional[int] = typer.Option(None, help="Serve compasses on TCP from this port (slot i on port+i; 0: any free ports) instead of ptys."),
+    control_port: int = typer.Option(0, help="TCP port of the control channel (faults, the simulated time; 0: any free port)."),
     time_scale: Optional[float] = typer.Option(None, help="Run this many times faster than real time (overrides the config)."),
     seed: Optional[int] = typer.Option(None, min=0, help="Seed of the random unit and the noise (overrides the config)."),
     truth: Optional[Path] = typer.Option(None, help="Also write the true parameters of every unit (JSON list, slot order) here."),
@@ -1016,6 +1017,7 @@ def sim(
 
     _port(modbus_port, "--modbus-port", any_free=True)
     _port(compass_tcp_port, "--compass-tcp-port", any_free=True)
+    _port(control_port, "--control-port", any_free=True)
     _output_file(truth, "--truth")
     _time_scale(time_scale)
     try:
@@ -1027,6 +1029,9 @@ def sim(
     if seed is not None:
         cfg.world.seed = seed
     _port_free(host, modbus_port, "--modbus-port")
+    _port_free(host, control_port, "--control-port")
+    if control_port and control_port == modbus_port:
+        _fail(f"--control-port {control_port}: the table's --modbus-port; give each its own")
     if compass_tcp_port:
         if compass_tcp_port + len(cfg.unit) - 1 > 65535:
             _fail(f"--compass-tcp-port {compass_tcp_port}: slot i serves on port {compass_tcp_port}+i, past 65535 "
@@ -1039,7 +1044,8 @@ def sim(
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
-        async with SimStation(cfg, modbus_port=modbus_port, compass_tcp_port=compass_tcp_port, host=host) as station:
+        async with SimStation(cfg, modbus_port=modbus_port, compass_tcp_port=compass_tcp_port, control_port=control_port,
+                              host=host) as station:
             if truth is not None:
                 truth.write_text(json.dumps(station.truth(), indent=2))
             sys.stdout.write(json.dumps(station.describe()) + "\n")

@@ -60,11 +60,16 @@ def test_calibrate_against_a_sim_process_writes_recordings_and_calibrations(tmp_
     import subprocess
     import sys
 
+    from conftest import free_port
+
     truth = tmp_path / "truth.json"
-    sim = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--seed", "3", "--time-scale", "20", "--truth", str(truth)],
+    control = free_port()  # a control port of one's choosing (a firewall's, a script's): it was always any free one
+    sim = subprocess.Popen([sys.executable, "-m", "service.cli", "sim", "--seed", "3", "--time-scale", "20", "--truth", str(truth),
+                            "--control-port", str(control)],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).parent.parent)
     try:
         d = json.loads(sim.stdout.readline())
+        assert d["control"] == f"tcp://127.0.0.1:{control}", d
         out = tmp_path / "run"
         # no --time-scale: calibrate asks the simulator's control port; --adaptive: the plan extended as the unit needs
         r = runner.invoke(app, ["calibrate", "--modbus", d["modbus"], "--compass", d["compasses"][0]["url"],

@@ -190,6 +190,9 @@ def test_sim_names_a_modbus_port_in_use(busy_port: int, nothing_starts: None):
 def test_sim_names_a_compass_port_in_use_and_ports_out_of_range(busy_port: int, nothing_starts: None):
     refused(["sim", "--compass-tcp-port", str(busy_port)], f"--compass-tcp-port {busy_port}", "in use")
     refused(["sim", "--modbus-port", "70000"], "--modbus-port", "70000")
+    refused(["sim", "--control-port", str(busy_port)], f"--control-port {busy_port}", "in use")
+    port = free_port()
+    refused(["sim", "--control-port", str(port), "--modbus-port", str(port)], f"--control-port {port}", "--modbus-port")
 
 
 # -- the database -----------------------------------------------------------------------------------

@@ -142,6 +142,12 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
     cal.method = method
     cal.quality = quality(work, cal)
     cal.quality.update(rejected_rows=rejected_rows(rec, rejected), rejected=len(rejected), samples_total=len(rec))
+    if np.isfinite(cal.inclination_deg) and abs(cal.inclination_deg) > NEAR_POLE_DEG:
+        horizontal = np.cos(np.radians(cal.inclination_deg))
+        cal.notes.append(f"the field is {90 - abs(cal.inclination_deg):.1f} deg from vertical: its horizontal part, which "
+                         f"heading is measured against, is {100 * horizontal:.1f} % of it, so heading and D are "
+                         f"{1 / horizontal:.0f} times as sensitive to every reading's error as on the magnetic equator: "
+                         "large heading errors here are the place's, not the calibration's")
     if rejected:
         cal.notes.append(f"dropped {len(rejected)} of {len(rec)} rows as bad samples ({_reason_counts(rejected)}): "
                          f"sample indices {index_list(sorted(rejected))}")
@@ -214,6 +220,10 @@ def misfit_over_noise(rec: Recording, cal: Calibration) -> float:
 # Table angles in another convention
 # --------------------------------------------------------------------------------------------------
 
+#: Beyond this inclination (deg) the field's horizontal part is under 17 % of it: a fit says heading is
+#: poorly defined there (a simulated unit at I = 88 deg showed 0.97 deg of level error, and one at 90 deg
+#: 170 deg with D "250 +- 45", without a word).
+NEAR_POLE_DEG = 80.0
 #: Another reading of the table angles must leave this many times less residual to be named the likely
 #: one: no physics is undone by negating, swapping or rescaling an angle column.
 CONVENTION_GAIN = 10.0

@@ -383,3 +383,16 @@ def test_a_comparison_methods_misfit_is_said_to_be_the_methods_not_the_recording
     assert "times the noise" in said and "the ellipsoid method's model leaves out part of what the joint fit models" in said
     assert "physics the model leaves out" not in said
     assert not any("times the noise" in n for n in fit(rec, "joint", bootstrap=0).notes)
+
+
+def test_a_fit_near_the_magnetic_pole_says_heading_is_poorly_defined_there():
+    """At I = 88 deg the field's horizontal part is 3.5 % of it: the level heading error was about a degree
+    (and at 90 deg, 170 deg with D "250 +- 45") without a word; the note says why."""
+    from physics.fit import fit
+
+    rng = np.random.default_rng(2)
+    unit = random_unit(rng)
+    near = " ".join(fit(simulate_recording(unit, calibration_poses(), World(88.0, 23.0), rng=rng), "joint", bootstrap=0).notes)
+    assert "deg from vertical" in near and "times as sensitive" in near
+    usual = " ".join(fit(simulate_recording(unit, calibration_poses(), World(60.0, 23.0), rng=rng), "joint", bootstrap=0).notes)
+    assert "from vertical" not in usual

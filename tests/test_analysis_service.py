@@ -301,6 +301,7 @@ def test_cli_analyze_with_the_real_analyser_finds_a_clean_recording_consistent(t
 def test_cli_analyze_prints_the_summary_and_writes_json_and_html(tmp_path: Path, fake):
     rec_path, out_json, out_html = tmp_path / "rec.csv", tmp_path / "out" / "a.json", tmp_path / "out" / "a.html"
     rec_path.write_text(format_recording(simulated()))
+    out_json.parent.mkdir()  # (analyze no longer makes a missing directory: a mistyped one is said, as every command does)
     r = runner.invoke(app, ["analyze", str(rec_path), "--json", str(out_json), "--html", str(out_html),
                             "--null-sims", "7", "--seed", "3"])
     assert r.exit_code == 0, r.output

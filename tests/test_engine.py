@@ -10,8 +10,10 @@ import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
 from drivers import Station
 from drivers.sim.config import StationConfig, parse_config, reference_config
@@ -284,9 +286,16 @@ def test_pause_resume_and_abort_at_checkpoints():
     assert result.samples == 3 * 60
 
 
-def test_a_fault_while_paused_fails_the_run_at_once():
-    """An axis alarm while the run stood paused was said only when the operator resumed; the run and the
-    station looked healthy meanwhile. The paused engine polls the table's status once a second."""
+@pytest.mark.parametrize("fault, said, within_s", [
+    # an axis alarm: found by the next status poll
+    (lambda st: st.table.alarm("y", 0x28), ["axis y: fault 0x28 encoder error while the run was paused"], 1.0),
+    # a compass gone silent: the next read's stale second and its retry's
+    (lambda st: st.compasses[0].go_silent(True), ["CompassTimeout", "no sample", "while the run was paused"], 2 * 1.3 + 1.0),
+], ids=["axis alarm", "compass silent"])
+def test_a_fault_while_paused_fails_the_run_at_once(fault: Any, said: list[str], within_s: float):
+    """An axis alarm, or a compass that stopped talking, while the run stood paused was said only when the
+    operator resumed; the run and the station looked healthy meanwhile. The paused engine polls the
+    table's status and reads a sample of each streaming compass once a second."""
     cfg = reference_config(seed=5, time_scale=20)
     seen: dict[str, float] = {}
 
@@ -297,42 +306,15 @@ def test_a_fault_while_paused_fails_the_run_at_once():
             inner(e)
             if isinstance(e, StateChanged) and e.state is RunState.paused:
                 seen["paused"] = time.monotonic()
-                asyncio.get_running_loop().call_later(0.2, st.table.alarm, "y", 0x28)
-            if isinstance(e, StateChanged) and e.state is RunState.failed:
-                seen["failed"] = time.monotonic()
-            if isinstance(e, SamplesStored) and e.count == 60:
-                engine.pause()
-        engine.on_event = on_event
-    result, *_ = run(cfg, "rotate_z", {"samples": 60}, control=control)
-    assert result.state is RunState.failed and "axis y: fault 0x28 encoder error while the run was paused" in result.reason
-    assert seen["failed"] - seen["paused"] < 0.2 + 2 * PAUSED_WATCH_S + 1.0  # not left for the operator to find
-    assert result.samples == 60
-
-
-def test_a_compass_that_goes_silent_while_paused_fails_the_run_at_once():
-    """A compass that stopped talking while the run stood paused was found only when the operator
-    resumed. The paused engine reads a sample of each streaming compass once a second."""
-    cfg = reference_config(seed=5, time_scale=20)
-    seen: dict[str, float] = {}
-
-    def control(engine: Engine, st: SimStation) -> None:
-        inner = engine.on_event
-
-        def on_event(e: Event) -> None:
-            inner(e)
-            if isinstance(e, StateChanged) and e.state is RunState.paused:
-                seen["paused"] = time.monotonic()
-                asyncio.get_running_loop().call_later(0.2, st.compasses[0].go_silent, True)
+                asyncio.get_running_loop().call_later(0.2, fault, st)
             if isinstance(e, StateChanged) and e.state is RunState.failed:
                 seen["failed"] = time.monotonic()
             if isinstance(e, SamplesStored) and e.count == 60:
                 engine.pause()
         engine.on_event = on_event
     result, *_, status = run(cfg, "rotate_z", {"samples": 60}, control=control)
-    assert result.state is RunState.failed, result.reason
-    assert "CompassTimeout" in result.reason and "no sample" in result.reason and "while the run was paused" in result.reason
-    # one watch, then the read's stale second and its retry's: not left for the operator to find
-    assert seen["failed"] - seen["paused"] < 0.2 + 2 * PAUSED_WATCH_S + 2 * 1.3 + 1.0
+    assert result.state is RunState.failed and all(w in result.reason for w in said), result.reason
+    assert seen["failed"] - seen["paused"] < 0.2 + 2 * PAUSED_WATCH_S + within_s  # not left for the operator to find
     assert result.samples == 60
     assert not any(s.moving for s in status.values())
 

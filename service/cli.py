@@ -273,8 +273,11 @@ def simulate(
     samples: int = typer.Option(CalibrateParams().samples, help="Samples per pose."),
 ) -> None:
     """Simulate a unit on an ideal table running the calibration poses; writes the recording and its truth."""
-    if noise is not None and not noise >= 0:
-        _fail(f"--noise must be >= 0 LSB, got {noise:g}")
+    from drivers.sim.config import FULL_SCALE_LSB
+
+    # (1e30 wrote a file every fit then refused as "beyond any sensor's reading")
+    if noise is not None and not 0 <= noise <= FULL_SCALE_LSB:
+        _fail(f"--noise {noise:g}: give 0 to {FULL_SCALE_LSB:g} LSB (the wire's full scale)")
     # (an inclination of 200 is the field of -20 at D + 180, which --truth then scored 180 deg off; nan crashed)
     if not -90.0 <= inclination <= 90.0:
         _fail(f"--inclination {inclination:g}: the inclination is -90 to 90 deg (positive: the field points down)")

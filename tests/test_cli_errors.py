@@ -235,6 +235,7 @@ def test_simulate_refuses_a_missing_directory_and_negative_noise(tmp_path: Path)
     refused(["simulate", "-o", str(tmp_path / "nonexistent" / "rec.csv")], "--output", "does not exist")
     assert not (tmp_path / "nonexistent").exists()
     refused(["simulate", "--noise", "-3", "-o", str(tmp_path / "rec.csv")], "--noise", "-3")
+    refused(["simulate", "--noise", "1e30", "-o", str(tmp_path / "rec.csv")], "--noise 1e+30", "0 to 32767 LSB")
     assert not (tmp_path / "rec.csv").exists()
 
 

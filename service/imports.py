@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 import tomllib
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -573,6 +574,10 @@ ACC_UNITS = {"g": 1.0, "mg": 1e-3, "m/s^2": 1.0 / STANDARD_G, "m/s2": 1.0 / STAN
 GYRO_UNITS = {"deg/s": 1.0, "dps": 1.0, "rad/s": 180.0 / math.pi}
 #: Seconds per file unit of the time (or interval) column.
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+#: A unit a time column's name may end in, and the TIME_UNITS key it means.
+TIME_NAMES = {"ms": "ms", "msec": "ms", "millis": "ms", "milliseconds": "ms", "us": "us", "usec": "us",
+              "micros": "us", "microseconds": "us", "ns": "ns", "nanos": "ns", "sec": "s", "seconds": "s"}
+_TIME_UNIT_IN_NAME = re.compile(r"(" + "|".join(sorted(TIME_NAMES, key=len, reverse=True)) + r")\W*$")
 ANGLE_UNITS = {"deg": 1.0, "rad": 180.0 / math.pi}
 #: deg C = file value + offset.
 TEMP_UNITS = {"C": 0.0, "K": -273.15}
@@ -1105,6 +1110,14 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
 
     # time base
     scale = TIME_UNITS[m.time.unit]
+    for key in ("t", "dt"):
+        named = _TIME_UNIT_IN_NAME.search(tab.labels.get(key, "").lower()) if key in v else None
+        if named and "unit" not in m.time.model_fields_set and TIME_NAMES[named.group(1)] != "s":
+            # (a column "tms" read as seconds made a 106,050-s recording of a two-minute one, unsaid)
+            unit = TIME_NAMES[named.group(1)]
+            words = {"ms": "milliseconds", "us": "microseconds", "ns": "nanoseconds"}[unit]
+            raise _fail(path, f"mapping: column {tab.labels[key]} is named like a time in {words}, and [time] gives no "
+                              f'unit (seconds by default): say unit = "{unit}" in [time] (or unit = "s" if it is seconds)')
     if "t" in v:
         t = v["t"] * scale
         back = np.flatnonzero(np.diff(t) < 0)

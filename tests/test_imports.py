@@ -477,6 +477,20 @@ def test_mapping_mat_variables_and_radians(tmp_path):
     assert "log[4]" in rec.meta["angles"]
 
 
+def test_a_time_column_named_in_milliseconds_needs_its_unit_said(tmp_path):
+    """A column "tms" with no [time] unit was read as seconds: a two-minute log became one of 106,050 s,
+    unsaid. A time column named in ms, us or ns needs [time] unit (either way); one named in seconds does not."""
+    data = "tms,t_sec,a,b,c\n0,0.0,1,2,3\n10,0.01,2,3,4\n20,0.02,3,4,5\n"
+    said = _mapping_error(tmp_path, {"columns": {**MAG_ABC, "t": "tms"}}, data)
+    assert "column 'tms' is named like a time in milliseconds" in said and 'say unit = "ms" in [time]' in said, said
+    p = _write(tmp_path, "d.csv", data)
+    for mapping, span in (({"columns": {**MAG_ABC, "t": "tms"}, "time": {"unit": "ms"}}, 0.02),
+                          ({"columns": {**MAG_ABC, "t": "tms"}, "time": {"unit": "s"}}, 20.0),
+                          ({"columns": {**MAG_ABC, "t": "t_sec"}}, 0.02)):
+        rec = read_recording_file(p, mapping=mapping)
+        assert rec.t[-1] - rec.t[0] == pytest.approx(span), mapping
+
+
 def _mapping_error(tmp_path: Path, mapping: dict | str, data: str = "a,b,c\n1,2,3\n") -> str:
     p = _write(tmp_path, "d.csv", data)
     if isinstance(mapping, str):

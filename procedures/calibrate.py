@@ -25,7 +25,7 @@ from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_cost, plan_timeline
 from physics.table import DRIVE_SETTLE_S, PROCEDURE_SETTLE_S, Motion
 from procedures.steps import (Acquire, Checkpoint, Compute, Move, Outcome, Park, Procedure, ProcedureGen, Prompt, Scan, Settle,
-                              step_seconds)
+                              request_number, step_seconds)
 
 NAME = "calibrate"
 VERSION = "2"
@@ -39,14 +39,10 @@ class _Params(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_bool_numbers(cls, v: Any, info: ValidationInfo) -> Any:
-        # pydantic's lax mode reads true as 1 (``"samples": true`` was one sample) and "60" as 60: a
-        # script's mistake either way (the API checks a request whole), not a number
+        # a number field (not one that also takes a bool or text) takes a number only
         kinds = get_args(cls.model_fields[info.field_name].annotation) or (cls.model_fields[info.field_name].annotation,)
         if (int in kinds or float in kinds) and bool not in kinds and str not in kinds:
-            if isinstance(v, bool):
-                raise ValueError("a number is required, not true or false")
-            if isinstance(v, str):
-                raise ValueError(f"a number is required, not the string {v!r}")
+            return request_number(v)
         return v
 
     samples: int = Field(60, ge=1, le=10_000, description="samples averaged at each pose")

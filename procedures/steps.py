@@ -108,6 +108,17 @@ class Outcome:
 ProcedureGen = Generator[Step, Reply, Outcome]
 
 
+def request_number(value: Any) -> Any:
+    """A number as a request brings it (a pydantic before-validator): true/false and strings are refused,
+    which pydantic's lax mode reads as numbers (``"samples": true`` was one sample, ``"60"`` sixty): a
+    script's mistake, where a request is checked whole. Anything else is left to the field's type."""
+    if isinstance(value, bool):
+        raise ValueError("a number is required, not true or false")
+    if isinstance(value, str):
+        raise ValueError(f"a number is required, not the string {value!r}")
+    return value
+
+
 #: The longest plan a run may have, nominal table seconds: a day. A step or a count mistyped by orders of
 #: magnitude is refused before a station is claimed, not found on the table days later.
 MAX_PLAN_S = 24 * 3600.0

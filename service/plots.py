@@ -669,7 +669,14 @@ def residual_time_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_
                 ax.set_ylabel("residual (LSB)", fontsize=8)
     for ax in axes[-1]:
         ax.set_xlabel("time t (s)", fontsize=8)
-    if len(steps) <= 16:  # a legend of a few steps helps; of fifty it hides the data
+    _step_legend(fig, steps)
+    return fig
+
+
+def _step_legend(fig: Figure, steps: Sequence[str]) -> None:
+    """The colours of the steps (:func:`_step_colors`) as a legend under the panels, then the layout. A
+    legend of a few steps helps; of fifty it hides the data: none beyond 16."""
+    if len(steps) <= 16:
         import matplotlib.lines as mlines
         handles = [mlines.Line2D([], [], ls="", marker="o", ms=4, color=_step_colors(np.array([k]))[0], label=s)
                    for k, s in enumerate(steps)]
@@ -677,7 +684,6 @@ def residual_time_figure(series: Mapping[str, Any], names: Sequence[str] = AXIS_
         fig.tight_layout(rect=(0, 0.06 if len(steps) <= 8 else 0.1, 1, 1))
     else:
         fig.tight_layout()
-    return fig
 
 
 def samples_figure(rec: Recording) -> Figure:
@@ -694,11 +700,7 @@ def samples_figure(rec: Recording) -> Figure:
         ax.grid(True, lw=0.4, alpha=0.6)
         ax.tick_params(labelsize=7)
     axes[-1].set_xlabel("time t (s)", fontsize=8)
-    import matplotlib.lines as mlines
-    handles = [mlines.Line2D([], [], ls="", marker="o", ms=4, color=_step_colors(np.array([k]))[0], label=s)
-               for k, s in enumerate(steps[:16])]  # of fifty steps a legend hides the data
-    fig.legend(handles=handles, loc="lower center", ncol=min(8, len(handles)), fontsize=7, frameon=False)
-    fig.tight_layout(rect=(0, 0.08 if len(handles) <= 8 else 0.12, 1, 1))
+    _step_legend(fig, steps)
     return fig
 
 

@@ -16,6 +16,8 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from drivers.modbus import BusURL
+from drivers.sim.config import MAX_TIME_SCALE
+from procedures.steps import request_number
 from service.identity import (CHOICES, SERIAL_MAX, SERIAL_PATTERN, SERIAL_RULE, SerialPolicy as _SerialPolicy,
                               check_serial)
 
@@ -82,13 +84,6 @@ def _not_bool(value: Any) -> Any:
     if isinstance(value, bool):
         raise ValueError("a number is required, not true or false")
     return value
-
-
-def _not_bool_or_text(value: Any) -> Any:
-    # a body's count: lax mode also reads "20" as 20, where the body checks its numbers whole
-    if isinstance(value, str):
-        raise ValueError(f"a number is required, not the string {value!r}")
-    return _not_bool(value)
 
 
 def unstorable(value: Any) -> str | None:
@@ -244,7 +239,7 @@ class StationConfigIn(In):
     modbus: str = Field(min_length=1, max_length=256, description="e.g. tcp://10.0.0.5:502")
     compasses: list[Annotated[str, AfterValidator(no_nul), Field(max_length=256)]] = Field(
         min_length=1, max_length=MAX_SLOTS, description="the serial URL of slot 0, slot 1, ...")
-    time_scale: Finite = Field(1.0, gt=0, le=1000, description="> 1 only for a simulated station running faster")
+    time_scale: Finite = Field(1.0, gt=0, le=MAX_TIME_SCALE, description="> 1 only for a simulated station running faster")
     serial_policy: SerialPolicy | None = Field(
         None, description="when a unit reports another serial number than the one typed: prompt (ask the operator), "
         "refuse (the unit is not calibrated) or trust-typed (certified as typed, recorded); omitted: unchanged "
@@ -524,7 +519,7 @@ class AnalysisIn(In):
     """What to analyse; every field optional (an empty body analyses every unit of the run)."""
 
     slot: Index | None = Field(None, description="the fixture slot (unit) to analyse; default: every slot with samples")
-    null_sims: Annotated[int, Field(ge=0, le=5000), BeforeValidator(_not_bool_or_text)] = Field(
+    null_sims: Annotated[int, Field(ge=0, le=5000), BeforeValidator(request_number)] = Field(
         200, description="simulated null recordings calibrating the tests' false-alarm rate")
     calibration_id: Id | None = Field(None, description="a stored calibration as the unit's nominal model (the "
                                       "recording's own fit is compared with it: shifted parameters are reported); "

@@ -27,7 +27,7 @@ Int = Annotated[int, Strict()]
 #: every reading, so no lab could calibrate such a unit (drivers/compass.py refuses counts beyond it).
 FULL_SCALE_LSB = 32767.0
 #: Fastest simulated station: motion, sample rates and settle times this many times faster than real
-#: time, as the service accepts for a station's time_scale (service/schemas.py).
+#: time; the service takes no more for a station's time_scale (service/schemas.py uses this).
 MAX_TIME_SCALE = 1000.0
 #: Smallest |det| of a sensor's direction cosines: below it two axes are (nearly) parallel or all three
 #: (nearly) in one plane, and the unit could not measure a field along every direction.

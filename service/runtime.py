@@ -338,7 +338,25 @@ def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
             prompt = {"run_id": r.id, **j["prompts"][0]}
     return {"id": batch.id, "station": station.name if station else None, "status": batch.status,
             "operator": batch.operator, "serials": batch.serials, "created_at": batch.created_at,
-            "finished_at": batch.finished_at, "summary": batch.summary or {}, "units": units, "prompt": prompt}
+            "finished_at": batch.finished_at, "summary": batch.summary or {}, "units": units, "prompt": prompt,
+            "tally": batch_tally(units, ended=batch.status not in ("running", BATCH_ABORTING))}
+
+
+#: A batch's units counted by outcome (`batch_tally`): its verdicts, then those without one.
+TALLY = ("pass", "marginal", "fail", "uncalibrated", "pending")
+
+
+def batch_tally(units: list[dict[str, Any]], ended: bool) -> dict[str, int]:
+    """How many of a batch's units PASS, are MARGINAL or FAIL, ended without a calibration (a failed,
+    aborted or refused run, or never run in a batch that has ended) and are still to be done: what a
+    line supervisor reads first."""
+    tally = dict.fromkeys(TALLY, 0)
+    for u in units:
+        if u.get("verdict"):
+            tally[u["verdict"].lower()] += 1
+        else:
+            tally["uncalibrated" if ended or u["status"] in FINAL else "pending"] += 1
+    return tally
 
 
 def target_said(calibration: dict[str, Any]) -> str | None:

@@ -511,6 +511,8 @@ class BatchOut(BaseModel):
     summary: dict[str, str]
     units: list[BatchUnit]
     prompt: BatchPrompt | None
+    tally: dict[str, int] = Field(description="the units counted by outcome: pass, marginal, fail (their verdicts), "
+                                  "uncalibrated (a failed, aborted or refused run, or not run) and pending")
 
 # -------------------------------------------------------------------------------------- analyses
 

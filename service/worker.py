@@ -549,7 +549,8 @@ def run_task(job: JobContext, run_id: int) -> None:
 async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str, Any], operator: str,
                         serial_policy: str | None = None) -> None:
     """Each unit in turn on slot 0: a mount prompt, the calibration, its verdict in the summary. A
-    unit that fails does not stop the batch; a station in fault does (nothing can run on it).
+    unit that fails does not stop the batch; a station in fault does (nothing can run on it). A batch
+    that calibrated none of its units ends ``failed`` (each unit's reason in the summary).
     ``serial_policy`` (None: the station's) settles a unit reporting another serial than its own;
     a unit reporting a serial already certified in the batch is not certified again."""
     with ctx.sessions() as s:
@@ -557,7 +558,7 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
         station = s.get(Station, batch.station_id)
         name, serials = station.name, list(batch.serials)
     summary: dict[str, str] = {}
-    status, previous = "completed", None
+    status, previous, calibrated = "completed", None, 0
     try:
         for serial in serials:
             if ctx.stopping.is_set():  # the worker was asked to stop (SIGTERM): the unit on the table is done
@@ -590,7 +591,9 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
             with ctx.sessions() as s:
                 done = s.get(Run, run.id)
                 summary[serial] = _verdict(done)
-                reported = slot_result((done.meta or {}).get("result")).get("identified_serial")
+                unit = slot_result((done.meta or {}).get("result"))
+                calibrated += done.status == RunState.completed.value and "verdict" in unit
+                reported = unit.get("identified_serial")
             # the unit to take out, by what the operator typed and, when it said otherwise, what it reported
             previous = f"{serial}" + (f" (it reports {reported})" if reported and reported != serial else "") \
                 + f" ({summary[serial]})"
@@ -599,6 +602,8 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
         with ctx.sessions() as s:
             s.execute(update(Station).where(Station.name == name, Station.batch_id == batch_id).values(batch_id=None))
             s.commit()
+        if status == "completed" and not calibrated:
+            status = "failed"  # it went through its units and calibrated none: the station, not the units, is suspect
         _save_batch(ctx, batch_id, status, summary, final=True)
 
 

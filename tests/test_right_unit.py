@@ -8,6 +8,7 @@ serial, "GAO2017-REF" unless the test mounts another)."""
 
 from __future__ import annotations
 
+import re
 import time
 from typing import Any
 
@@ -343,10 +344,25 @@ def test_a_unit_that_failed_may_be_retested_in_its_batch(api: Api):
         r = api.put("/limits/residual_rms_lsb", role="admin", json={"marginal": 0.1, "fail": 0.2})  # every unit fails
         assert r.status_code == 200, r.text
         b, _ = run_batch(api, info, ["SN-1", "SN-2"], {"SN-1": UNIT, "SN-2": UNIT}, {}, serial_policy="trust-typed")
-        assert b["status"] == "completed", b
+        assert b["status"] == "completed", b  # it calibrated its units (and judged them)
         assert b["summary"] == {"SN-1": "FAIL", "SN-2": "FAIL"}, b["summary"]
+        assert b["tally"] == {"pass": 0, "marginal": 0, "fail": 2, "uncalibrated": 0, "pending": 0}, b["tally"]
         units = {u["serial"]: u for u in b["units"]}
         assert units["SN-2"]["identification"] == "differs" and units["SN-2"]["calibration_id"], units["SN-2"]
+
+
+def test_a_batch_that_calibrated_none_of_its_units_ends_failed(api: Api):
+    """Every unit refused (each reports another serial, the policy refuses): the batch went through its
+    units but calibrated none, which says more about the station than the units, so it ends ``failed``,
+    its tally and page counting them (it ended "completed", only its summary said otherwise)."""
+    with sim_station(reference_config(seed=28, time_scale=20)) as info:
+        make_station(api, info)
+        b, _ = run_batch(api, info, ["SN-1", "SN-2"], {"SN-1": UNIT, "SN-2": UNIT}, {}, serial_policy="refuse")
+        assert b["status"] == "failed", b
+        assert all(line.startswith("failed: ") and "refused" in line for line in b["summary"].values()), b["summary"]
+        assert b["tally"] == {"pass": 0, "marginal": 0, "fail": 0, "uncalibrated": 2, "pending": 0}, b["tally"]
+        page = api.get(f"/ui/batches/{b['id']}", role="viewer").text
+        assert re.search(r'<span id="batch-tally">\s*2 uncalibrated</span>', page), page
 
 
 def test_a_batch_is_aborted_as_a_whole(api: Api):
@@ -375,6 +391,7 @@ def test_a_batch_is_aborted_as_a_whole(api: Api):
         assert b["status"] == "aborted", b
         assert b["summary"]["SN-1"] == "aborted: line stopped", b["summary"]
         assert b["summary"]["SN-2"] == b["summary"]["SN-3"] == "not run: the batch was aborted", b["summary"]
+        assert b["tally"]["uncalibrated"] == 3 and b["tally"]["pending"] == 0, b["tally"]  # the batch has ended
         run = api.get(f"/runs/{run_id}", role="viewer").json()
         assert run["status"] == "aborted" and run["samples_count"] >= 40  # the samples so far are kept
         assert [u["serial"] for u in b["units"] if u["run_id"]] == ["SN-1"]  # no run made for the others

@@ -329,6 +329,7 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
             if b["status"] != "running":
                 break
             assert time.monotonic() < deadline, b
+            assert b["tally"]["pending"] >= 1 and b["tally"]["uncalibrated"] == 0, b["tally"]  # the unit on the table is to do
             if b["prompt"]:
                 run_id, text = b["prompt"]["run_id"], b["prompt"]["text"]
                 assert b["prompt"]["id"] == "mount"
@@ -346,6 +347,9 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
         assert b["status"] == "completed" and b["station"] == "lab-1"
         assert set(b["summary"]) == {"SN-A", "SN-B"} and set(b["summary"].values()) <= {"PASS", "MARGINAL"}, b["summary"]
         assert [(u["serial"], u["status"]) for u in b["units"]] == [("SN-A", "completed"), ("SN-B", "completed")]
+        verdicts = list(b["summary"].values())
+        assert b["tally"] == {"pass": verdicts.count("PASS"), "marginal": verdicts.count("MARGINAL"), "fail": 0,
+                              "uncalibrated": 0, "pending": 0}, b["tally"]
         for u in b["units"]:
             run = api.get(f"/runs/{u['run_id']}", role="viewer").json()
             assert run["batch_id"] == bid and run["procedure"] == "batch_calibrate" and run["serials"] == {"0": u["serial"]}

@@ -58,6 +58,7 @@
       }
     }
     cc.setText("batch-progress", `${done} of ${b.units.length} units done`);
+    cc.setText("batch-tally", Object.entries(b.tally || {}).filter(([k, n]) => n && k !== "pending").map(([k, n]) => `${n} ${k}`).join(", "));
     const bar = document.getElementById("batch-bar");
     if (bar) bar.value = done;
     if (prompts) {

@@ -43,7 +43,7 @@ from physics import methods as comparison
 from physics.calibration import STAGES, Calibration
 from physics.frames import field_direction
 from physics.heading import circular_mean_deg, error_summary, heading_error, levelled_field, reference_heading, wrap180
-from physics.recording import Recording, RecordingError
+from physics.recording import Recording, RecordingError, file_row
 from physics.sensor import LinearSensor
 from physics.table import TableGeometry, base_rotation, platform_attitude
 
@@ -150,7 +150,7 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
                          "large heading errors here are the place's, not the calibration's")
     if rejected:
         cal.notes.append(f"dropped {len(rejected)} of {len(rec)} rows as bad samples ({_reason_counts(rejected)}): "
-                         f"sample indices {index_list(sorted(rejected))}")
+                         f"data rows {index_list(sorted(file_row(rec, i) for i in rejected))} (0-based)")
     spread = field_spread(work, cal)
     misfit = misfit_over_noise(work, cal)
     if spread > MAX_FIELD_SPREAD or misfit > MAX_MISFIT:
@@ -636,8 +636,11 @@ def index_list(idx: list[int], limit: int = 20) -> str:
 
 
 def rejected_rows(rec: Recording, rejected: dict[int, str]) -> list[dict[str, Any]]:
-    """The calibration JSON's list of dropped rows: sample index (0-based data row), t, step label, reason."""
-    return [{"index": i, "t": float(rec.t[i]), "step": str(rec.step[i]), "reason": rejected[i]} for i in sorted(rejected)]
+    """The calibration JSON's list of dropped rows: sample index (into the recording as read), its
+    file's 0-based data row ``row`` (which counts malformed rows a reader skipped: `file_row`), t, step
+    label, reason."""
+    return [{"index": i, "row": file_row(rec, i), "t": float(rec.t[i]), "step": str(rec.step[i]), "reason": rejected[i]}
+            for i in sorted(rejected)]
 
 
 def _stepwise(rec: Recording, acc: es.Accel, peak: str, bootstrap: int, rng: np.random.Generator | None) -> Calibration:

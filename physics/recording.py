@@ -207,6 +207,11 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
         break
     if header_at is None:
         raise RecordingError("recording has no column line")
+    version = meta.get(VERSION_KEY)
+    if version is not None and version.removesuffix(".0") != str(FORMAT_VERSION):
+        # a later format may give a column another meaning: read as this one, its numbers would be wrong
+        raise RecordingError(f"metadata '# {VERSION_KEY}: {version}': this compasscal reads format {FORMAT_VERSION} "
+                             "(RECORDING.md)")
 
     names = _parse_column_line(lines[header_at], header_at + 1)
     col = {name: j for j, name in enumerate(names)}
@@ -219,6 +224,7 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
     bad_rows = 0
     skipped_at: list[int] = []  # data rows (0-based, good and bad counted) that were malformed
     last_t, last_t_line = -math.inf, 0
+    behind: dict[str, Any] | None = None  # the second row, blamed for going back from the first (see below)
     for lineno, line in enumerate(lines[header_at + 1:], start=header_at + 2):
         stripped = line.strip()
         if not stripped or stripped.startswith("#"):  # comments after the column line are ignored too
@@ -235,9 +241,23 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
             skipped_at.append(ahead["data_row"])
             bad_rows += 1
             last_t, last_t_line = rows[-1]["t"], rows[-1]["line"]
+        if (not row_problems and row["t"] < last_t and len(rows) == 1 and behind is not None
+                and behind["t"] <= row["t"]):
+            # the first row is the one ahead: the row blamed for going back from it and this one go on
+            # together (a bad first time stamp made every other row "malformed")
+            first = rows.pop()
+            problems[behind["problem"]] = (f"line {first['line']}: column t: {first['raw_t']} is ahead of the rows "
+                                           f"after it (t={behind['raw_t']} on line {behind['line']}, "
+                                           f"t={row['raw_t']} on line {lineno})")
+            skipped_at[skipped_at.index(behind["data_row"])] = first["data_row"]
+            rows.append(behind)
+            last_t, last_t_line = behind["t"], behind["line"]
+        behind = None
         if not row_problems and row["t"] < last_t:
             row_problems.append(f"line {lineno}: column t: time goes backwards "
                                 f"(previous t={last_t:g} on line {last_t_line}) ('{row['raw_t']}')")
+            if len(rows) == 1 and len(row_problems) == 1:  # perhaps the first row is the bad one: the next row tells
+                behind = {**row, "line": lineno, "data_row": len(rows) + bad_rows, "problem": len(problems)}
         if row_problems:
             skipped_at.append(len(rows) + bad_rows)
             bad_rows += 1
@@ -276,6 +296,9 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
         where = [f"line {rows[i]['line']}" for i in np.flatnonzero(empty.any(axis=1))[:10]]
         raise RecordingError("table angles psi_t, theta_t, phi_t must be given in every row or left empty in every "
                              f"row (a recording without table angles); empty in: {', '.join(where)} (skipping bad rows drops them)")
+    problem = time_unit_problem(column("t"), meta)
+    if problem:
+        raise RecordingError(problem)
     acc = np.column_stack([column(c) for c in ACC_COLUMNS]) if has_acc else None
     temp = column("temp_c") if has_temp else None
     return Recording(
@@ -288,6 +311,32 @@ def parse_recording(text: str, *, skip_bad_rows: bool = False, max_step_chars: i
         meta=meta,
         extra={c: [r["extra"][j] for r in rows] for j, c in enumerate(extra_names)},
     )
+
+
+#: Units a time column is mistakenly written in, by seconds per unit's count ("t looks like ...").
+TIME_MISTAKES = (("milliseconds", 1e-3), ("microseconds", 1e-6), ("nanoseconds", 1e-9))
+
+
+def time_unit_problem(t: np.ndarray, meta: dict[str, str]) -> str | None:
+    """Why ``t`` is not in seconds, when the file's own '# sample_rate_hz' says so: its samples' usual
+    spacing (the median of the steps forward) is a thousand or a million times the rate's period. A
+    two-minute log in milliseconds read as seconds was 29 hours long, and every analysis of it against
+    time meaningless, without a word. None when there is no rate to compare with or it agrees."""
+    try:
+        rate = float(meta.get("sample_rate_hz", "nan"))
+    except ValueError:
+        return None
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    if not (math.isfinite(rate) and rate > 0) or steps.size < 2:
+        return None
+    spacing = float(np.median(steps))
+    for unit, seconds in TIME_MISTAKES:
+        if 1 / 3 <= spacing * seconds * rate <= 3:
+            return (f"column t: consecutive samples are {spacing:g} s apart (the median step) where the file's "
+                    f"'# sample_rate_hz: {rate:g}' says {1 / rate:g} s: t looks like {unit}; RECORDING.md's t is in "
+                    "seconds (divide it, or correct the rate line)")
+    return None
 
 
 def _is_number(text: str) -> bool:

@@ -331,10 +331,10 @@ def fit(
     dropped = cal.quality.get("rejected_rows") or []
     if dropped:  # bad samples the fit rejected on its own (physics.fit): which, and why
         console.print(f"[yellow]{len(dropped)} of {cal.quality.get('samples_total')} rows dropped as bad samples "
-                      f"(sample = 0-based data row of {recording.name} after its header, blank and comment lines "
+                      f"(row = 0-based data row of {recording.name} after its header, blank and comment lines "
                       f"not counted):[/]")
         for row in dropped[:20]:  # as the file counts its rows, the malformed ones skipped included
-            console.print(f"  sample {file_row(rec, int(row['index']))} (t {row['t']:g} s, step {escape(row['step'])}): "
+            console.print(f"  row {row['row']} (t {row['t']:g} s, step {escape(row['step'])}): "
                           f"{escape(row['reason'])}")
         if len(dropped) > 20:
             console.print(f"  ... and {len(dropped) - 20} more (all listed in the calibration JSON, quality.rejected_rows)")
@@ -519,6 +519,10 @@ def analyze(
     if skip_bad_rows:
         _note_skipped(rec, recording)
     cal = _read_calibration(calibration) if calibration is not None else None
+    if cal is not None and cal.serial and rec.serial and cal.serial != rec.serial:
+        # another unit's calibration makes every difference between two units a "parameter shift" (as the API says)
+        _fail(f"--calibration {calibration}: the calibration of unit {cal.serial}, but {recording.name} is of unit "
+              f"{rec.serial}: give one of {rec.serial}'s calibrations")
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
                   TimeElapsedColumn(), console=err_console, transient=True) as bar:
         task = bar.add_task("analyse", total=1.0)

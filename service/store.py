@@ -58,6 +58,11 @@ def insert_samples(session: Session, run_id: int, slot: int, rec: Recording) -> 
     return n
 
 
+#: How an export names what an imported recording's file said of its identity (run, operator, ...)
+#: where the run it became says otherwise.
+IMPORTED_PREFIX = "imported_"
+
+
 def load_recording(session: Session, run: Run, slot: int) -> Recording | None:
     """The samples of one slot of a run as a recording (RECORDING.md metadata from the run)."""
     rows = session.execute(
@@ -67,9 +72,16 @@ def load_recording(session: Session, run: Run, slot: int) -> Recording | None:
     if not rows:
         return None
     a = np.array([[np.nan if v is None else v for i, v in enumerate(r) if i != 1] for r in rows], dtype=float)
-    meta = {"serial": unit_serial(run, slot), "run_id": str(run.id), "procedure": run.procedure,
-            "procedure_version": run.procedure_version, "operator": run.operator, "slot": str(slot)}
-    meta.update({k: str(v) for k, v in (run.meta or {}).items() if isinstance(v, (str, int, float))})
+    meta = {k: str(v) for k, v in (run.meta or {}).items() if isinstance(v, (str, int, float))}
+    own = {"serial": unit_serial(run, slot), "run_id": str(run.id), "procedure": run.procedure,
+           "procedure_version": run.procedure_version, "operator": run.operator, "slot": str(slot)}
+    for key, value in own.items():
+        # the run's identity wins over an imported file's own lines (an export of run 4 said "run_id: 999",
+        # "operator: mallory"), which are kept as what the file said
+        said = meta.get(key)
+        if said and said != value:
+            meta[f"{IMPORTED_PREFIX}{key}"] = said
+        meta[key] = value
     typed = str((run.serials or {}).get(str(slot)) or "")
     if typed and typed != meta["serial"]:  # the serial typed for a unit that reported another, kept beside it
         meta["typed_serial"] = typed

@@ -364,6 +364,11 @@ def test_cli_analyze_names_the_line_of_a_bad_csv_and_the_field_of_a_bad_calibrat
     path.write_text("{not json")
     r = runner.invoke(app, ["analyze", str(good), "--calibration", str(path)])
     assert r.exit_code == 2 and "not JSON: line 1" in said(r.output)
+    # another unit's calibration, refused as the API refuses it (every difference between two units would
+    # read as a "parameter shift": a discrepancy, exit 0)
+    path.write_text(json.dumps(fit(simulated("SN-OTHER", seed=2), "joint").to_json()))
+    r = runner.invoke(app, ["analyze", str(good), "--calibration", str(path)])
+    assert r.exit_code == 2 and "the calibration of unit SN-OTHER, but rec.csv is of unit" in said(r.output), r.output
     assert not fake.calls  # nothing analysed on bad input
 
 

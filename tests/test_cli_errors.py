@@ -329,10 +329,16 @@ def test_fit_counts_a_dropped_samples_row_as_the_file_does_when_malformed_rows_w
     for i in data[3:5]:  # two malformed rows before it
         lines[i] = lines[i].rsplit(",", 1)[0] + ",oops"
     rec.write_text("\n".join(lines) + "\n")
-    r = runner.invoke(app, ["fit", str(rec), "--skip-bad-rows"])
+    r = runner.invoke(app, ["fit", str(rec), "--skip-bad-rows", "-o", str(tmp_path / "cal.json")])
     assert r.exit_code == 0, r.output
     said = " ".join(r.output.split())
-    assert "sample 40 (t" in said and "sample 38 (t" not in said, said
+    assert "row 40 (t" in said and "row 38 (t" not in said, said
+    # the note (the calibration's notes) and the JSON count the same rows (the note said 38: the
+    # recording's index)
+    assert "bad samples (1 off their pose's median): data rows 40 (0-based)" in said, said
+    cal = json.loads((tmp_path / "cal.json").read_text())
+    assert [(x["index"], x["row"]) for x in cal["quality"]["rejected_rows"]] == [(38, 40)], cal["quality"]["rejected_rows"]
+    assert any("data rows 40 (0-based)" in n for n in cal["notes"]), cal["notes"]
 
 
 def test_fit_names_the_elements_a_level_only_recording_leaves_undetermined(tmp_path: Path):

@@ -459,6 +459,44 @@ def test_one_time_stamp_ahead_of_both_neighbours_is_the_bad_row() -> None:
     assert [file_row(rec, i) for i in (2, 3)] == [2, 4]
 
 
+def test_a_first_time_stamp_ahead_of_the_rest_is_the_bad_row() -> None:
+    """The first row's t far ahead (1e300 before 0.05, 0.10, ...): that row is named, not every other row
+    (the rule for a jump needed two rows before it, and --skip-bad-rows kept the one bad row alone). With
+    only two rows nothing says which is wrong, and the second stays the one named."""
+    rows = ["1e300,first,0,0,0,1,2,3", *(f"{0.05 * k:.2f},s,0,0,0,1,2,3" for k in range(1, 8))]
+    text = REQ + "\n" + "\n".join(rows) + "\n"
+    with pytest.raises(RecordingError) as err:
+        parse_recording(text)
+    msg = str(err.value)
+    assert msg.startswith("1 malformed row(s)") and "line 2: column t: 1e300 is ahead of the rows after it" in msg, msg
+    rec = parse_recording(text, skip_bad_rows=True)
+    assert np.allclose(rec.t, [0.05 * k for k in range(1, 8)]) and rec.meta["skipped_at_rows"] == "0"
+    assert [file_row(rec, i) for i in (0, 6)] == [1, 7]
+    with pytest.raises(RecordingError, match="line 3: column t: time goes backwards"):
+        parse_recording(REQ + "\n5,a,0,0,0,1,2,3\n1,b,0,0,0,1,2,3\n")
+
+
+@pytest.mark.parametrize("factor, unit", [(1e3, "milliseconds"), (1e6, "microseconds")])
+def test_a_time_column_the_files_own_rate_contradicts_is_refused(factor: float, unit: str) -> None:
+    """t in milliseconds under '# sample_rate_hz: 20' (samples 50 "s" apart where the file says 0.05 s):
+    refused naming the likely unit. Read as seconds it made a two-minute log last days, without a word.
+    Without a rate line, or with samples spaced as it says (gaps between holds too), it is read as is."""
+    rows = "".join(f"{factor * (k * 0.05 + 10 * (k // 20)):.6g},s,0,0,0,1,2,3\n" for k in range(60))
+    with pytest.raises(RecordingError, match=f"column t: consecutive samples are 50 s apart .* looks like {unit}") \
+            if factor == 1e3 else pytest.raises(RecordingError, match=f"looks like {unit}"):
+        parse_recording("# sample_rate_hz: 20\n" + REQ + "\n" + rows)
+    assert len(parse_recording(REQ + "\n" + rows)) == 60
+    seconds = "".join(f"{k * 0.05 + 10 * (k // 20):.6g},s,0,0,0,1,2,3\n" for k in range(60))
+    assert len(parse_recording("# sample_rate_hz: 20\n" + REQ + "\n" + seconds)) == 60
+
+
+def test_a_later_format_version_is_refused() -> None:
+    """'# compasscal-recording: 2' may give a column another meaning: named, not read as format 1."""
+    with pytest.raises(RecordingError, match="'# compasscal-recording: 2': this compasscal reads format 1"):
+        parse_recording(MINIMAL.replace("compasscal-recording: 1", "compasscal-recording: 2"))
+    assert len(parse_recording(MINIMAL.replace("compasscal-recording: 1", "compasscal-recording: 1.0"))) == 3
+
+
 def test_a_row_missing_a_table_angle_is_a_bad_row_to_skip() -> None:
     """Table angles are given in every row or in none: a row with one missing is refused by line, and with
     skip_bad_rows dropped and counted like any malformed row (before: refused even then)."""

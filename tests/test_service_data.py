@@ -47,10 +47,36 @@ def test_upload_a_foreign_recording_as_an_import_run(api):
     assert api.get("/recordings", role="viewer").status_code in (404, 405)
 
 
+def test_an_imports_export_says_its_own_run_and_keeps_what_the_file_said(api):
+    """The run a recording became is the export's run, procedure, operator and slot, whatever the file's
+    own lines said (an export said "run_id: 999", "operator: mallory"; re-imported, an export of run 1
+    said run 1); the file's differing words are kept as imported_<key>."""
+    text = recording_text().replace("# serial:", "# operator: mallory\n# run_id: 999\n# procedure: calibrate\n# serial:", 1)
+    r = api.post("/recordings", role="operator", content=text.encode())
+    assert r.status_code == 201, r.text
+    rid = r.json()["id"]
+    meta = parse_recording(api.get(f"/runs/{rid}/samples", role="viewer").text).meta
+    run = api.get(f"/runs/{rid}", role="viewer").json()
+    assert (meta["run_id"], meta["procedure"], meta["operator"], meta["slot"]) == (str(rid), "import", run["operator"], "0")
+    assert run["operator"] != "mallory" and meta["serial"] == "SN-UP", meta
+    assert (meta["imported_run_id"], meta["imported_procedure"], meta["imported_operator"]) == ("999", "calibrate", "mallory")
+    again = api.post("/recordings", role="operator", content=api.get(f"/runs/{rid}/samples", role="viewer").content)
+    meta2 = parse_recording(api.get(f"/runs/{again.json()['id']}/samples", role="viewer").text).meta
+    assert meta2["run_id"] == str(again.json()["id"]) and meta2["imported_run_id"] == str(rid), meta2
+
+
 def test_a_bad_upload_names_the_line_and_an_oversized_one_is_refused(api, monkeypatch):
     bad = recording_text().replace("\n", "\nnot,a,row\n", 1)
     r = api.post("/recordings", role="operator", content=bad.encode())
     assert r.status_code == 422 and "line" in r.text
+    # table angles in radians are refused as `compasscal fit` refuses them, before anything is stored
+    # (the upload took them, and only an analysis failed later)
+    rec = parse_recording(recording_text())
+    rec.psi_t, rec.theta_t, rec.phi_t = (np.radians(a) for a in (rec.psi_t, rec.theta_t, rec.phi_t))
+    runs = len(api.get("/runs", role="viewer").json())
+    r = api.post("/recordings", role="operator", content=format_recording(rec).encode())
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body" and "look like radians" in r.text, r.text
+    assert len(api.get("/runs", role="viewer").json()) == runs
     import service.routes.recordings
     monkeypatch.setattr(service.routes.recordings, "MAX_UPLOAD_BYTES", 1000)
     r = api.post("/recordings", role="operator", content=recording_text().encode())

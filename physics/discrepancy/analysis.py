@@ -23,7 +23,7 @@ from physics.fit import (ANGLE_ADVICE, BAD_RUN, better_reading, consecutive_runs
                          model_residuals, pose_groups, reason_kind, rejected_rows, screen_rows)
 from physics.frames import SPECIFIC_FORCE_L, field_angles
 from physics.heading import magnetic_heading, wrap180
-from physics.recording import Recording, RecordingError
+from physics.recording import Recording, RecordingError, file_row
 from physics.sensor import split_matrix
 
 #: At most this many catalogue effects are added to one recording's model.
@@ -183,7 +183,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
              (f"{len(clipped)} saturated, at t {rec.t[min(clipped)]:.1f}-{rec.t[max(clipped)]:.1f} s (a field beyond the "
               "sensor's range: a strong magnet near the unit?)") if clipped else ""]
     note = (f"{len(bad)} of {len(rec)} rows left out as bad samples ({'; '.join(k for k in kinds if k)}): "
-            f"sample indices {index_list(sorted(bad))}")
+            f"data rows {index_list(sorted(file_row(rec, i) for i in bad))} (0-based)")
     return rec.select(keep), (note, rejected_rows(rec, bad))
 
 

@@ -15,6 +15,7 @@ from typing import Any
 from fastapi import APIRouter, Depends, HTTPException, Request
 from sqlalchemy.orm import sessionmaker
 
+from physics.fit import check_angles
 from physics.recording import RecordingError, parse_recording
 from service.auth import Caller, audit, require
 from service.db import Run
@@ -80,6 +81,10 @@ def _store(chunks: list[bytes], caller: Caller, sessions: sessionmaker) -> dict[
         hint = ("; a file of another layout is converted first: compasscal convert FILE --mapping map.toml -o rec.csv "
                 "(the importers' own formats: compasscal convert FILE -o rec.csv)") if foreign else ""
         raise invalid("body", str(e) + hint) from None
+    try:
+        check_angles(rec)  # as `compasscal fit` and `analyze` read a file: before it is stored, not at its analysis
+    except RecordingError as e:
+        raise invalid("body", str(e)) from None
     long = [c for c in rec.extra if len(c) > NAME_MAX]
     if long:  # an extra column is kept under its name, a String(64)
         raise invalid("body", f"column line: extra column name of {len(long[0])} characters, at most {NAME_MAX} "

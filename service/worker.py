@@ -640,7 +640,9 @@ def _save_batch(ctx: WorkerContext, batch_id: int, status: str, summary: dict[st
         if batch is None:
             return
         if final or batch.status != BATCH_ABORTING:  # (an abort asked for meanwhile stands)
-            batch.status = "aborted" if batch.status == BATCH_ABORTING and status == "completed" else status
+            # an abort asked for is what ended the batch, whatever its last unit did (a batch aborted
+            # during its last unit, none calibrated, ended "failed")
+            batch.status = "aborted" if batch.status == BATCH_ABORTING else status
         batch.summary = dict(summary)
         if final:
             batch.finished_at = utcnow()

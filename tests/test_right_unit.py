@@ -400,5 +400,16 @@ def test_a_batch_is_aborted_as_a_whole(api: Api):
         assert first["identified_serial"] == UNIT and first["identification"] == "differs", first
         assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
         assert api.put(f"/batches/{bid}/state", role="operator", json={"state": "aborted"}).status_code == 409
+        # aborted during its last unit (here its only one, at the mount prompt): aborted too, not "failed"
+        # for having calibrated none
+        first_bid, bid = bid, start_batch(api, ["SN-4"], serial_policy="trust-typed")
+        while not api.get(f"/batches/{bid}", role="viewer").json()["prompt"]:
+            assert time.monotonic() < deadline + 60
+            time.sleep(0.05)
+        assert api.put(f"/batches/{bid}/state", role="operator", json={"state": "aborted"}).status_code == 202
+        while (b := api.get(f"/batches/{bid}", role="viewer").json())["status"] in ("running", "aborting"):
+            assert time.monotonic() < deadline + 60, b
+            time.sleep(0.05)
+        assert b["status"] == "aborted" and b["summary"]["SN-4"].startswith("aborted"), b
         assert api.put("/batches/999/state", role="operator", json={"state": "aborted"}).status_code == 404
-        assert [x["id"] for x in api.get("/batches?status=aborted", role="viewer").json()] == [bid]
+        assert [x["id"] for x in api.get("/batches?status=aborted", role="viewer").json()] == [bid, first_bid]

@@ -226,7 +226,7 @@ def test_cli_fit_prints_the_dropped_rows(tmp_path: Path) -> None:
     assert r.exit_code == 0, r.output
     assert f"{len(bad)} of {len(rec)} rows dropped as bad samples" in r.output
     for i in sorted(bad):
-        assert f"sample {i} " in r.output
+        assert f"row {i} " in r.output
 
 
 def _live_run(seed: int, faults: Callable[[Any], dict[int, Any]]) -> tuple[Any, Any, set[int], set[int]]:

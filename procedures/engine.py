@@ -989,6 +989,8 @@ def _lower_hull(n: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _reason(e: BaseException) -> str:
+    if isinstance(e, PromptTimeout):  # its message is the whole story (no class name for an operator to read)
+        return str(e)
     return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
 
 

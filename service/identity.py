@@ -88,7 +88,8 @@ class Identity:
     status: str  # not identified | identified | differs | duplicate
     serial: str  # what its calibration is stored under ("" when no serial is known)
     note: str  # one sentence for the result, the run page and the certificate
-    decision: str | None = None  # of a differing serial: trust-typed, refused, or the operator's typed/identified/skip
+    decision: str | None = None  # of a differing serial: trust-typed, refused, the operator's typed/identified/skip,
+    # or "asked" while the operator's answer is awaited
     policy: str | None = None
     certify: bool = True  # False: refused, skipped or a duplicate (the reason is the note)
 
@@ -249,6 +250,12 @@ class UnitCheck:
                             f"{both}; refused (serial policy refuse): mount unit {typed}, or start the run with "
                             f"serial {identified}", "refused", policy, certify=False)
         taken = self.certified.get(typed)
+        # kept while the operator is asked: a run aborted (or lost) at the prompt still says which unit was on
+        # the table (its result had no identity, and the unit's serial found no run)
+        self.identities[slot] = Identity(slot, typed, identified, "differs", typed, f"{both}; the operator was asked",
+                                         "asked", policy, certify=False)
+        if self.on_settled is not None:
+            self.on_settled(dict(self.identities))
         answer = normalise(str((yield Prompt(serial_prompt_text(slot, typed, identified, taken), id=f"{PROMPT_PREFIX}{slot}"))
                                or ""))
         if answer == "typed":

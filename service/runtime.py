@@ -442,7 +442,15 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
         old, passed = _resumable(s, resume, station_name, procedure, parameters)
         procedure, parameters = old.procedure, dict(old.parameters or {})
         serials = {**{str(k): str(v) for k, v in (old.serials or {}).items() if v}, **(serials or {})}
-        resumed = {"run_id": old.id, "checkpoints": len(passed), "label": passed[-1], "serials": dict(old.serials or {})}
+        # the units to find mounted again: as each reported itself (trust-typed or an operator's answer may
+        # have certified it under another serial than the one it reports), else as typed
+        meta = old.meta or {}
+        reported = {slot: (slot_result(meta.get("result"), int(slot)) or (meta.get(IDENTITIES_KEY) or {}).get(slot) or {})
+                    .get("identified_serial") or (old.serials or {}).get(slot)
+                    for slot in {*(old.serials or {}), *(meta.get(IDENTITIES_KEY) or {})}}
+        resumed = {"run_id": old.id, "checkpoints": len(passed), "label": passed[-1],
+                   "serials": {k: str(v) for k, v in sorted(reported.items()) if v}}
+        serial_policy = serial_policy or meta.get("serial_policy")  # the run's own policy goes on with it
     procedure = procedure or "calibrate"
     proc = PROCEDURES.get(procedure)
     if proc is None:
@@ -540,9 +548,9 @@ def finish_unstarted(s: Session, run_id: int, status: str, reason: str) -> bool:
     return True
 
 
-def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> None:
-    """Queue the operator's answer to a waiting prompt (committed); NotFound when none is waiting,
-    Invalid when a serial prompt's answer is not one of :data:`~service.identity.CHOICES`."""
+def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> int:
+    """Queue the operator's answer to a waiting prompt (committed; its command's id); NotFound when none
+    is waiting, Invalid when a serial prompt's answer is not one of :data:`~service.identity.CHOICES`."""
     row = s.get(Run, run_id)
     if row is None:
         raise NotFound(f"no run {run_id}")
@@ -553,8 +561,10 @@ def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> None:
     if is_serial_prompt(prompt_id) and normalise(answer) not in CHOICES:
         # which serial a unit is certified under is not left to a guess at a stray answer
         raise invalid("body.answer", f"answer {', '.join(repr(c) for c in CHOICES)} to a serial prompt")
-    s.add(RunCommand(run_id=run_id, kind="answer", data={"id": prompt_id, "answer": answer}, created_at=utcnow()))
+    command = RunCommand(run_id=run_id, kind="answer", data={"id": prompt_id, "answer": answer}, created_at=utcnow())
+    s.add(command)
     s.commit()
+    return command.id
 
 
 def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge: bool = True) -> list[int]:
@@ -580,8 +590,7 @@ def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge
                 s.refresh(run)
                 lost_run_result(run)
                 s.execute(update(Station).where(Station.id == station.id, Station.run_id == run.id)
-                          .values(run_id=None, state="fault", reason=f"worker lost during run {run.id}; "
-                                                                    f"POST /stations/{station.name}/reset"))
+                          .values(run_id=None, state="fault", reason=f"worker lost during run {run.id}"))
                 publish(s, run.id, "state", {"state": RunState.failed.value, "reason": why})
                 ended.append(run.id)
         # a batch between units (or whose unit's run just ended above) has no run to be caught by

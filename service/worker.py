@@ -47,7 +47,7 @@ from physics.calibration import Calibration as PhysCalibration, json_safe
 from physics.recording import Recording
 from procedures.calibrate import BATCH, MOUNT_PROMPT, PROCEDURES
 from procedures.engine import IDENTIFY_TIMEOUT_S, Engine, Replay, identify_units
-from procedures.events import Event, PromptAnswered, Result, StateChanged
+from procedures.events import Event, PromptAnswered, Result, StateChanged, StepWarning
 from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, RunEvent, Sample, Station, utcnow
 from service.identity import DEFAULT_POLICY, Identity, UnitCheck
@@ -155,6 +155,7 @@ class Outbox:
         self.ctx, self.run_id = ctx, run_id
         self._pending: list[tuple[Callable[[Session], Any], int]] = []  # (write, samples in it)
         self._lock = threading.Lock()
+        self.closed = False  # set once the run was ended elsewhere: no further sample or event is its
 
     def add(self, slot: int, rec: Recording) -> None:
         """The engine's sink: one slot's samples of one acquisition."""
@@ -172,6 +173,8 @@ class Outbox:
 
     def _put(self, write: Callable[[Session], Any], samples: int) -> None:
         with self._lock:
+            if self.closed:
+                return
             self._pending.append((write, samples))
         self.flush()
 
@@ -228,16 +231,28 @@ class RunControl:
         self.outbox = Outbox(ctx, run_id)
         self.engine: Engine | None = None
         self.abort_reason: str | None = None
+        self.ended_elsewhere: str | None = None  # why, once the run was found ended by another process
         self.pending: list[RunCommand] = []
 
     def take(self) -> None:
-        """Read the commands not yet taken and apply them."""
+        """Read the commands not yet taken and apply them; and abort the run when it was ended elsewhere
+        (a reaper that took this worker for lost while it stood frozen: it woke and drove the table
+        through the rest of a plan whose run said failed, on a station said to be in fault)."""
         with self.ctx.sessions() as s:
             rows = list(s.scalars(select(RunCommand).where(RunCommand.run_id == self.run_id, RunCommand.taken_at.is_(None))
                                   .order_by(RunCommand.id)))
             for r in rows:
                 r.taken_at = utcnow()
+            ended = s.execute(select(Run.status, Run.reason).where(Run.id == self.run_id)).first()
             s.commit()
+        if ended is not None and ended.status in FINAL and self.ended_elsewhere is None:
+            self.ended_elsewhere = f"run {self.run_id} was ended meanwhile ({ended.status}: {ended.reason})"
+            self.abort_reason = self.abort_reason or self.ended_elsewhere
+            if self.engine is not None:
+                self.engine.abort(self.ended_elsewhere)
+            warning = StepWarning(f"{self.ended_elsewhere}: this worker stopped its axes and kept nothing further")
+            self.outbox.publish(warning.kind, warning.data())
+            self.outbox.closed = True  # what the table does now is no part of the ended run
         for r in rows:
             if r.kind == "abort":
                 self.abort_reason = self.abort_reason or str(r.data.get("reason") or "aborted by the operator")
@@ -566,6 +581,8 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
                 status = "failed"
                 break
             with ctx.sessions() as s:
+                if s.get(Batch, batch_id).finished_at is not None:  # ended elsewhere (this worker taken for lost)
+                    break
                 if s.get(Batch, batch_id).status == BATCH_ABORTING:  # PUT /batches/{id}/state: no further unit
                     summary.update({x: NOT_RUN + "the batch was aborted" for x in serials if x not in summary})
                     status = "aborted"
@@ -594,9 +611,18 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
                 unit = slot_result((done.meta or {}).get("result"))
                 calibrated += done.status == RunState.completed.value and "verdict" in unit
                 reported = unit.get("identified_serial")
+                mounted = _mount_answered(s, run.id)
             # the unit to take out, by what the operator typed and, when it said otherwise, what it reported
-            previous = f"{serial}" + (f" (it reports {reported})" if reported and reported != serial else "") \
-                + f" ({summary[serial]})"
+            # (none when it was never mounted: the next prompt said to unmount a unit no one had put on)
+            previous = None if not mounted else f"{serial}" + (
+                f" (it reports {reported})" if reported and reported != serial else "") + f" ({summary[serial]})"
+            if not mounted and done.status == RunState.failed.value:
+                # never mounted (no one answered its mount prompt in time): no one is at the station to mount
+                # the rest either (each unit held the station for the whole prompt timeout in turn)
+                summary.update({x: NOT_RUN + f"unit {serial} was never mounted ({done.reason})"
+                                for x in serials if x not in summary})
+                status = "failed"
+                break
             _save_batch(ctx, batch_id, "running", summary, final=False)
     finally:
         with ctx.sessions() as s:
@@ -605,6 +631,12 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
         if status == "completed" and not calibrated:
             status = "failed"  # it went through its units and calibrated none: the station, not the units, is suspect
         _save_batch(ctx, batch_id, status, summary, final=True)
+
+
+def _mount_answered(s: Session, run_id: int) -> bool:
+    """Whether the operator answered the run's mount prompt (its unit was put on the table)."""
+    return any(e.data.get("id") == MOUNT_PROMPT and e.data.get("answered") for e in s.scalars(
+        select(RunEvent).where(RunEvent.run_id == run_id, RunEvent.kind == PromptAnswered.kind)))
 
 
 #: Why a batch's units were not run when its worker was asked to stop.
@@ -637,7 +669,9 @@ def _verdict(run: Run) -> str:
 def _save_batch(ctx: WorkerContext, batch_id: int, status: str, summary: dict[str, str], final: bool) -> None:
     with ctx.sessions() as s:
         batch = s.get(Batch, batch_id)
-        if batch is None:
+        if batch is None or batch.finished_at is not None:
+            # ended elsewhere: a reaper took this worker for lost and said what became of each unit (a worker
+            # that woke from a freeze rewrote that summary)
             return
         if final or batch.status != BATCH_ABORTING:  # (an abort asked for meanwhile stands)
             # an abort asked for is what ended the batch, whatever its last unit did (a batch aborted

@@ -89,6 +89,15 @@ def test_prompt_policy_asks_the_operator_before_the_table_moves(api: Api):
         assert skipped["result"]["units"]["0"]["identified_serial"] == UNIT
         assert api.get("/devices/SN-TYPED", role="viewer").status_code == 404
 
+        # aborted at the prompt: the run still says which unit was on the table, and that unit finds it
+        rid = start(api, serials={"0": "SN-TYPED"})
+        assert wait_prompt(api, rid)["id"] == "serial-0"
+        api.put(f"/runs/{rid}/state", role="operator", json={"state": "aborted", "reason": "wrong label"})
+        aborted = wait_run(api, rid)
+        ident = aborted["result"]["identities"]["0"]
+        assert aborted["status"] == "aborted" and ident["identified_serial"] == UNIT and ident["serial_decision"] == "asked"
+        assert rid in [r["id"] for r in api.get(f"/runs?serial={UNIT}", role="viewer").json()]
+
         rid = start(api, serials={"0": "SN-TYPED"})
         assert wait_prompt(api, rid)["id"] == "serial-0"
         assert api.post(f"/runs/{rid}/prompts/serial-0", role="operator", json={"answer": "Identified"}).status_code == 200
@@ -151,6 +160,26 @@ def test_trust_typed_is_recorded_on_the_page_and_the_certificate(api: Api):
         for text in (html, pdf):
             assert "Serial typed" in text and "SN-TRUST" in text and "Identified serial" in text and UNIT in text
             assert "certified as typed (serial policy trust-typed)" in text
+
+
+def test_a_run_certified_under_the_typed_serial_resumes_with_the_same_unit_and_policy(api: Api):
+    """A trust-typed run (typed SN-TRUST, the unit reports GAO2017-REF) aborted mid-way resumes with the
+    same unit mounted: the resumed run looks for the unit as it reported itself (it failed: "slot 0 holds
+    GAO2017-REF, not SN-TRUST") and goes on under the run's own policy (it took the station's prompt)."""
+    with sim_station(reference_config(seed=29, time_scale=20)) as info:
+        make_station(api, info)
+        first, deadline = start(api, serials={"0": "SN-TRUST"}, serial_policy="trust-typed"), time.monotonic() + 60
+        while api.get(f"/runs/{first}", role="viewer").json()["samples_count"] < 5 * 20:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        api.put(f"/runs/{first}/state", role="operator", json={"state": "aborted", "reason": "power cut (test)"})
+        assert wait_run(api, first)["status"] == "aborted"
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "resume": first})
+        assert r.status_code == 202, r.text
+        done = wait_run(api, r.json()["id"], timeout=90)
+        assert done["status"] == "completed" and done["serial_policy"] == "trust-typed", done
+        unit = done["result"]["units"]["0"]
+        assert unit["serial"] == "SN-TRUST" and unit["identified_serial"] == UNIT and unit["serial_decision"] == "trust-typed"
 
 
 def test_a_batch_certifies_one_unit_once(api: Api):
@@ -349,6 +378,30 @@ def test_a_unit_that_failed_may_be_retested_in_its_batch(api: Api):
         assert b["tally"] == {"pass": 0, "marginal": 0, "fail": 2, "uncalibrated": 0, "pending": 0}, b["tally"]
         units = {u["serial"]: u for u in b["units"]}
         assert units["SN-2"]["identification"] == "differs" and units["SN-2"]["calibration_id"], units["SN-2"]
+
+
+def test_a_unit_never_mounted_is_not_to_be_unmounted(api: Api):
+    """A batch unit's run aborted at its mount prompt (the operator skips that unit): the next prompt says
+    only to mount the next unit (it said "unmount unit SN-1 (aborted: ...), then mount ...", a unit no
+    one had put on the table)."""
+    with sim_station(reference_config(seed=30, time_scale=20)) as info:
+        make_station(api, info)
+        bid, deadline = start_batch(api, ["SN-1", "SN-2"], serial_policy="trust-typed"), time.monotonic() + 60
+        while not (b := api.get(f"/batches/{bid}", role="viewer").json())["prompt"]:
+            assert time.monotonic() < deadline, b
+            time.sleep(0.05)
+        first = b["prompt"]["run_id"]
+        r = api.put(f"/runs/{first}/state", role="operator", json={"state": "aborted", "reason": "unit missing"})
+        assert r.status_code == 202, r.text
+        while not (b := api.get(f"/batches/{bid}", role="viewer").json())["prompt"] or b["prompt"]["run_id"] == first:
+            assert time.monotonic() < deadline, b
+            time.sleep(0.05)
+        assert b["prompt"]["text"] == "mount unit SN-2 in slot 0", b["prompt"]
+        assert b["summary"]["SN-1"] == "aborted: unit missing", b["summary"]
+        api.put(f"/batches/{bid}/state", role="operator", json={"state": "aborted"})
+        while api.get(f"/batches/{bid}", role="viewer").json()["status"] in ("running", "aborting"):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
 
 
 def test_a_batch_that_calibrated_none_of_its_units_ends_failed(api: Api):

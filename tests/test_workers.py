@@ -372,3 +372,62 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
     finally:
         for p in procs:
             _kill(p)
+
+
+def test_a_worker_that_wakes_from_a_freeze_leaves_what_was_ended_without_it(tmp_path: Path):
+    """A worker frozen (SIGSTOP: a PC that hangs, a debugger) is taken for lost: its run failed, its batch
+    ended, the station in fault. Woken, it drove the table through the rest of the plan, adding samples and
+    events to the failed run, and rewrote the batch's summary; and an answer to a prompt of the frozen run
+    got 200 although no worker ever took it. Now the answer gets 409, and the woken worker stops its axes
+    at once, keeps no further sample and leaves the run and the batch as they were ended."""
+    url = fresh_database("postgresql", tmp_path)
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        api, port = _api(url, tmp_path, "api")
+        procs.append(api)
+        c = Client(port, _keys(url))
+        with sim_station(reference_config(seed=6, time_scale=20)) as info:
+            c.station(info, "lab-1")
+            worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker1.log")
+            procs.append(worker)
+
+            # frozen while a batch's unit waits to be mounted: the answer is refused once the run has ended
+            bid = c.call("POST", "/batches", "operator", json={"station": "lab-1", "serials": ["SN-1", "SN-2"],
+                                                                "parameters": {"samples": 20}}).json()["id"]
+            b = _batch(c, bid, lambda b: b["prompt"] is not None)
+            os.killpg(worker.pid, signal.SIGSTOP)
+            r = c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator", json={"answer": "mounted"})
+            assert r.status_code == 409 and "before its worker took the answer" in r.text, r.text
+            ended = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
+            assert ended["status"] == "failed" and "worker lost" in ended["summary"]["SN-1"], ended
+            os.killpg(worker.pid, signal.SIGCONT)
+            time.sleep(3)  # many of the woken worker's command polls
+            assert c.call("GET", f"/batches/{bid}", "viewer").json()["summary"] == ended["summary"]
+            assert c.run(b["prompt"]["run_id"])["samples_count"] == 0
+
+            # frozen while a run measures: woken, it stops, and the failed run keeps what it had
+            while (r := c.call("POST", "/stations/lab-1/reset", "operator")).status_code != 200:
+                time.sleep(0.5)
+            rid = c.call("POST", "/runs", "operator", json={"station": "lab-1", "procedure": "calibrate",
+                                                             "parameters": {"samples": 20}}).json()["id"]
+            c.wait(rid, lambda j: j["samples_count"] > 0)
+            os.killpg(worker.pid, signal.SIGSTOP)
+            lost = c.wait(rid, lambda j: j["status"] == "failed", timeout=30)
+            kept, events = lost["samples_count"], c.events(rid)
+            assert "worker lost" in lost["reason"] and 0 < kept < 18 * 20, lost
+            os.killpg(worker.pid, signal.SIGCONT)
+            time.sleep(3)
+            now = c.run(rid)
+            assert (now["status"], now["reason"], now["samples_count"]) == ("failed", lost["reason"], kept), now
+            later = [e for e in c.events(rid) if e[0] > events[-1][0]]
+            assert [k for _, k, _ in later] in ([], ["step"]), later  # at most the worker's word that it stopped
+            assert all("ended meanwhile" in d["warning"] for _, _, d in later), later
+            assert all(ax.mode not in ("move", "jog") for ax in info["station"].table.axes.values())
+            assert c.call("GET", "/stations/lab-1", "viewer").json()["state"] == "fault"
+    finally:
+        for p in procs:
+            try:
+                os.killpg(p.pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+            _kill(p)

@@ -27,9 +27,9 @@ from physics.recording import format_recording
 from procedures.calibrate import PROCEDURES
 from procedures.states import ACTIVE, RunState
 from service.auth import Caller, audit, require
-from service.db import Calibration, Device, Run
+from service.db import Calibration, Device, Run, RunCommand
 from service.deps import event_stream, sessions
-from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, NotFound, Unavailable, create_run, events_after, finish_unstarted,
+from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, Conflict, NotFound, Unavailable, create_run, events_after, finish_unstarted,
                              invalid, queue_answer, request_state, run_json, runs_of_serial, station_filter, wait_for)
 from service.schemas import (ERRORS, AnswerIn, AnswerOut, ErrorOut, Id, Index, Name, ProcedureOut, RunDetail, RunIn, RunOut, RunStateOut,
                              Serial, StateIn, StationName, content)
@@ -185,16 +185,24 @@ async def answer_prompt(run_id: Id, prompt_id: Name, body: AnswerIn, request: Re
                         caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
     """Answer a waiting operator prompt (operator); 404 when the run has no such prompt waiting, 422
     when a serial prompt (``serial-SLOT``) gets another answer than typed, identified or skip.
-    Answers once the run's worker has taken the answer (503 if it does not within a few seconds)."""
+    Answers once the run's worker has taken the answer (503 if it does not within a few seconds; 409 when
+    the run ended first, e.g. its worker lost: the answer was not taken)."""
     with sessions(request)() as s:
-        queue_answer(s, run_id, prompt_id, body.answer)
+        command_id = queue_answer(s, run_id, prompt_id, body.answer)
 
-    def taken() -> bool | None:
+    def taken() -> str | None:
+        """"taken"; or why the answer never will be (the run ended first); None while it waits."""
         with sessions(request)() as s:
-            row = s.get(Run, run_id)
-            return True if row is None or prompt_id not in (row.prompts or {}) or row.status not in ACTIVE else None
-    if not (await wait_for(taken, CONFIRM_S, every=0.05)).ok:
+            row, command = s.get(Run, run_id), s.get(RunCommand, command_id)
+            if command.taken_at is not None or (row.status in ACTIVE and prompt_id not in (row.prompts or {})):
+                return "taken"
+            # ended before its worker read the answer (its worker lost meanwhile): a 200 said it was taken
+            return None if row.status in ACTIVE else f"{row.status}" + (f": {row.reason}" if row.reason else "")
+    waited = await wait_for(taken, CONFIRM_S, every=0.05)
+    if not waited.ok:
         raise Unavailable(f"run {run_id}'s worker did not take the answer within {CONFIRM_S:g} s (it is kept for it)")
+    if waited.value != "taken":
+        raise Conflict(f"run {run_id} ended ({waited.value}) before its worker took the answer: the answer was not taken")
     with sessions(request)() as s:
         audit(s, caller, "run.prompt", f"run {run_id}", {"prompt": prompt_id, "answer": body.answer})
         s.commit()

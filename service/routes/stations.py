@@ -42,7 +42,7 @@ def _hardware_free(s: Session, name: str, modbus: str, compasses: list[str]) -> 
         if other.modbus == modbus or shared:
             what = f"table {modbus}" if other.modbus == modbus else f"compass {shared[0]}"
             raise HTTPException(409, f"station {other.name!r} already has {what}; one piece of hardware belongs to one "
-                                     f"station (change or delete {other.name!r} first)")
+                                     f"station (give {other.name!r} other hardware with PUT /stations/{other.name} first)")
 
 
 @router.post("/stations", status_code=201, response_model=StationOut, responses=ERRORS)

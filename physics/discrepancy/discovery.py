@@ -1130,6 +1130,10 @@ AGAINST_TEXT = {"time": "drifting smoothly in time", "temp_c": "following the te
 #: What every discovered finding's explanation says of where it came from, and of a size beyond its cause.
 FOUND_BY_SEARCH = "Found by the search over generic building blocks (no catalogue entry explains it)."
 IMPLAUSIBLE = "Its size is beyond what such a cause plausibly makes: treat it as a stand-in for something larger."
+#: What one sensitivity change on all three axes cannot be told from (`discovered_finding`).
+FIELD_SIZE = "change of the room field's size by that fraction (the lab field, not the unit, changed)"
+#: ... and what an offset in the lab frame along the field cannot be told from.
+GAIN_ALL = "change of the unit's sensitivity by that fraction on all three axes (the unit, not the room, changed)"
 #: The cause of a departure that came and went with the same size.
 INTERMITTENT = ("with the same size each time: something switched on and off (a relay, a motor, a device nearby) "
                 "or put back more than once")
@@ -1256,23 +1260,44 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
         when = ", present " + " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
     dep = "" if blk.windowed else f", {AGAINST_TEXT.get(blk.dependence, blk.dependence)}"
     cause = (INTERMITTENT if len(segs) > 1 else _cause(blk))
+    edge = 0.02 * max(float(np.ptp(ctx.t)), 1e-9)
+    if len(segs) == 2 and segs[0][0] - ctx.t[0] <= edge and ctx.t[-1] - segs[1][1] <= edge:
+        # at the start and at the end: the nominal model takes in what is constant through the run, so this
+        # is as well one departure of the opposite sign in between (one magnet put down and taken away)
+        cause = (f"as well, one departure of the opposite sign from {segs[0][1]:.1f} s to {segs[1][0]:.1f} s alone (the "
+                 f"nominal model takes in what is constant through the run): {_cause(blk)}; or {INTERMITTENT}")
     explanation = f"{FORM_TEXT[blk.form]} of {size} {FRAME_TEXT[blk.frame]}{dep}{when}: {cause}. " + FOUND_BY_SEARCH
     if not plausible:
         explanation += " " + IMPLAUSIBLE
     experiment = _experiment(blk, segs)
-    if f.alike:
-        named = " or ".join(("an " if a[0] in "aeiou" else "a ") + a for a in f.alike)
+    alike = list(f.alike)
+    if blk.windowed and blk.form == "gain" and blk.frame in ("sensor", "platform") and \
+            np.ptp(c[:3]) <= 3.0 * np.sqrt(2.0) * float(np.max(sd[:3])) + 0.1 * abs(float(np.mean(c[:3]))):
+        # one gain on all three axes scales every reading as a field grown by that fraction would: the same
+        # data (a room field 2 % stronger was named a sensitivity change with nothing else said)
+        alike.append(FIELD_SIZE)
+    if blk.windowed and blk.form == "offset" and blk.frame == "lab":
+        along = float(c[:3] @ nom.v)
+        if np.linalg.norm(c[:3] - along * nom.v) <= 3.0 * float(np.max(sd[:3])) + 0.1 * abs(along):
+            # along the field: the room's field grew or shrank, which a sensitivity change on all three axes
+            # gives as well (the other way round from the gain above)
+            alike.append(GAIN_ALL)
+    if alike:
+        named = " or ".join(("an " if a[0] in "aeiou" else "a ") + a for a in alike)
         explanation += f" This recording cannot tell it from {named}; the one named is the likelier cause."
         experiment += ("; to tell them apart, turn about every table axis during that time (a stage-fixed part turns "
                        "with its stage, one fixed to the unit with the unit, a lab-fixed one with neither), and hold "
                        "the temperature steady or change it out of step with time")
+        if FIELD_SIZE in alike or GAIN_ALL in alike:
+            experiment += ("; a change of the room's field shows on a second magnetometer in the room at the same "
+                           "time, a change of the unit's sensitivity on this unit alone")
     return {"effect": "discovered", "statistic": row["statistic"], "df": row["df"], "p_value": row["p_value"],
             "p_adjusted": row["p_adjusted"], "parameters": params, "sigma": sigma, "heading_impact_deg": impact,
             "where": {"frame": blk.frame, "rms_lsb": np.sqrt(np.mean(contrib ** 2, axis=0)).tolist()},
             "model": {"frame": blk.frame, "form": blk.form, "against": None if blk.windowed else blk.dependence,
                       "segments": [[float(a), float(b)] for a, b in segs]},
             "plausible": plausible, "explanation": explanation,
-            "confusable_with": list(f.alike), "separating_experiment": experiment, "effective_windows": f.m_eff if segs else None}
+            "confusable_with": alike, "separating_experiment": experiment, "effective_windows": f.m_eff if segs else None}
 
 
 def present_segments(windows: list[tuple[list[list[float]], np.ndarray, np.ndarray]], n_sigma: float = 3.0) -> list[list[float]]:

@@ -120,5 +120,13 @@ def _verdict_sentence(result: dict[str, Any], modelled: list[dict[str, Any]], be
     rb = _mean(result.get("residual_rms_before_lsb"))
     ra = _mean(result.get("residual_rms_after_lsb"))
     floor = _mean(result.get("noise_floor_lsb"))
-    return (f"The model with {len(modelled)} effect(s) improves the fit: residual {rb:.3g} -> {ra:.3g} LSB rms "
-            f"(noise floor {floor:.3g}), held-out {before:.3g} -> {after:.3g} LSB{h}.")
+    figures = f"residual {rb:.3g} -> {ra:.3g} LSB rms (noise floor {floor:.3g}), held-out {before:.3g} -> {after:.3g} LSB{h}"
+    hb, ha = head.get("rms_before", head.get("before")), head.get("rms_after", head.get("after"))
+    worse = (["the residual"] if ra > rb else []) + (
+        ["the level heading error"] if hb is not None and ha is not None and ha > hb else [])
+    if worse:
+        # said as it is: "improves the fit" was printed over a residual and a heading error that grew
+        return (f"The model with {len(modelled)} effect(s) predicts held-out data better but leaves "
+                f"{' and '.join(worse)} worse: {figures}. Its findings are uncertain: the model misses part of "
+                "what is there.")
+    return f"The model with {len(modelled)} effect(s) improves the fit: {figures}."

@@ -451,6 +451,7 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
         resumed = {"run_id": old.id, "checkpoints": len(passed), "label": passed[-1],
                    "serials": {k: str(v) for k, v in sorted(reported.items()) if v}}
         serial_policy = serial_policy or meta.get("serial_policy")  # the run's own policy goes on with it
+        batch_id = batch_id if batch_id is not None else old.batch_id  # a batch's unit stays the batch's
     procedure = procedure or "calibrate"
     proc = PROCEDURES.get(procedure)
     if proc is None:

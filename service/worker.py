@@ -185,6 +185,11 @@ class Outbox:
                 return True
             try:
                 with self.ctx.sessions() as s:
+                    if s.scalar(select(Run.status).where(Run.id == self.run_id)) in FINAL:
+                        # ended elsewhere (this worker taken for lost while frozen): nothing more is the run's
+                        self.closed = True
+                        self._pending.clear()
+                        return True
                     for write, _ in self._pending:
                         write(s)
                     s.commit()
@@ -248,11 +253,13 @@ class RunControl:
         if ended is not None and ended.status in FINAL and self.ended_elsewhere is None:
             self.ended_elsewhere = f"run {self.run_id} was ended meanwhile ({ended.status}: {ended.reason})"
             self.abort_reason = self.abort_reason or self.ended_elsewhere
+            self.outbox.closed = True  # what the table does now is no part of the ended run
             if self.engine is not None:
                 self.engine.abort(self.ended_elsewhere)
             warning = StepWarning(f"{self.ended_elsewhere}: this worker stopped its axes and kept nothing further")
-            self.outbox.publish(warning.kind, warning.data())
-            self.outbox.closed = True  # what the table does now is no part of the ended run
+            with self.ctx.sessions() as s:
+                write_event(s, self.run_id, warning.kind, warning.data())
+                s.commit()
         for r in rows:
             if r.kind == "abort":
                 self.abort_reason = self.abort_reason or str(r.data.get("reason") or "aborted by the operator")
@@ -550,6 +557,12 @@ def _finish(ctx: WorkerContext, run_id: int, fin: _Finish, table_seconds: float 
         if fin.status == RunState.completed.value:
             publish(s, run_id, "result", fin.summary)
         publish(s, run_id, "state", {"state": fin.status, "reason": fin.reason})
+        batch = s.get(Batch, run.batch_id) if run.batch_id is not None else None
+        if batch is not None and batch.finished_at is not None and (run.meta or {}).get("resume"):
+            # a unit of an ended batch, resumed on its own (its worker lost mid-batch): the batch's summary
+            # says how it came out (it kept "failed: worker lost", the certificate unlinked from the batch)
+            serial = str((run.serials or {}).get("0", ""))
+            batch.summary = {**(batch.summary or {}), serial: f"{_verdict(run)} (resumed as run {run.id})"}
         s.commit()
     ctx.poke(run_id)
 

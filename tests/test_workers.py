@@ -325,7 +325,7 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
             b = _batch(c, bid, lambda b: b["prompt"] is not None)
             assert c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator",
                           json={"answer": "mounted"}).status_code == 200
-            first = c.wait(b["prompt"]["run_id"], lambda j: j["samples_count"] > 0)
+            first = c.wait(b["prompt"]["run_id"], lambda j: j["samples_count"] >= 3 * 20)  # past a checkpoint or two
             _kill(worker)
             b = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
             lost = c.run(first["id"])
@@ -355,6 +355,17 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
             while (r := c.call("POST", "/stations/lab-1/reset", "operator")).status_code != 200:
                 assert time.monotonic() < deadline, r.text
                 time.sleep(0.5)
+
+            # the lost unit resumed on its own: it stays the batch's, whose summary says how it came out
+            r = c.call("POST", "/runs", "operator", json={"station": "lab-1", "resume": first["id"]})
+            assert r.status_code == 202, r.text
+            resumed = c.wait(r.json()["id"], lambda j: j["status"] in ("completed", "failed", "aborted"), timeout=90)
+            assert resumed["status"] == "completed" and resumed["batch_id"] == bid, resumed
+            b = c.call("GET", f"/batches/{bid}", "viewer").json()
+            verdict = resumed["result"]["units"]["0"]["verdict"]
+            assert b["summary"]["SN-1"] == f"{verdict} (resumed as run {resumed['id']})", b["summary"]
+            assert b["units"][0]["run_id"] == resumed["id"] and b["units"][0]["calibration_id"], b["units"][0]
+            assert b["status"] == "failed" and b["summary"]["SN-2"].startswith("not run"), b  # the rest as they were
 
             # SIGTERM while the next batch's first unit waits to be mounted: the worker exits at once
             bid2 = c.call("POST", "/batches", "operator", json={**body, "serials": ["SN-4", "SN-5"]}).json()["id"]

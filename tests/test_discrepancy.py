@@ -378,3 +378,16 @@ def test_the_registry_has_one_entry_per_catalogue_effect_and_builds_its_columns(
         else:
             assert fit.free.variants and all(b.split("/")[0] == effect for b in fit.free.variants), effect
             assert fit.free.raw or fit.free.magnitude or fit.free.dip, effect
+
+
+def test_a_large_time_lag_is_fitted_exactly_and_nothing_else_is_named() -> None:
+    """A lag of 0.2 s (within the catalogue's range) on the characterize plan: its first-order column left
+    residue on the tilt scans that discovery named a middle-stage rotation, lab windows and six generic
+    findings (residual 4.5 LSB on a floor of 3). The column is rebuilt as the exact shift by the lag
+    fitted: the lag alone, to its sigma, the residual at the floor."""
+    rec, _ = _record([fx.TimeLag(0.2)], noise=Noise(3.0, 0.0, True))
+    r = analyze(rec, null_sims=100, seed=1).result
+    assert [f["effect"] for f in r["findings"]] == ["time_lag"], [(f["effect"], f["explanation"][:80]) for f in r["findings"]]
+    [f] = r["findings"]
+    assert abs(f["parameters"]["lag_s"] - 0.2) < max(0.002, 4 * f["sigma"]["lag_s"]), f["parameters"]
+    assert max(r["residual_rms_after_lsb"]) < 1.05 * max(r["noise_floor_lsb"]), r["residual_rms_after_lsb"]

@@ -286,7 +286,9 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
         contrib = sum(np.einsum("nip,p->ni", raw_of[s], coef[offsets[i + 1]:offsets[i + 2]]) for i, s in enumerate(terms))
         nom = fit_nominal(ctx, y_raw - contrib)
-        eff = effect_columns(ctx, nom, temp)
+        # a fitted time lag's column is rebuilt as the exact shift by it (its derivative alone is first order)
+        lag = float(coef[offsets[list(terms).index(TIME_LAG) + 1]]) if TIME_LAG in terms else 0.0
+        eff = effect_columns(ctx, nom, temp, lag if abs(lag) <= MAX_LAG_S else 0.0)
         r0, J0, A0, Q0, zr, z, raw_of, candidates = _linearise(ctx, y_raw, nom, eff, noise, mains_hz)
         found = [rebuild(f, ctx, nom, temp, noise) for f in found if f.name in terms]
         raw_of.update({f.name: f.X for f in found})
@@ -438,6 +440,10 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
               "heldout_pred_after": pred_after, "fold": fold}
     return Analysis(json_safe(result), series)
 
+
+#: The catalogue's time lag, whose column a fitted lag rebuilds (`relinearise`), up to a lag of this size.
+TIME_LAG = "time_lag"
+MAX_LAG_S = 2.0
 
 #: The fallback's test of the final residual against the noise model (`whiteness`), and its lags per axis.
 WHITENESS = "whiteness (Ljung-Box on the prewhitened residual)"

@@ -54,15 +54,16 @@ class TableInputs:
     k: np.ndarray  # (3,) sensitivities: row norms of M
     tilted: bool  # poses tilted about the inner axes (what tells a stage's frame from the platform's)
     no_table: str | None  # why nothing of the table can be tested (the angles are not a turntable's), or None
+    lag_s: float = 0.0  # the time lag fitted so far (0: none yet): its column is the exact shift by it
 
 
-def table_inputs(ctx: Context, nom: Nominal, temp: np.ndarray | None) -> TableInputs:
-    """The shared inputs of the table-model builders."""
+def table_inputs(ctx: Context, nom: Nominal, temp: np.ndarray | None, lag_s: float = 0.0) -> TableInputs:
+    """The shared inputs of the table-model builders (``lag_s``: see :func:`effect_columns`)."""
     # angles from an attitude reference (a hand-held unit tracked optically) are not a turntable's
     source = ctx.rec.meta.get(ATTITUDE_SOURCE_KEY, "turntable")
     return TableInputs(ctx, nom, temp, nom.body_field(ctx), nom.predict(ctx), np.linalg.norm(nom.M, axis=1),
                        bool(np.any(np.abs(wrap180(ctx.ang[:, 1:])) > 5.0)),
-                       None if source == "turntable" else f"needs a turntable (the angles come from: {source})")
+                       None if source == "turntable" else f"needs a turntable (the angles come from: {source})", lag_s)
 
 
 def _through_M(nom: Nominal, dh: np.ndarray) -> np.ndarray:
@@ -124,16 +125,27 @@ def _field_drift(x: TableInputs, stage: str | None) -> Columns:
 
 
 def _time_lag(x: TableInputs, stage: str | None) -> Columns:
-    """A sample seeing the table ``lag_s`` earlier: ``raw(t - lag) = raw(t) - lag d(raw)/dt``."""
+    """A sample seeing the table ``lag_s`` earlier: ``raw(t - lag) = raw(t) - lag d(raw)/dt``; once a lag
+    ``x.lag_s`` is fitted, the secant ``(raw(t - x.lag_s) - raw(t)) / x.lag_s`` with the encoder angles
+    interpolated in time, exact at that lag (a lag of 0.2 s left second-order residue on the tilt scans
+    that passed for a middle-stage rotation and lab windows)."""
     ctx = x.ctx
     if ctx.moving.sum() < 20:
         return _none(x), [], "needs samples taken while the table turns (a characterize run)"
     dpred = np.zeros_like(x.pred)
     for s in np.unique(ctx.segment[ctx.moving]):
         i = np.flatnonzero(ctx.segment == s)
-        if len(i) >= 2:
-            dpred[i] = np.gradient(x.pred[i], _strict(ctx.t[i], ctx.rate_hz), axis=0)
-    return -dpred[:, :, None], ["lag_s"], None
+        if len(i) < 2:
+            continue
+        t = _strict(ctx.t[i], ctx.rate_hz)
+        if abs(x.lag_s) < 1e-4:
+            dpred[i] = -np.gradient(x.pred[i], t, axis=0)
+            continue
+        a = np.degrees(np.unwrap(np.radians(ctx.ang[i]), axis=0))
+        shifted = np.column_stack([np.interp(t - x.lag_s, t, a[:, j]) for j in range(3)])
+        h = np.einsum("nji,j->ni", platform_attitude(shifted[:, 0], shifted[:, 1], shifted[:, 2]), x.nom.v)
+        dpred[i] = (h @ x.nom.M.T + x.nom.b - x.pred[i]) / x.lag_s
+    return dpred[:, :, None], ["lag_s"], None
 
 
 def hysteresis_signs(ang: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -414,10 +426,11 @@ def table_variants() -> list[tuple[str, str | None]]:
     return staged + [(f.id, None) for f in REGISTRY.values() if f.table is not None and not f.per_stage]
 
 
-def effect_columns(ctx: Context, nom: Nominal, temp: np.ndarray | None) -> dict[str, Columns]:
+def effect_columns(ctx: Context, nom: Nominal, temp: np.ndarray | None, lag_s: float = 0.0) -> dict[str, Columns]:
     """Regressors (N, 3, p) of every catalogue effect (and stage variants, ``"<id>:<stage>"``), with
-    parameter labels, or the reason the effect cannot be tested on this recording."""
-    x = table_inputs(ctx, nom, temp)
+    parameter labels, or the reason the effect cannot be tested on this recording. ``lag_s``: a time lag
+    already fitted, about which the lag's column is built (`_time_lag`)."""
+    x = table_inputs(ctx, nom, temp, lag_s)
     return {effect if stage is None else f"{effect}:{stage}": REGISTRY[effect].table(x, stage)
             for effect, stage in table_variants()}
 

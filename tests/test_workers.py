@@ -12,6 +12,8 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -301,88 +303,101 @@ def _batch(c: Client, bid: int, until: Any, timeout: float = 60.0) -> dict[str, 
         time.sleep(0.1)
 
 
-def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tmp_path: Path):
-    """kill -9 of a station's worker mid-batch left the batch "running" for good and every later run on the
-    station refused ("busy with batch 1"), whatever was reset or restarted; SIGTERM while a unit waited to be
-    mounted left the worker holding the prompt for its 15 minutes, then running the rest of the batch.
-    Now a lost worker's batch ends failed, every unit it did not judge named in its summary, the station
-    freed; a stopped worker aborts the unit not yet mounted, runs no further unit and exits."""
+@contextmanager
+def _station_with_worker(tmp_path: Path, seed: int) -> Iterator[tuple[Client, dict[str, Any], str, list[subprocess.Popen[bytes]]]]:
+    """An API process and station lab-1 (simulated, time scale 20) with its worker, on a fresh PostgreSQL
+    database: the client, the simulator, the database URL and the processes (the worker last; every one
+    killed at the end, woken first if stopped)."""
     url = fresh_database("postgresql", tmp_path)
     procs: list[subprocess.Popen[bytes]] = []
     try:
         api, port = _api(url, tmp_path, "api")
         procs.append(api)
         c = Client(port, _keys(url))
-        with sim_station(reference_config(seed=5, time_scale=20)) as info:
+        with sim_station(reference_config(seed=seed, time_scale=20)) as info:
             c.station(info, "lab-1")
-            worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker1.log")
-            procs.append(worker)
-            body = {"station": "lab-1", "serials": ["SN-1", "SN-2", "SN-3"], "parameters": {"samples": 20},
-                    "serial_policy": "trust-typed"}
-
-            # kill -9 while the first unit is measured
-            bid = c.call("POST", "/batches", "operator", json=body).json()["id"]
-            b = _batch(c, bid, lambda b: b["prompt"] is not None)
-            assert c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator",
-                          json={"answer": "mounted"}).status_code == 200
-            first = c.wait(b["prompt"]["run_id"], lambda j: j["samples_count"] >= 3 * 20)  # past a checkpoint or two
-            _kill(worker)
-            b = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
-            lost = c.run(first["id"])
-            assert lost["status"] == "failed" and "worker lost" in lost["reason"] and lost["samples_count"] > 0, (b, lost)
-            assert b["status"] == "failed" and b["summary"]["SN-1"] == f"failed: {lost['reason']}", b
-            # the unit it measured is named although its worker never ended the run: by the serial it reported
-            reported = info["station"].compasses[0].device.serial
-            assert lost["result"]["identities"]["0"]["identified_serial"] == reported != "SN-1", lost["result"]
-            assert b["units"][0]["identified_serial"] == reported, b["units"][0]
-            assert first["id"] in [r["id"] for r in c.call("GET", f"/runs?serial={reported}", "viewer").json()]
-            # its page says why once (the status cell and the summary's line in the verdict cell said it twice)
-            page = c.call("GET", f"/ui/batches/{bid}", "viewer")
-            assert page.status_code == 200 and "text/html" in page.headers["content-type"], page.text[:300]
-            row = re.search(r'<tr data-serial="SN-1">(.*?)</tr>', page.text, re.S).group(1)
-            assert row.count("worker lost") == 1, row
-            row3 = re.search(r'<tr data-serial="SN-3">(.*?)</tr>', page.text, re.S).group(1)
-            assert "not run: station lab-1&#39;s worker stopped beating" in row3, row3
-            assert b["summary"]["SN-2"] == b["summary"]["SN-3"] == "not run: station lab-1's worker stopped beating", b
-            assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
-            listed = c.call("GET", "/batches", "viewer").json()
-            assert listed[0]["id"] == bid and listed[0]["summary"] == b["summary"]
-
-            # a new worker; the station reset (the table stopped mid-run) takes runs again
-            worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker2.log")
-            procs.append(worker)
-            deadline = time.monotonic() + 30
-            while (r := c.call("POST", "/stations/lab-1/reset", "operator")).status_code != 200:
-                assert time.monotonic() < deadline, r.text
-                time.sleep(0.5)
-
-            # the lost unit resumed on its own: it stays the batch's, whose summary says how it came out
-            r = c.call("POST", "/runs", "operator", json={"station": "lab-1", "resume": first["id"]})
-            assert r.status_code == 202, r.text
-            resumed = c.wait(r.json()["id"], lambda j: j["status"] in ("completed", "failed", "aborted"), timeout=90)
-            assert resumed["status"] == "completed" and resumed["batch_id"] == bid, resumed
-            b = c.call("GET", f"/batches/{bid}", "viewer").json()
-            verdict = resumed["result"]["units"]["0"]["verdict"]
-            assert b["summary"]["SN-1"] == f"{verdict} (resumed as run {resumed['id']})", b["summary"]
-            assert b["units"][0]["run_id"] == resumed["id"] and b["units"][0]["calibration_id"], b["units"][0]
-            assert b["status"] == "failed" and b["summary"]["SN-2"].startswith("not run"), b  # the rest as they were
-
-            # SIGTERM while the next batch's first unit waits to be mounted: the worker exits at once
-            bid2 = c.call("POST", "/batches", "operator", json={**body, "serials": ["SN-4", "SN-5"]}).json()["id"]
-            b = _batch(c, bid2, lambda b: b["prompt"] is not None)
-            t0 = time.monotonic()
-            worker.send_signal(signal.SIGTERM)
-            assert worker.wait(30) == 0
-            assert time.monotonic() - t0 < 15
-            b = _batch(c, bid2, lambda b: b["status"] != "running", timeout=5)
-            stopped = c.run(b["prompt"]["run_id"] if b["prompt"] else b["units"][0]["run_id"])
-            assert stopped["status"] == "aborted" and "not yet mounted" in stopped["reason"], stopped
-            assert b["status"] == "failed" and b["summary"]["SN-4"] == f"aborted: {stopped['reason']}", b
-            assert b["summary"]["SN-5"].startswith("not run: the station's worker was stopped"), b
-            assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
+            procs.append(_start(["worker", "--station", "lab-1"], url, tmp_path / "worker1.log"))
+            yield c, info, url, procs
     finally:
         for p in procs:
+            try:
+                os.killpg(p.pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
             _kill(p)
+
+
+def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tmp_path: Path):
+    """kill -9 of a station's worker mid-batch left the batch "running" for good and every later run on the
+    station refused ("busy with batch 1"), whatever was reset or restarted; SIGTERM while a unit waited to be
+    mounted left the worker holding the prompt for its 15 minutes, then running the rest of the batch.
+    Now a lost worker's batch ends failed, every unit it did not judge named in its summary, the station
+    freed; a stopped worker aborts the unit not yet mounted, runs no further unit and exits."""
+    with _station_with_worker(tmp_path, seed=5) as (c, info, url, procs):
+        worker = procs[-1]
+        body = {"station": "lab-1", "serials": ["SN-1", "SN-2", "SN-3"], "parameters": {"samples": 20},
+                "serial_policy": "trust-typed"}
+
+        # kill -9 while the first unit is measured
+        bid = c.call("POST", "/batches", "operator", json=body).json()["id"]
+        b = _batch(c, bid, lambda b: b["prompt"] is not None)
+        assert c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator",
+                      json={"answer": "mounted"}).status_code == 200
+        first = c.wait(b["prompt"]["run_id"], lambda j: j["samples_count"] >= 3 * 20)  # past a checkpoint or two
+        _kill(worker)
+        b = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
+        lost = c.run(first["id"])
+        assert lost["status"] == "failed" and "worker lost" in lost["reason"] and lost["samples_count"] > 0, (b, lost)
+        assert b["status"] == "failed" and b["summary"]["SN-1"] == f"failed: {lost['reason']}", b
+        # the unit it measured is named although its worker never ended the run: by the serial it reported
+        reported = info["station"].compasses[0].device.serial
+        assert lost["result"]["identities"]["0"]["identified_serial"] == reported != "SN-1", lost["result"]
+        assert b["units"][0]["identified_serial"] == reported, b["units"][0]
+        assert first["id"] in [r["id"] for r in c.call("GET", f"/runs?serial={reported}", "viewer").json()]
+        # its page says why once (the status cell and the summary's line in the verdict cell said it twice)
+        page = c.call("GET", f"/ui/batches/{bid}", "viewer")
+        assert page.status_code == 200 and "text/html" in page.headers["content-type"], page.text[:300]
+        row = re.search(r'<tr data-serial="SN-1">(.*?)</tr>', page.text, re.S).group(1)
+        assert row.count("worker lost") == 1, row
+        row3 = re.search(r'<tr data-serial="SN-3">(.*?)</tr>', page.text, re.S).group(1)
+        assert "not run: station lab-1&#39;s worker stopped beating" in row3, row3
+        assert b["summary"]["SN-2"] == b["summary"]["SN-3"] == "not run: station lab-1's worker stopped beating", b
+        assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
+        listed = c.call("GET", "/batches", "viewer").json()
+        assert listed[0]["id"] == bid and listed[0]["summary"] == b["summary"]
+
+        # a new worker; the station reset (the table stopped mid-run) takes runs again
+        worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker2.log")
+        procs.append(worker)
+        deadline = time.monotonic() + 30
+        while (r := c.call("POST", "/stations/lab-1/reset", "operator")).status_code != 200:
+            assert time.monotonic() < deadline, r.text
+            time.sleep(0.5)
+
+        # the lost unit resumed on its own: it stays the batch's, whose summary says how it came out
+        r = c.call("POST", "/runs", "operator", json={"station": "lab-1", "resume": first["id"]})
+        assert r.status_code == 202, r.text
+        resumed = c.wait(r.json()["id"], lambda j: j["status"] in ("completed", "failed", "aborted"), timeout=90)
+        assert resumed["status"] == "completed" and resumed["batch_id"] == bid, resumed
+        b = c.call("GET", f"/batches/{bid}", "viewer").json()
+        verdict = resumed["result"]["units"]["0"]["verdict"]
+        assert b["summary"]["SN-1"] == f"{verdict} (resumed as run {resumed['id']})", b["summary"]
+        assert b["units"][0]["run_id"] == resumed["id"] and b["units"][0]["calibration_id"], b["units"][0]
+        assert b["status"] == "failed" and b["summary"]["SN-2"].startswith("not run"), b  # the rest as they were
+
+        # SIGTERM while the next batch's first unit waits to be mounted: the worker exits at once
+        bid2 = c.call("POST", "/batches", "operator", json={**body, "serials": ["SN-4", "SN-5"]}).json()["id"]
+        b = _batch(c, bid2, lambda b: b["prompt"] is not None)
+        t0 = time.monotonic()
+        worker.send_signal(signal.SIGTERM)
+        assert worker.wait(30) == 0
+        assert time.monotonic() - t0 < 15
+        b = _batch(c, bid2, lambda b: b["status"] != "running", timeout=5)
+        stopped = c.run(b["prompt"]["run_id"] if b["prompt"] else b["units"][0]["run_id"])
+        assert stopped["status"] == "aborted" and "not yet mounted" in stopped["reason"], stopped
+        assert b["status"] == "failed" and b["summary"]["SN-4"] == f"aborted: {stopped['reason']}", b
+        assert b["summary"]["SN-5"].startswith("not run: the station's worker was stopped"), b
+        assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
 
 
 def test_a_worker_that_wakes_from_a_freeze_leaves_what_was_ended_without_it(tmp_path: Path):
@@ -391,54 +406,39 @@ def test_a_worker_that_wakes_from_a_freeze_leaves_what_was_ended_without_it(tmp_
     events to the failed run, and rewrote the batch's summary; and an answer to a prompt of the frozen run
     got 200 although no worker ever took it. Now the answer gets 409, and the woken worker stops its axes
     at once, keeps no further sample and leaves the run and the batch as they were ended."""
-    url = fresh_database("postgresql", tmp_path)
-    procs: list[subprocess.Popen[bytes]] = []
-    try:
-        api, port = _api(url, tmp_path, "api")
-        procs.append(api)
-        c = Client(port, _keys(url))
-        with sim_station(reference_config(seed=6, time_scale=20)) as info:
-            c.station(info, "lab-1")
-            worker = _start(["worker", "--station", "lab-1"], url, tmp_path / "worker1.log")
-            procs.append(worker)
+    with _station_with_worker(tmp_path, seed=6) as (c, info, _, procs):
+        worker = procs[-1]
 
-            # frozen while a batch's unit waits to be mounted: the answer is refused once the run has ended
-            bid = c.call("POST", "/batches", "operator", json={"station": "lab-1", "serials": ["SN-1", "SN-2"],
-                                                                "parameters": {"samples": 20}}).json()["id"]
-            b = _batch(c, bid, lambda b: b["prompt"] is not None)
-            os.killpg(worker.pid, signal.SIGSTOP)
-            r = c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator", json={"answer": "mounted"})
-            assert r.status_code == 409 and "before its worker took the answer" in r.text, r.text
-            ended = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
-            assert ended["status"] == "failed" and "worker lost" in ended["summary"]["SN-1"], ended
-            os.killpg(worker.pid, signal.SIGCONT)
-            time.sleep(3)  # many of the woken worker's command polls
-            assert c.call("GET", f"/batches/{bid}", "viewer").json()["summary"] == ended["summary"]
-            assert c.run(b["prompt"]["run_id"])["samples_count"] == 0
+        # frozen while a batch's unit waits to be mounted: the answer is refused once the run has ended
+        bid = c.call("POST", "/batches", "operator", json={"station": "lab-1", "serials": ["SN-1", "SN-2"],
+                                                            "parameters": {"samples": 20}}).json()["id"]
+        b = _batch(c, bid, lambda b: b["prompt"] is not None)
+        os.killpg(worker.pid, signal.SIGSTOP)
+        r = c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator", json={"answer": "mounted"})
+        assert r.status_code == 409 and "before its worker took the answer" in r.text, r.text
+        ended = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
+        assert ended["status"] == "failed" and "worker lost" in ended["summary"]["SN-1"], ended
+        os.killpg(worker.pid, signal.SIGCONT)
+        time.sleep(3)  # many of the woken worker's command polls
+        assert c.call("GET", f"/batches/{bid}", "viewer").json()["summary"] == ended["summary"]
+        assert c.run(b["prompt"]["run_id"])["samples_count"] == 0
 
-            # frozen while a run measures: woken, it stops, and the failed run keeps what it had
-            while (r := c.call("POST", "/stations/lab-1/reset", "operator")).status_code != 200:
-                time.sleep(0.5)
-            rid = c.call("POST", "/runs", "operator", json={"station": "lab-1", "procedure": "calibrate",
-                                                             "parameters": {"samples": 20}}).json()["id"]
-            c.wait(rid, lambda j: j["samples_count"] > 0)
-            os.killpg(worker.pid, signal.SIGSTOP)
-            lost = c.wait(rid, lambda j: j["status"] == "failed", timeout=30)
-            kept, events = lost["samples_count"], c.events(rid)
-            assert "worker lost" in lost["reason"] and 0 < kept < 18 * 20, lost
-            os.killpg(worker.pid, signal.SIGCONT)
-            time.sleep(3)
-            now = c.run(rid)
-            assert (now["status"], now["reason"], now["samples_count"]) == ("failed", lost["reason"], kept), now
-            later = [e for e in c.events(rid) if e[0] > events[-1][0]]
-            assert [k for _, k, _ in later] in ([], ["step"]), later  # at most the worker's word that it stopped
-            assert all("ended meanwhile" in d["warning"] for _, _, d in later), later
-            assert all(ax.mode not in ("move", "jog") for ax in info["station"].table.axes.values())
-            assert c.call("GET", "/stations/lab-1", "viewer").json()["state"] == "fault"
-    finally:
-        for p in procs:
-            try:
-                os.killpg(p.pid, signal.SIGCONT)
-            except ProcessLookupError:
-                pass
-            _kill(p)
+        # frozen while a run measures: woken, it stops, and the failed run keeps what it had
+        while (r := c.call("POST", "/stations/lab-1/reset", "operator")).status_code != 200:
+            time.sleep(0.5)
+        rid = c.call("POST", "/runs", "operator", json={"station": "lab-1", "procedure": "calibrate",
+                                                         "parameters": {"samples": 20}}).json()["id"]
+        c.wait(rid, lambda j: j["samples_count"] > 0)
+        os.killpg(worker.pid, signal.SIGSTOP)
+        lost = c.wait(rid, lambda j: j["status"] == "failed", timeout=30)
+        kept, events = lost["samples_count"], c.events(rid)
+        assert "worker lost" in lost["reason"] and 0 < kept < 18 * 20, lost
+        os.killpg(worker.pid, signal.SIGCONT)
+        time.sleep(3)
+        now = c.run(rid)
+        assert (now["status"], now["reason"], now["samples_count"]) == ("failed", lost["reason"], kept), now
+        later = [e for e in c.events(rid) if e[0] > events[-1][0]]
+        assert [k for _, k, _ in later] in ([], ["step"]), later  # at most the worker's word that it stopped
+        assert all("ended meanwhile" in d["warning"] for _, _, d in later), later
+        assert all(ax.mode not in ("move", "jog") for ax in info["station"].table.axes.values())
+        assert c.call("GET", "/stations/lab-1", "viewer").json()["state"] == "fault"

@@ -82,8 +82,10 @@ def load_recording(session: Session, run: Run, slot: int) -> Recording | None:
         if said and said != value:
             meta[f"{IMPORTED_PREFIX}{key}"] = said
         meta[key] = value
+    if not meta["serial"]:  # no unit's serial known: no "# serial:" line (it was written empty)
+        del meta["serial"]
     typed = str((run.serials or {}).get(str(slot)) or "")
-    if typed and typed != meta["serial"]:  # the serial typed for a unit that reported another, kept beside it
+    if typed and typed != meta.get("serial"):  # the serial typed for a unit that reported another, kept beside it
         meta["typed_serial"] = typed
     extra = {e.name: list(e.values) for e in session.scalars(
         select(SampleExtra).where(SampleExtra.run_id == run.id, SampleExtra.slot == slot).order_by(SampleExtra.id))

@@ -45,6 +45,14 @@ def test_upload_a_foreign_recording_as_an_import_run(api):
     np.testing.assert_allclose(back.psi_t, original.psi_t)
     assert back.serial == "SN-UP"
     assert api.get("/recordings", role="viewer").status_code in (404, 405)
+    # without a serial: none said, neither an empty "# serial:" line in the export nor "" in an analysis
+    anon = api.post("/recordings", role="operator", content="\n".join(
+        line for line in text.splitlines() if not line.startswith("# serial:")).encode()).json()
+    assert anon["serial"] is None
+    exported = api.get(f"/runs/{anon['id']}/samples", role="viewer").text
+    assert "# serial:" not in exported and parse_recording(exported).serial is None
+    analysis = api.post(f"/runs/{anon['id']}/analysis", role="operator", json={"null_sims": 0})
+    assert analysis.status_code == 202 and analysis.json()["analyses"][0]["serial"] is None, analysis.text
 
 
 def test_an_imports_export_says_its_own_run_and_keeps_what_the_file_said(api):

@@ -115,7 +115,7 @@ async def create_analysis(run_id: Id, request: Request, response: Response, body
             run, plan = _plan(s, run_id, body)
             rows = [Analysis(run_id=run_id, slot=slot, status="queued", report=None,
                              request={"null_sims": body.null_sims, "calibration_id": cal_id,
-                                      "serial": unit_serial(run, slot), "operator": caller.owner})
+                                      "serial": unit_serial(run, slot) or None, "operator": caller.owner})
                     for slot, cal_id in plan.items()]
             s.add_all(rows)
             s.flush()

@@ -1145,6 +1145,9 @@ def _read_mapped(path: Path, m: Mapping, skip_bad_rows: bool) -> Recording:
         t = np.arange(tab.n) / m.time.rate_hz
         meta["time_source"] = f"t = row / {m.time.rate_hz:g} Hz (constant rate from the mapping; no time column)"
         meta["sample_rate_hz"] = f"{m.time.rate_hz:g}"
+    # to the nanosecond: sums and differences of decimal times carry float residue into the converted
+    # file ("0.0500000000000007", "106.049999999998") that no clock had
+    t = np.round(t, 9)
 
     def group(name: str) -> np.ndarray:
         return _oriented(np.column_stack([v[c] for c in _GROUP_COLUMNS[name]]), _axes(getattr(m, name).axes))

@@ -421,6 +421,20 @@ def test_mapping_dt_column_counts_and_quaternion(tmp_path):
     assert enu.psi_t[0] == pytest.approx(90.0) and abs(enu.phi_t[0]) == pytest.approx(180.0)
 
 
+def test_mapped_times_are_written_without_float_residue(tmp_path):
+    """A dt column summed, or a time column less its first value, gave "0.0500000000000007" and
+    "106.049999999998" in the converted file: times are kept to the nanosecond."""
+    rows = ["dt,t,mx,my,mz"] + [f"0.05,{1000.3 + 0.05 * i:.2f},1,2,3" for i in range(40)]
+    p = _write(tmp_path, "d.csv", "\n".join(rows) + "\n")
+    for col in ("dt", "t"):
+        m = {"columns": {col: col, "mx": "mx", "my": "my", "mz": "mz"}, "time": {"unit": "s", "start_at_zero": True}}
+        if col == "dt":
+            del m["time"]["start_at_zero"]
+        text = format_recording(read_recording_file(p, mapping=m))
+        times = [line.split(",")[0] for line in text.splitlines()[1:] if line and not line.startswith(("#", "t,"))]
+        assert all(len(x.split(".")[-1]) <= 3 for x in times), [x for x in times if len(x.split(".")[-1]) > 3]
+
+
 @pytest.mark.parametrize("sequence", ["XYZ", "ZXY", "yxz"])
 def test_mapping_angles_in_another_rotation_sequence_give_the_same_attitudes_and_calibration(tmp_path, sequence):
     """A logger whose three angles (about z, y and x) compose the attitude in another order: converted to

@@ -237,6 +237,9 @@ class RunControl:
         self.engine: Engine | None = None
         self.abort_reason: str | None = None
         self.ended_elsewhere: str | None = None  # why, once the run was found ended by another process
+        # set before this worker writes the run's end: a last poll still in its thread then sees the run
+        # ended by this worker itself, not elsewhere (it said "ended meanwhile" after a completed run)
+        self.finishing = False
         self.pending: list[RunCommand] = []
 
     def take(self) -> None:
@@ -250,7 +253,7 @@ class RunControl:
                 r.taken_at = utcnow()
             ended = s.execute(select(Run.status, Run.reason).where(Run.id == self.run_id)).first()
             s.commit()
-        if ended is not None and ended.status in FINAL and self.ended_elsewhere is None:
+        if ended is not None and ended.status in FINAL and self.ended_elsewhere is None and not self.finishing:
             self.ended_elsewhere = f"run {self.run_id} was ended meanwhile ({ended.status}: {ended.reason})"
             self.abort_reason = self.abort_reason or self.ended_elsewhere
             self.outbox.closed = True  # what the table does now is no part of the ended run
@@ -340,6 +343,7 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     except Exception as e:  # noqa: BLE001 - a bug or closing the hardware failed: end the run, not the worker
         fin = _Finish(RunState.failed.value, f"internal error: {_reason(e)}", fault=_reason(e))
     finally:
+        control.finishing = True
         follower.cancel()
         await asyncio.gather(follower, return_exceptions=True)
         ctx.executing.pop(run_id, None)

@@ -598,9 +598,10 @@ async def execute_batch(ctx: WorkerContext, batch_id: int, parameters: dict[str,
                 status = "failed"
                 break
             with ctx.sessions() as s:
-                if s.get(Batch, batch_id).finished_at is not None:  # ended elsewhere (this worker taken for lost)
+                batch = s.get(Batch, batch_id)
+                if batch.finished_at is not None:  # ended elsewhere (this worker taken for lost)
                     break
-                if s.get(Batch, batch_id).status == BATCH_ABORTING:  # PUT /batches/{id}/state: no further unit
+                if batch.status == BATCH_ABORTING:  # PUT /batches/{id}/state: no further unit
                     summary.update({x: NOT_RUN + "the batch was aborted" for x in serials if x not in summary})
                     status = "aborted"
                     break

@@ -476,9 +476,11 @@ def test_a_runs_plan_seconds_start_where_the_table_stands():
     back = move_seconds([240.0], motion)  # the second run's first move: 8.5 s at 30 deg/s (and the settling)
     assert abs(second.plan_seconds - first.plan_seconds - back) < 1e-6, (first.plan_seconds, second.plan_seconds)
     for result in (first, second):
-        # loosely: at time scale 20 each move's few ms of host latency count 20 times over, a large share of
-        # an 11-s plan on a busy machine (13 % once in CI); benchmarks/procedure.py holds the table-time target
-        assert abs(result.table_seconds / result.plan_seconds - 1.0) < 0.25, (result.table_seconds, result.plan_seconds)
+        # one-sided: the table cannot beat the plan, but at time scale 20 each move's few ms of host latency
+        # count 20 times over, a large share of an 11-s plan on a busy machine (13 % once in CI; a plan
+        # without its first move back would be half the table time); benchmarks/procedure.py holds the target
+        ratio = result.table_seconds / result.plan_seconds
+        assert 0.97 < ratio < 1.25, (result.table_seconds, result.plan_seconds)
     # the first move is nearly half of the second run's plan (none of the first's), and its progress says so
     settle = 100.0 * motion.settle_s
     assert abs(p1[0].percent - settle / first.plan_seconds) < 0.1, p1[0]

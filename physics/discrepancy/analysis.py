@@ -14,7 +14,7 @@ from physics.calibration import Calibration, json_safe
 from physics.discrepancy.discovery import (MAX_BLOCKS, SAME_EVIDENCE, Dictionary, Found, discovered_finding, merge_windows,
                                           rebuild, rows_of)
 from physics.discrepancy.lrt import Test, _complement, _extend, _null_residuals, _orth, _score, line_search
-from physics.discrepancy.noise import NoiseModel, estimate_noise, require_noise, whiten_all
+from physics.discrepancy.noise import NoiseModel, estimate_noise, ljung_box, require_noise, whiten_all
 from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_of, parameters, where_extra
 from physics.discrepancy.schema import Analysis, summary, with_schema
 from physics.discrepancy.twin import (ATTITUDE_SOURCE_KEY, Context, Nominal, context, decimate, fit_nominal, generic_columns,
@@ -453,14 +453,9 @@ WHITE_LAGS = 10
 def _ljung_box(z: np.ndarray, lags: int) -> np.ndarray:
     """The Ljung-Box statistic summed over the three axes of each whitened residual in ``z`` ((3N,) or
     (K, 3N), axis-major as `whiten_all` stacks them)."""
-    zz = np.atleast_2d(z).reshape(len(np.atleast_2d(z)), 3, -1)
-    x = zz - zz.mean(axis=2, keepdims=True)
-    n = x.shape[2]
-    den = np.maximum(np.sum(x * x, axis=2), 1e-300)
-    q = np.zeros(x.shape[:2])
-    for k in range(1, lags + 1):
-        q += (np.sum(x[:, :, k:] * x[:, :, :-k], axis=2) / den) ** 2 / (n - k)
-    return n * (n + 2) * q.sum(axis=1)
+    zz = np.atleast_2d(z)
+    k = len(zz)
+    return ljung_box(zz.reshape(3 * k, -1).T, lags).reshape(k, 3).sum(axis=1)
 
 
 def whiteness(z: np.ndarray, null: np.ndarray | None, lags: int = WHITE_LAGS) -> dict[str, Any]:
@@ -1000,14 +995,8 @@ def locate(ctx: Context, r0: np.ndarray, sigma: np.ndarray, candidates: dict, Q0
             frame[{"stage_hard_iron:outer": "fixed in the outer stage", "stage_hard_iron:middle": "fixed in the middle stage",
                    "field_drift": "drifting in the lab frame", "temperature_drift": "drifting in the sensor frame"}[name]] = {
                 "statistic": t.statistic, "df": t.df, "p_value": t.p_value}
-    zz = z.reshape(3, -1)
-    lb = []
-    for j in range(3):
-        x = zz[j] - zz[j].mean()
-        ac = np.array([x[k:] @ x[:-k] for k in range(1, 11)]) / max(x @ x, 1e-300)
-        n = len(x)
-        q = n * (n + 2) * np.sum(ac ** 2 / (n - np.arange(1, 11)))
-        lb.append({"ljung_box_q": float(q), "lags": 10, "p_value": float(stats.chi2.sf(q, 10))})
+    lb = [{"ljung_box_q": float(q), "lags": 10, "p_value": float(stats.chi2.sf(q, 10))}
+          for q in ljung_box(z.reshape(3, -1).T, 10)]
     witness = {name: {"statistic": row["statistic"], "df": row["df"], "p_value": row["p_value"]}
                for name, row in generic.items()}
     return {"by_axis": {"rms_lsb": rms.tolist(), "dominant": "xyz"[int(np.argmax(rms / sigma))]},

@@ -69,7 +69,7 @@ from physics.discrepancy.discovery import (AGAINST_TEXT, FOUND_BY_SEARCH, FRAME_
                                            N_BINS, SLOW_PREFERENCE, SLOW_SAME_EVIDENCE, Block, _cause, _experiment,
                                            _window_stats, search_bins, ut_per_count)
 from physics.discrepancy.lrt import _orth
-from physics.discrepancy.noise import require_noise
+from physics.discrepancy.noise import ljung_box, require_noise
 from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
                                           needs_table_angles, raw_distortions)
 from physics.discrepancy.schema import Analysis, finding_model
@@ -781,18 +781,6 @@ class _Regression:
                 "G": G, "b": b, "yy": yy}
 
 
-def _ljung_box(Ew: np.ndarray, lags: int) -> np.ndarray:
-    """Ljung-Box Q of whitened residual columns (n, S)."""
-    n = Ew.shape[0]
-    E = Ew - Ew.mean(axis=0)
-    den = np.sum(E ** 2, axis=0)
-    Q = np.zeros(E.shape[1])
-    for k in range(1, lags + 1):
-        r = np.sum(E[k:] * E[:-k], axis=0) / den
-        Q += r ** 2 / (n - k)
-    return n * (n + 2) * Q
-
-
 # --------------------------------------------------------------------------------------------------
 # The mains line scan
 # --------------------------------------------------------------------------------------------------
@@ -1454,7 +1442,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
             if any(tt.kind == "whiteness" for tt in mine):
                 _, beta = r.rss(G, b, yy, jcols)
                 Ew = r.whiten(Y - r.Z[:, jcols] @ beta.T, rho_s)
-                lb_sum += float(np.sum(_ljung_box(Ew, lb_lags)))
+                lb_sum += float(np.sum(ljung_box(Ew, lb_lags)))
             S_total += S
             report("nulls", 0.2 + 0.5 * (a + S) / null_sims * (list(reg).index(name) + 1) / len(reg))
         sims_used = S_total
@@ -1479,7 +1467,7 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
         if tt.kind == "whiteness":
             g = r.gls(list(given))
             out.df = lb_lags - 1
-            out.raw = float(_ljung_box(g["resid_w"][:, None], lb_lags)[0])
+            out.raw = float(ljung_box(g["resid_w"][:, None], lb_lags)[0])
             out.extra = {"lags": lb_lags, "residual_ar1": g["rho"]}
         else:
             alt = r.cols(list(given) + [tt.block])

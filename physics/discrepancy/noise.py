@@ -113,6 +113,18 @@ def noise_model(r: np.ndarray, segment: np.ndarray) -> NoiseModel:
     return NoiseModel(sig.reshape(shape), phi.reshape(shape), white.reshape(shape))
 
 
+def ljung_box(E: np.ndarray, lags: int) -> np.ndarray:
+    """The Ljung-Box statistic of each column of the whitened residuals ``E`` (n, S), over ``lags`` lags:
+    chi-square with ``lags`` degrees of freedom for each column that is white."""
+    n = E.shape[0]
+    x = E - E.mean(axis=0)
+    den = np.maximum(np.sum(x * x, axis=0), 1e-300)
+    q = np.zeros(E.shape[1])
+    for k in range(1, lags + 1):
+        q += (np.sum(x[k:] * x[:-k], axis=0) / den) ** 2 / (n - k)
+    return n * (n + 2) * q
+
+
 def ar_evidence(g: np.ndarray, n: int) -> float:
     """z-score of an AR part in the first differences' autocovariance ``g`` (lags 0..), from ``n``
     differences: the negated sum of the autocorrelations at lags >= 2. White noise's differences are

@@ -334,16 +334,22 @@ def _conic2(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return c0 + s * centre, (V * np.sqrt(w)) @ V.T / s
 
 
-def _quadric3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _quadric3(m: np.ndarray, separation: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """physics.methods.fit_ellipsoid's algebra without its uniqueness guard (for 3-D readings whose
     quadric is only weakly determined, e.g. hand-held turns mostly about one axis): the Gauss-Newton
-    refinement and the nominal Jacobian kept in every test take care of the weak directions."""
+    refinement and the nominal Jacobian kept in every test take care of the weak directions. With
+    ``separation``, a quadric whose two smallest singular values are closer than that factor (a family
+    of quadrics fits the readings, one picked by the noise) is refused."""
     c0 = m.mean(axis=0)
     s = float(np.sqrt(np.mean(np.sum((m - c0) ** 2, axis=1))))
     x, y, z = ((m - c0) / s).T
     design = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, 2 * x, 2 * y, 2 * z,
                               np.ones_like(x)])
-    p = np.linalg.svd(design, full_matrices=False)[2][-1]
+    _, sv, vt = np.linalg.svd(design, full_matrices=False)
+    if sv[-2] < separation * sv[-1]:
+        raise InsufficientData("the readings do not determine an ellipsoid (its two weakest directions, singular "
+                               f"values {sv[-2]:.3g} and {sv[-1]:.3g}, are a family the noise picks from)")
+    p = vt[-1]
     A = np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
     centre = -np.linalg.solve(A, p[6:9])
     Q = A / (centre @ A @ centre - p[9])
@@ -401,7 +407,11 @@ class _AccCal:
             try:
                 B, E = fit_ellipsoid(acc)
             except InsufficientData:
-                B, E = _quadric3(acc)
+                # unlike the magnetometer's, no term of the model takes up the accelerometer's weak directions:
+                # they go straight into the dip (a table plan's tilts left a family of quadrics, and the one
+                # the noise picked, semi-axes 18528, 16384 and 14845 LSB for a perfect unit, made the dip's
+                # residual 23 LSB against 3, and a field drift and a rotation were named)
+                B, E = _quadric3(acc, CONIC_SEPARATION)
             radii = 1.0 / np.linalg.eigvalsh(E)
             if radii.max() / radii.min() - 1.0 > ACC_RADIUS_SPREAD:
                 raise InsufficientData(f"semi-axes {np.array2string(radii, precision=0)} disagree")
@@ -1733,7 +1743,6 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
     report("fit", 0.85)
 
     # ---- final joint fits ------------------------------------------------------------------------------
-    finals = {name: r.gls(list(fixed[name]) + selected[name]) for name, r in reg.items()}
     full_feats = _features(nom, full, temp_varies)
     for name, frame, segs in windows:
         _add_window(full_feats, _offset_columns(nom, full, frame), name, _inside(full.t, segs))
@@ -1746,38 +1755,80 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
               / reg[name].scale for name in reg}
 
     N = len(full)
+    col_of = {"magnitude": 0, "dip": 1}
+    # held-out: 4 interleaved time folds
+    fold_dec = (np.minimum(((dec.t - t0) / duration * N_TIME_BLOCKS).astype(int), N_TIME_BLOCKS - 1)) % N_FOLDS
+    fold_full = (np.minimum(((full.t - t0) / duration * N_TIME_BLOCKS).astype(int), N_TIME_BLOCKS - 1)) % N_FOLDS
+    nominal_fit: dict[str, np.ndarray] = {}
+    for name, r in reg.items():
+        jc = r.cols([])
+        nominal_fit[name] = full_Z[name][:, jc] @ np.linalg.lstsq(r.Z[:, jc], r.y, rcond=None)[0]
+
+    def heldout(name: str, blocks: list[str]) -> np.ndarray:
+        """The held-out prediction of residual_before by the nominal model plus ``blocks``, each fold's
+        from the other three (residual_before - prediction is its error)."""
+        r, out = reg[name], np.full(N, np.nan)
+        cols = r.cols(blocks)
+        for k in range(N_FOLDS):
+            beta = np.linalg.lstsq(r.Z[fold_dec != k][:, cols], r.y[fold_dec != k], rcond=None)[0]
+            rows = fold_full == k
+            out[rows] = full_Z[name][rows][:, cols] @ beta - nominal_fit[name][rows]
+        return out
+
+    def heldout_ss(model: dict[str, list[str]]) -> float:
+        """The held-out sum of squares of ``model`` (each response's blocks), pooled over the responses."""
+        total = 0.0
+        for name in reg:
+            e = full_feats[name].y - nominal_fit[name] - heldout(name, model[name])
+            total += float(np.mean(e[np.isfinite(e)] ** 2)) if np.isfinite(e).any() else 0.0
+        return total
+
+    def model_of(mag_blocks: list[str], dip_blocks: list[str]) -> dict[str, list[str]]:
+        out = {"magnitude": list(mag_blocks)}
+        if "dip" in reg:  # the dip's share of the magnitude's blocks, and its own
+            out["dip"] = [b + "@dip" for b in mag_blocks if b + "@dip" in reg["dip"].slices] + list(dip_blocks)
+        return out
+
+    # The final model is never worse held-out than the nominal one (as the table model's): a block whose
+    # removal improves the held-out fit goes, the worst first, until the model does no harm.
+    ss_before = heldout_ss(model_of([], []))
+    while True:
+        dip_own = selected.get("dip", [])
+        if heldout_ss(model_of(selected["magnitude"], dip_own)) <= ss_before:
+            break
+        trial = {(resp, b): heldout_ss(model_of([x for x in selected["magnitude"] if x != b] if resp == "magnitude"
+                                                else selected["magnitude"],
+                                                [x for x in dip_own if x != b] if resp == "dip" else dip_own))
+                 for resp in selected for b in selected[resp]}
+        if not trial:
+            break
+        resp, worst = min(trial, key=trial.get)
+        selected[resp].remove(worst)
+        gone = sel_tests.pop(worst)
+        gone.selected = False
+        confusable.pop(worst, None)
+        if resp == "magnitude" and "dip" in reg:
+            fixed["dip"] = dip_nuisance()
+        notes.append(f"{gone.effect} ({gone.variant}) left out: with it the model predicted held-out data worse "
+                     "than without")
+    finals = {name: r.gls(list(fixed[name]) + selected[name]) for name, r in reg.items()}
+
     resid_before = np.full((N, 3), np.nan)
     resid_after = np.full((N, 3), np.nan)
     pred_before = np.full((N, 3), np.nan)
     pred_after = np.full((N, 3), np.nan)
-    col_of = {"magnitude": 0, "dip": 1}
-    nominal_fit: dict[str, np.ndarray] = {}
-    for name in reg:
+    for name, r in reg.items():
         j = col_of[name]
         y_full = full_feats[name].y
         fin = finals[name]
         # in-sample residuals: least-squares fits of the nominal model (its linearised parameters J, which
         # for the dip include the ellipsoid's) and of the nominal model plus the selected effects (so
         # "after" never exceeds "before"); the reported parameters and sigma come from the GLS fit
-        jc = reg[name].cols([])
-        nominal_fit[name] = full_Z[name][:, jc] @ np.linalg.lstsq(reg[name].Z[:, jc], reg[name].y, rcond=None)[0]
         resid_before[:, j] = y_full - nominal_fit[name]
-        beta_ls = np.linalg.lstsq(reg[name].Z[:, fin["cols"]], reg[name].y, rcond=None)[0]
+        beta_ls = np.linalg.lstsq(r.Z[:, fin["cols"]], r.y, rcond=None)[0]
         resid_after[:, j] = y_full - full_Z[name][:, fin["cols"]] @ beta_ls
-
-    # ---- held-out: 4 interleaved time folds -------------------------------------------------------------
-    fold_dec = (np.minimum(((dec.t - t0) / duration * N_TIME_BLOCKS).astype(int), N_TIME_BLOCKS - 1)) % N_FOLDS
-    fold_full = (np.minimum(((full.t - t0) / duration * N_TIME_BLOCKS).astype(int), N_TIME_BLOCKS - 1)) % N_FOLDS
-    for name, r in reg.items():
-        j = col_of[name]
-        models = ((r.cols([]), pred_before), (r.cols(list(fixed[name]) + selected[name]), pred_after))
-        for cols, target in models:
-            for k in range(N_FOLDS):
-                train = fold_dec != k
-                beta = np.linalg.lstsq(r.Z[train][:, cols], r.y[train], rcond=None)[0]
-                rows = fold_full == k
-                # the held-out model's prediction of residual_before: residual_before - pred is its error
-                target[rows, j] = full_Z[name][rows][:, cols] @ beta - nominal_fit[name][rows]
+        pred_before[:, j] = heldout(name, [])
+        pred_after[:, j] = heldout(name, list(fixed[name]) + selected[name])
     report("heldout", 0.95)
 
     # ---- results --------------------------------------------------------------------------------------------

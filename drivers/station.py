@@ -8,11 +8,16 @@ the tests all open their stations here).
 
 from __future__ import annotations
 
+import ipaddress
+import os
+import socket
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from urllib.parse import urlsplit
 
 from drivers import Station
 from drivers.compass import SerialFixture
+from drivers.modbus import BusURL
 from drivers.turntable import POLL_INTERVAL, Turntable
 
 
@@ -32,3 +37,33 @@ async def open_station(modbus: str, compasses: list[str], *, time_scale: float =
             await fixture.close()
     finally:
         await table.close()
+
+
+def _host(name: str) -> str:
+    """A host as one address: an IP as written, a name resolved (``localhost`` is 127.0.0.1); a name that
+    does not resolve here stays itself, lower-cased."""
+    name = name.lower()
+    try:
+        return str(ipaddress.ip_address(name))
+    except ValueError:
+        pass
+    try:
+        return sorted(info[4][0] for info in socket.getaddrinfo(name, None, socket.AF_INET))[0]
+    except (OSError, IndexError):
+        return name
+
+
+def hardware_key(url: str, modbus: bool = False) -> str:
+    """The piece of hardware a table's (``modbus``) or a compass's URL reaches, whatever its spelling: a
+    network endpoint as ``host:port`` (the framing, ``?timeout=`` and the host's name aside), a device
+    as its real path (``/dev/serial/by-id/...`` is the ``/dev/ttyUSB0`` it links to). Two URLs with one
+    key drive one device."""
+    if modbus:
+        bus = BusURL.parse(url)
+        return f"{_host(bus.host)}:{bus.port}" if bus.kind != "serial" else os.path.realpath(bus.device)
+    if "://" not in url:
+        return os.path.realpath(url)
+    parts = urlsplit(url)
+    if parts.hostname and parts.port:  # socket://, rfc2217://
+        return f"{_host(parts.hostname)}:{parts.port}"
+    return url

@@ -16,6 +16,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from drivers.modbus import BusURL
+from drivers.station import hardware_key
 from drivers.sim.config import MAX_TIME_SCALE
 from procedures.steps import request_number
 from service.identity import (CHOICES, SERIAL_MAX, SERIAL_PATTERN, SERIAL_RULE, SerialPolicy as _SerialPolicy,
@@ -263,8 +264,8 @@ class StationConfigIn(In):
                 serial.serial_for_url(u, do_not_open=True)
             except (ValueError, serial.SerialException) as e:
                 raise ValueError(f"slot {i}: {u!r}: {e}") from None
-        twice = _repeated(v)
-        if twice:  # two slots cannot read one compass
+        twice = _repeated([hardware_key(u) for u in v])
+        if twice:  # two slots cannot read one compass (however each URL spells it)
             raise ValueError(f"compass URL given for two slots: {', '.join(twice)}")
         return v
 

@@ -106,6 +106,16 @@ def test_stations_need_admin_and_requests_are_validated(api: Api):
     shared = api.post("/stations", json={**two, "modbus": body["modbus"]})
     assert shared.status_code == 409 and "already has table" in shared.text
     assert api.post("/stations", json={**two, "compasses": ["socket://127.0.0.1:4001"]}).status_code == 409
+    # however a URL spells it: the host's name, the framing or a timeout do not make another device (a probe's
+    # station on "tcp://...?timeout=0.8" and "socket://localhost:..." moved the first one's table mid-run)
+    port = body["modbus"].rsplit(":", 1)[1]
+    for modbus in (f"tcp://localhost:{port}?timeout=0.8", f"rtu+tcp://127.0.0.1:{port}"):
+        r = api.post("/stations", json={**two, "modbus": modbus})
+        assert r.status_code == 409 and "already has table" in r.text and f"(as {body['modbus']})" in r.text, r.text
+    r = api.post("/stations", json={**two, "compasses": ["socket://localhost:4001"]})
+    assert r.status_code == 409 and "already has compass" in r.text, r.text
+    r = api.post("/stations", json={**two, "compasses": ["socket://127.0.0.1:4002", "socket://LOCALHOST:4002"]})
+    assert r.status_code == 422 and "two slots" in r.text, r.text
     for compasses, words in ((["ftp://x"], "protocol 'ftp' not known"), (["/dev/ttyS7", "/dev/ttyS7"], "two slots")):
         r = api.post("/stations", json={**two, "compasses": compasses})
         assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.compasses" and words in r.text, r.text

@@ -14,6 +14,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from drivers.station import hardware_key
 from service.auth import Caller, audit, require
 from service.db import Run, Station
 from service.deps import sessions
@@ -37,10 +38,17 @@ async def list_stations(request: Request, _: Caller = Depends(require("viewer"))
 def _hardware_free(s: Session, name: str, modbus: str, compasses: list[str]) -> None:
     """409 when another station already has this table or one of these compasses: two stations on one
     table would move it under each other's runs (a probe's second station failed with "port lost")."""
+    # compared by the device each URL reaches: "tcp://localhost:5020?timeout=0.8" or "rtu+tcp://127.0.0.1:5020"
+    # is the table of "tcp://127.0.0.1:5020" (a probe's second station so spelled moved that table during the
+    # first one's run, and certified a unit)
+    table = hardware_key(modbus, modbus=True)
+    mine = {hardware_key(u): u for u in compasses}
     for other in s.scalars(select(Station).where(Station.name != name)):
-        shared = [u for u in compasses if u in (other.compasses or [])]
-        if other.modbus == modbus or shared:
-            what = f"table {modbus}" if other.modbus == modbus else f"compass {shared[0]}"
+        shared = [mine[k] for k in (hardware_key(u) for u in other.compasses or []) if k in mine]
+        same_table = hardware_key(other.modbus, modbus=True) == table
+        if same_table or shared:
+            what = (f"table {modbus}" + (f" (as {other.modbus})" if other.modbus != modbus else "") if same_table
+                    else f"compass {shared[0]}")
             raise HTTPException(409, f"station {other.name!r} already has {what}; one piece of hardware belongs to one "
                                      f"station (give {other.name!r} other hardware with PUT /stations/{other.name} first)")
 

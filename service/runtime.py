@@ -324,7 +324,10 @@ def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
     for serial in batch.serials:
         r = by_serial.get(serial)
         if r is None:
-            units.append({"serial": serial, "run_id": None, "status": "pending", "verdict": None})
+            # a unit of an ended batch without a run was never run (its summary says why), not pending
+            ended = batch.finished_at is not None
+            units.append({"serial": serial, "run_id": None, "status": "not run" if ended else "pending", "verdict": None,
+                          "reason": (batch.summary or {}).get(serial, "").removeprefix(NOT_RUN) or None if ended else None})
             continue
         j = run_json(r)
         c = cals.get(r.id)

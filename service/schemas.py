@@ -479,7 +479,7 @@ class BatchUnit(BaseModel):
 
     serial: str
     run_id: int | None
-    status: str
+    status: str = Field(description="its run's status; pending (its run not yet made), or not run (the batch ended first)")
     verdict: str | None
     reason: str | None = None
     identified_serial: str | None = Field(None, description="the serial number the mounted unit reported (None: "

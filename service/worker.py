@@ -1131,6 +1131,15 @@ class Jobs:
         assert self.app is not None
         return await self.app.job_manager.cancel_job_by_id_async(job_id)
 
+    async def cancel_queued(self, task: str, queue: str, **match: Any) -> bool:
+        """Cancel the queued job of ``task`` on ``queue`` whose arguments include ``match``; False when none
+        waits (a worker has taken it, or it is done)."""
+        assert self.app is not None
+        for job in await self.app.job_manager.list_jobs_async(queue=queue, task=f"compasscal.{task}", status="todo"):
+            if all(job.task_kwargs.get(k) == v for k, v in match.items()):
+                return await self.cancel(job.id)
+        return False
+
     async def stop(self, grace_s: float = 5.0) -> None:
         """Abort the runs this process executes (axes stopped, samples kept), wait for them briefly,
         stop the worker thread and close the queue."""

@@ -442,3 +442,29 @@ def test_a_worker_that_wakes_from_a_freeze_leaves_what_was_ended_without_it(tmp_
         assert all("ended meanwhile" in d["warning"] for _, _, d in later), later
         assert all(ax.mode not in ("move", "jog") for ax in info["station"].table.axes.values())
         assert c.call("GET", "/stations/lab-1", "viewer").json()["state"] == "fault"
+
+
+def test_a_batch_no_worker_has_taken_is_aborted_at_once(tmp_path: Path):
+    """A batch queued on a station whose worker is down could not be aborted: it stayed "aborting", a second
+    abort was refused, and every run or batch on that station was "busy with batch N" until a worker came.
+    Its job is now cancelled and it ends at once, as an unstarted run does."""
+    url = fresh_database("postgresql", tmp_path)
+    api, port = _api(url, tmp_path, "api")
+    try:
+        c = Client(port, _keys(url))
+        c.station({"modbus": "tcp://127.0.0.1:1", "compasses": [{"url": "socket://127.0.0.1:2"}]}, "lab-9")
+        r = c.call("POST", "/batches", "operator", json={"station": "lab-9", "serials": ["SN-1", "SN-2"]})
+        assert r.status_code == 202, r.text
+        bid = r.json()["id"]
+        r = c.call("PUT", f"/batches/{bid}/state", "operator", json={"state": "aborted"})
+        assert r.status_code == 202 and r.json()["status"] == "aborted", r.text
+        b = c.call("GET", f"/batches/{bid}", "viewer").json()
+        assert b["status"] == "aborted", b
+        assert all(v.startswith("not run: the batch was aborted before") for v in b["summary"].values()), b["summary"]
+        assert [u["status"] for u in b["units"]] == ["not run", "not run"] and b["tally"]["pending"] == 0, b["units"]
+        # the station is free again: a run can be queued on it (and aborted the same way)
+        r = c.call("POST", "/runs", "operator", json={"station": "lab-9", "procedure": "calibrate"})
+        assert r.status_code == 202, r.text
+        assert c.call("PUT", f"/runs/{r.json()['id']}/state", "operator", json={"state": "aborted"}).status_code == 202
+    finally:
+        _kill(api)

@@ -414,10 +414,12 @@ class StationDetail(StationOut):
 
 
 class StationResetOut(StationOut):
-    """A station after its reset: the axes whose faults were reset and any still faulted."""
+    """A station after its reset: the axes whose faults were reset and any still faulted, and the
+    compasses (by slot) that did not answer."""
 
     reset_axes: list[str] = []
     still_faulted: dict[str, str] = {}
+    silent_compasses: dict[str, str] = {}
 
 
 class RunCalibration(BaseModel):

@@ -40,6 +40,7 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
+from drivers.compass import CompassDisconnected, CompassTimeout, FixtureError, SerialFixture
 from drivers.modbus import BusError
 from drivers.station import open_station
 from drivers.turntable import AxisError, Turntable
@@ -87,9 +88,10 @@ def _reason(e: BaseException) -> str:
     return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
 
 
-def _is_table_error(reason: str | None) -> bool:
-    """Whether a run's reason (the engine's "Type: message") is an error of the table's drivers."""
-    names, todo = set(), [AxisError, BusError]
+def _is_hardware_error(reason: str | None) -> bool:
+    """Whether a run's reason (the engine's "Type: message") is an error of the table's drivers or a
+    compass that stopped answering (not one that refused a command: that one answers)."""
+    names, todo = set(), [AxisError, BusError, CompassTimeout, CompassDisconnected, FixtureError]
     while todo:
         c = todo.pop()
         names.add(c.__name__)
@@ -483,13 +485,14 @@ def load_replay(ctx: WorkerContext, run_id: int, checkpoints: int) -> Replay:
 
 
 async def _probe(station: Any, reason: str | None) -> str | None:
-    """After a failed run: the station's fault, if its table needs the operator (else None)."""
+    """After a failed run: the station's fault, if its table or a compass needs the operator (else None: a
+    compass that stopped talking left the station "idle", and the next run failed at its identification)."""
     try:
         status = await asyncio.wait_for(station.table.status_all(), 3.0)
     except Exception as e:  # noqa: BLE001
         return f"{reason}; the table does not answer: {_reason(e)}"
     faulted = [f"axis {n}: fault {s.fault_name or s.fault_code}" for n, s in status.items() if s.fault]
-    if faulted or _is_table_error(reason):
+    if faulted or _is_hardware_error(reason):
         return reason or ", ".join(faulted)
     return None
 
@@ -828,13 +831,15 @@ async def _watch_analyses(app: App, ctx: WorkerContext) -> None:
 # ----------------------------------------------------------------------------------- resets
 
 async def reset_station(ctx: WorkerContext, name: str, token: str) -> None:
-    """Reset the table's axis faults (RESET_FAULT on each faulted axis); the station becomes idle when
-    none remains. The outcome goes to the station's row under ``token`` (the API waits for it)."""
+    """Reset the table's axis faults (RESET_FAULT on each faulted axis) and ask each compass who it is;
+    the station becomes idle when no axis is faulted and every compass answers (a reset once said "idle"
+    with a compass still silent). The outcome goes to the station's row under ``token`` (the API waits
+    for it)."""
     with ctx.sessions() as s:
         row = s.scalar(select(Station).where(Station.name == name))
         if row is None:
             return
-        modbus, busy = row.modbus, row.run_id
+        modbus, compasses, busy = row.modbus, list(row.compasses or []), row.run_id
     out: dict[str, Any] = {"token": token}
     if busy is not None:
         out.update(ok=False, status=409, error=f"station {name} is busy with run {busy}; abort it first")
@@ -853,16 +858,35 @@ async def reset_station(ctx: WorkerContext, name: str, token: str) -> None:
             out.update(ok=False, status=503, error=f"could not reset station {name}: {_reason(e)}")
         finally:
             await table.close()
+        if out.get("ok"):
+            out["silent_compasses"] = await _silent_compasses(compasses)
     with ctx.sessions() as s:
         values: dict[str, Any] = {"reset": out}
         if out.get("ok"):
-            if out["still_faulted"]:
-                values.update(state="fault", reason="still faulted after reset: "
-                              + ", ".join(f"axis {n}: {f}" for n, f in out["still_faulted"].items()))
+            if out["still_faulted"] or out["silent_compasses"]:
+                values.update(state="fault", reason="still faulted after reset: " + ", ".join(
+                    [f"axis {n}: {f}" for n, f in out["still_faulted"].items()]
+                    + [f"compass slot {k} does not answer ({why}): check its cable and power"
+                       for k, why in out["silent_compasses"].items()]))
             else:
                 values.update(state="idle", reason=None)
         s.execute(update(Station).where(Station.name == name).values(**values))
         s.commit()
+
+
+async def _silent_compasses(urls: list[str]) -> dict[str, str]:
+    """The compasses (by slot) that do not answer who they are, and why; a refusal (NAK) is an answer."""
+    fixture = SerialFixture(dict(enumerate(urls)))
+    try:
+        await asyncio.wait_for(fixture.open(), OPEN_TIMEOUT_S)
+        await asyncio.wait_for(identify_units(fixture), IDENTIFY_TIMEOUT_S)
+        return {}
+    except FixtureError as e:
+        return {str(k): _reason(x) for k, x in e.errors.items()}
+    except Exception as e:  # noqa: BLE001 - a port that does not open, a fixture that does not answer in time
+        return {"all": _reason(e) or "no answer in time"}
+    finally:
+        await fixture.close()
 
 
 def reset_task(job: JobContext, station: str, token: str) -> None:

@@ -325,6 +325,26 @@ def test_an_axis_fault_mid_run_fails_it_and_the_station_until_reset(api: Api):
         assert [a.owner for a in audited(api, "station.reset")] == ["operator-user"]
 
 
+def test_a_compass_that_stops_talking_puts_the_station_in_fault_until_it_answers(api: Api):
+    """A compass silent mid-run failed the run but left the station "idle" (the next run failed at its
+    identification), and a reset said "idle" with the compass still silent."""
+    with sim_station(reference_config(seed=3, time_scale=20)) as info:
+        make_station(api, info)
+        fault = parse_fault({"kind": "compass_silent", "slot": 0, "at_s": 20.0})
+        info["loop"].call_soon_threadsafe(info["station"].inject, fault)
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
+        j = wait_run(api, r.json()["id"])
+        assert j["status"] == "failed" and "Compass" in j["reason"] and j["samples_count"] > 0, j["reason"]
+        st = api.get("/stations/lab-1", role="viewer").json()
+        assert st["state"] == "fault" and st["run_id"] is None, st
+        r = api.post("/stations/lab-1/reset", role="operator")
+        assert r.status_code == 503 and "compass slot 0 does not answer" in r.text and "cable" in r.text, r.text
+        assert api.get("/stations/lab-1", role="viewer").json()["state"] == "fault"
+        info["loop"].call_soon_threadsafe(info["station"].clear_faults)
+        r = api.post("/stations/lab-1/reset", role="operator")
+        assert r.status_code == 200 and r.json()["state"] == "idle" and r.json()["silent_compasses"] == {}, r.text
+
+
 def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
     with sim_station(reference_config(seed=8, time_scale=20)) as info:
         make_station(api, info)
@@ -569,10 +589,11 @@ def test_an_unanswered_prompt_frees_the_station(db_url: str, monkeypatch: pytest
         while (b := api.get(f"/batches/{bid}", role="viewer").json())["status"] == "running":
             assert time.monotonic() < deadline, b
             time.sleep(0.05)
-        assert b["status"] == "failed" and [u["status"] for u in b["units"]] == ["failed", "pending", "pending"], b
+        assert b["status"] == "failed" and [u["status"] for u in b["units"]] == ["failed", "not run", "not run"], b
         assert b["units"][0]["reason"] == "no answer to prompt 'mount' within 1 s", b["units"][0]  # no class name
         assert b["summary"]["SN-P2"] == b["summary"]["SN-P3"] == \
             "not run: unit SN-P1 was never mounted (no answer to prompt 'mount' within 1 s)", b["summary"]
+        assert b["units"][1]["reason"] == "unit SN-P1 was never mounted (no answer to prompt 'mount' within 1 s)"
         st = api.get("/stations/lab-1", role="viewer").json()
         assert st["state"] == "idle" and st["run_id"] is None and st["batch_id"] is None
 

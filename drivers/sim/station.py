@@ -143,16 +143,29 @@ class SimStation:
              "port_vanish": sim.vanish,
              "bad_readings": lambda: sim.bad_readings(f.count, f.pattern)}[f.kind]()
 
+    def clear_faults(self) -> None:
+        """Repair what an operator would: silent axes and compasses answer again, stuck encoders move, the
+        E-stop is released. An axis alarm stays latched until the table's own RESET_FAULT, as on hardware."""
+        for axis in ("z", "y", "x"):
+            self.table.silence(axis, False)
+            self.table.stick_encoder(axis, False)
+        self.table.estop(False)
+        for sim in self.compasses:
+            sim.go_silent(False)
+
     async def _serve_control(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """The side channel: one JSON object per line. ``{"fault": {...}}`` injects a fault (the
-        ``[[fault]]`` keys), ``{"time": null}`` asks for the simulated time. Replies one JSON line each,
-        with the simulated time and the time scale (how a client learns that t is table time)."""
+        ``[[fault]]`` keys), ``{"clear": null}`` repairs the hardware (:meth:`clear_faults`), ``{"time": null}``
+        asks for the simulated time. Replies one JSON line each, with the simulated time and the time scale
+        (how a client learns that t is table time)."""
         try:
             while line := await reader.readline():
                 try:
                     msg = json.loads(line)
                     if "fault" in msg:
                         self.inject(parse_fault(msg["fault"]))
+                    if "clear" in msg:
+                        self.clear_faults()
                     reply: dict[str, Any] = {"ok": True, "sim_time": self.clock.now(), "time_scale": self.clock.time_scale}
                 except Exception as e:  # a bad request must not take the station down
                     reply = {"ok": False, "error": str(e)}

@@ -110,9 +110,10 @@ async def get_station(name: StationName, request: Request, _: Caller = Depends(r
 
 @router.post("/stations/{name}/reset", response_model=StationResetOut, responses={**ERRORS, 503: {"model": ErrorOut, "description": "the table or the station's worker does not answer"}})
 async def reset_station(name: StationName, request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
-    """Reset the table's axis faults and make the station idle (operator), through the station's
-    worker. 409 while a run uses it; 503 when the table cannot be reached, still reports a fault, or
-    no worker of the station answers."""
+    """Reset the table's axis faults, check that every compass answers, and make the station idle
+    (operator), through the station's worker. 409 while a run uses it; 503 when the table cannot be
+    reached, an axis is still faulted, a compass does not answer, or no worker of the station takes
+    the reset in time (then it is cancelled, not left to run later)."""
     with sessions(request)() as s:
         row = s.scalar(select(Station).where(Station.name == name))
         if row is None:
@@ -129,8 +130,12 @@ async def reset_station(name: StationName, request: Request, caller: Caller = De
             return r.reset if r is not None and (r.reset or {}).get("token") == token else None
     got = await wait_for(outcome, CONFIRM_S)
     if not got.ok:
-        raise Unavailable(f"no worker of station {name} took the reset within {CONFIRM_S:g} s; "
-                          f"is `compasscal worker --station {name}` running?")
+        if await request.app.state.jobs.cancel_queued("reset", station_queue(name), token=token):
+            # (left queued, it ran whenever a worker came, unasked: repeated clicks queued several)
+            raise Unavailable(f"no worker of station {name} took the reset within {CONFIRM_S:g} s, so it was "
+                              f"cancelled; start `compasscal worker --station {name}`, then reset again")
+        raise Unavailable(f"the reset of station {name} is still going on after {CONFIRM_S:g} s; "
+                          f"GET /stations/{name} shows its outcome")
     out = {k: v for k, v in got.value.items() if k not in ("token", "ok", "status", "error")}
     if not got.value.get("ok"):
         with sessions(request)() as s:  # an attempt on the hardware: logged even when it failed

@@ -466,5 +466,14 @@ def test_a_batch_no_worker_has_taken_is_aborted_at_once(tmp_path: Path):
         r = c.call("POST", "/runs", "operator", json={"station": "lab-9", "procedure": "calibrate"})
         assert r.status_code == 202, r.text
         assert c.call("PUT", f"/runs/{r.json()['id']}/state", "operator", json={"state": "aborted"}).status_code == 202
+        # a reset no worker takes in time is cancelled, not left to run whenever a worker comes (unasked)
+        r = c.call("POST", "/stations/lab-9/reset", "operator")
+        assert r.status_code == 503 and "so it was cancelled" in r.text, r.text
+        import psycopg
+
+        with psycopg.connect(url.replace("postgresql+psycopg://", "postgresql://")) as conn:
+            left = conn.execute("select count(*) from procrastinate_jobs where task_name = 'compasscal.reset' "
+                                "and status = 'todo'").fetchone()[0]
+        assert left == 0
     finally:
         _kill(api)

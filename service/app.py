@@ -9,14 +9,14 @@ import os
 from contextlib import asynccontextmanager
 from typing import AsyncIterator
 
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 
 from service.db import default_url, make_engine, sessions, upgrade
 from service.routes import ROUTERS
-from service.runtime import (HEARTBEAT_S, LOST_AFTER_S, SOFTWARE_VERSION, DomainError, Notifier, field_errors,
+from service.runtime import (HEARTBEAT_S, LOST_AFTER_S, SOFTWARE_VERSION, DomainError, Invalid, Notifier, field_errors,
                              reap_lost_workers)
 from service.web import invalid_page, router as web_router
 from service.worker import Jobs, WorkerContext
@@ -87,9 +87,27 @@ def create_app(database_url: str | None = None, worker: bool = True) -> FastAPI:
         return JSONResponse(status_code=422, content=jsonable_encoder({"detail": detail}))
 
     for router in ROUTERS:
-        app.include_router(router)
+        app.include_router(router, dependencies=[Depends(_known_query)])
     app.include_router(web_router)
     return app
+
+
+def _known_query(request: Request) -> None:
+    """A 422 naming a query parameter the route does not take: a misspelt filter (``/runs?serail=X``)
+    was ignored, and a quality engineer got every run as if it were the unit's."""
+    route = request.scope.get("route")
+    if route is None or not hasattr(route, "dependant"):
+        return
+    known: set[str] = set()
+    todo = [route.dependant]
+    while todo:  # the route's own query parameters and its dependencies'
+        d = todo.pop()
+        known.update(p.alias for p in d.query_params)
+        todo.extend(d.dependencies)
+    unknown = sorted(set(request.query_params) - known)
+    if unknown:
+        raise Invalid([{"field": f"query.{k}", "problem": "not a parameter of this request; it takes "
+                        + (", ".join(sorted(known)) if known else "none")} for k in unknown])
 
 
 def app_from_env() -> FastAPI:

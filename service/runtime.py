@@ -479,6 +479,8 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
     for key, serial in (serials or {}).items():
         if not (key.isascii() and key.isdigit() and int(key) < len(row.compasses)):
             raise invalid(f"body.serials.{key}", f"not a slot of station {row.name} (slots 0 to {len(row.compasses) - 1})")
+        if str(int(key)) in given:  # "0" and "00": one slot typed twice (the second silently won)
+            raise invalid(f"body.serials.{key}", f"slot {int(key)} is given twice; give each slot once")
         try:  # the API checked it already; a batch's unit and a resumed run's serials come this way too
             given[str(int(key))] = check_serial(str(serial))
         except ValueError as e:

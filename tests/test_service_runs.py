@@ -93,6 +93,12 @@ def test_stations_need_admin_and_requests_are_validated(api: Api):
     # (200 000 serials held the service for minutes: a quadratic check on the event loop)
     r = api.post("/runs", role="operator", json={**run, "procedure": "batch_calibrate", "parameters": {"serial": "Q1"}})
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.procedure" and "POST /batches" in r.text
+    # a misspelt filter is named, not ignored (every run came back as if it were the unit's)
+    r = api.get("/runs?serail=SN-1&limit=5", role="viewer")
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "query.serail" and "serial" in r.text, r.text
+    assert api.get("/runs?serial=SN-1&limit=5", role="viewer").status_code == 200
+    r = api.post("/runs", role="operator", json={**run, "serials": {"0": "SN-2", "00": "SN-1"}})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.serials.00" and "twice" in r.text, r.text
     r = api.post("/runs", role="operator", json={**run, "serials": {str(i): f"S{i}" for i in range(20000)}})
     assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.serials", r.text
     from physics.calibration import Calibration, json_safe

@@ -158,14 +158,15 @@ class GainVsTemp(_LinearDrift):
 
 
 class MisalignmentDrift(_LinearDrift):
-    """The sensor axes turn slowly: a small rotation growing linearly in time about ``t_mid``,
-    ``raw += [w (t - t_mid)]x (raw - bias)`` with ``w = rate_rad_per_s``."""
+    """The sensor axes turn slowly: a small rotation by ``w (t - t_mid)`` growing linearly in time about
+    ``t_mid``, ``w = rate_rad_per_s``. Axes turned by w (``M_o -> M_o R(w)^T``, PHYSICS.md: M_o's rows are
+    the sensor axes) see the field turned the other way: ``raw -= [w (t - t_mid)]x (raw - bias)``."""
 
     id = "misalignment_drift"
     form = "rotation"
     against = "time"
     names = ("rate_rad_per_s", "t_mid")
-    change = staticmethod(np.cross)  # type: ignore[assignment]
+    change = staticmethod(lambda w, lin: -np.cross(w, lin))  # type: ignore[assignment]
 
 
 #: Every open-world kind, and how to build it from its keyword parameters.

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+from scipy.linalg import expm
 import pytest
 
 from physics.discrepancy import analyze
@@ -231,14 +232,17 @@ def test_dictionary_blocks_and_their_columns() -> None:
     rec, _ = _recording()
     ctx = context(rec)
     nom = fit_nominal(ctx, np.asarray(rec.mag, float))
-    # a sensor-frame gain is diag(g) times the linear output; a rotation is w x output
+    # a sensor-frame gain is diag(g) times the linear output; a rotation is the axes' turn w, so -w x output
+    # (PHYSICS.md: M_o's rows are the sensor axes; axes turned by w see the field turned by -w)
     Xg, _ = dv.base_columns(ctx, nom, "sensor", "gain")
     s = nom.body_field(ctx) @ nom.M.T
     g = np.array([0.01, -0.02, 0.03])
     assert np.allclose(np.einsum("nip,p->ni", Xg, g), s * g)
     Xr, _ = dv.base_columns(ctx, nom, "sensor", "rotation")
     w = np.array([1e-3, 2e-3, -1e-3])
-    assert np.allclose(np.einsum("nip,p->ni", Xr, w), np.cross(w, s))
+    assert np.allclose(np.einsum("nip,p->ni", Xr, w), -np.cross(w, s))
+    R = expm(np.cross(np.eye(3), w))  # the sensor axes turned by w: M_o -> M_o R^T, to first order
+    assert np.allclose(np.einsum("nip,p->ni", Xr, w), s @ R - s, atol=1e-5 * np.abs(s).max())
     # a lab-frame offset turns with the table: R^T d through M
     Xl, _ = dv.base_columns(ctx, nom, "lab", "offset")
     d = np.array([0.01, 0.0, -0.02])

@@ -402,7 +402,7 @@ def test_misalignment_drift_is_a_rotation_growing_linearly_in_time() -> None:
     effect = make_open("misalignment_drift", {"rate_rad_per_s": w, "bias": unit.mag.bias, "t_mid": 100.0})
     c0, c1, unit, _ = _pair(effect, 3)
     lin = c0.mag - unit.mag.bias
-    expected = np.cross(w * (c0.t - 100.0)[:, None], lin)
+    expected = -np.cross(w * (c0.t - 100.0)[:, None], lin)  # the axes turn by w: the field they see by -w
     np.testing.assert_allclose(c1.mag - c0.mag, expected, rtol=1e-9, atol=1e-9)
     # a rotation: the length of the linear output is kept to first order
     assert np.abs(np.einsum("ni,ni->n", expected, lin)).max() < 1e-9 * np.abs(lin).max() ** 2

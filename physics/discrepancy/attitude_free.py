@@ -632,10 +632,11 @@ def _slow_input(nom: _Nominal, rows: FreeRows, against: str) -> np.ndarray | Non
 
 
 def _rotation_bases(nom: _Nominal, rows: FreeRows) -> dict[str, np.ndarray]:
-    """Raw-count bases (n, 3, 3) of :data:`ROTATION_BLOCKS`: the axes turned by small angles w (rad) move the
-    output about the bias by w x (raw - bias), times the slow input (:func:`_slow_input`)."""
+    """Raw-count bases (n, 3, 3) of :data:`ROTATION_BLOCKS`: the axes turned by small angles w (rad) see the
+    field turned the other way, and move the output about the bias by -w x (raw - bias) (PHYSICS.md: M_o's
+    rows are the sensor axes, M_o -> M_o R(w)^T), times the slow input (:func:`_slow_input`)."""
     lin = np.nan_to_num(rows.u) * np.where(rows.resolved, nom.shape.k, 0.0)  # counts about the bias
-    turn = np.stack([np.cross(np.eye(3)[j], lin) for j in range(3)], axis=2)  # e_j x lin: (n, 3, 3)
+    turn = np.stack([-np.cross(np.eye(3)[j], lin) for j in range(3)], axis=2)  # -e_j x lin: (n, 3, 3)
     out = {}
     for name, (against, _) in ROTATION_BLOCKS.items():
         x = _slow_input(nom, rows, against)

@@ -164,13 +164,16 @@ def base_columns(ctx: Context, nom: Nominal, frame: str, form: str) -> tuple[np.
     are in counts; every other parameter acts on the field in lab-field units (offsets) or is
     dimensionless (gains, linear maps) or in radians (rotations)."""
     h = nom.body_field(ctx)
+    # a rotation of the sensor or the unit in its fixture is its axes' turn w (PHYSICS.md: M_o's rows are the
+    # sensor axes, M_o -> M_o R(w)^T): they see the field turned by -w (the sign was the field's, opposite)
+    sign = -1.0 if form == "rotation" and frame in ("sensor", "platform") else 1.0
     if frame == "sensor":
         cols, labels = form_columns(h @ nom.M.T, form)  # the linear output M h, counts
-        return cols, labels
+        return sign * cols, labels
     Q = frame_rotation(ctx, frame)
     hF = np.einsum("nji,nj->ni", Q, h)  # the field seen in that frame: Q^T h
     dF, labels = form_columns(hF, form)
-    return np.einsum("ij,njk,nkp->nip", nom.M, Q, dF), labels
+    return sign * np.einsum("ij,njk,nkp->nip", nom.M, Q, dF), labels
 
 
 def dependence_functions(ctx: Context, dependence: str, temp: np.ndarray | None) -> tuple[np.ndarray, list[str]] | str:

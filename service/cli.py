@@ -20,7 +20,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from drivers import keep_drivers_responsive
-from physics.calibration import Calibration, json_safe, staged_truth_errors, truth_summary
+from physics.calibration import FORMAT as CALIBRATION_FORMAT, Calibration, json_safe, staged_truth_errors, truth_summary
 from physics.errorsep import InsufficientData
 from physics.fit import METHODS, fit as fit_recording, index_list
 from physics.recording import SKIPPED_AT_KEY, SKIPPED_KEY, Recording, RecordingError, file_row, format_recording
@@ -319,8 +319,9 @@ def fit(
     truth_data = _read_truth(truth, per_slot=False)[0] if truth is not None else None
     rec = _read_recording(recording, mapping=mapping, skip_bad_rows=skip_bad_rows)
     if truth_data is not None and truth_data.get("serial") and rec.serial and truth_data["serial"] != rec.serial:
-        _note(f"--truth {truth}: the true parameters of unit {truth_data['serial']}, but {recording.name} is of unit "
-              f"{rec.serial}: the errors against the truth below compare two units")
+        # (refused, as analyze --calibration refuses another unit's: a note was easy to miss above 19 deg of "error")
+        _fail(f"--truth {truth}: the true parameters of unit {truth_data['serial']}, but {recording.name} is of unit "
+              f"{rec.serial}; give that unit's .truth.json")
     if skip_bad_rows:
         _note_skipped(rec, recording)
     try:
@@ -466,6 +467,9 @@ def _read_truth(path: Path, per_slot: bool) -> list[dict[str, Any]]:
         item = f"{where}: entry {i}" if isinstance(data, list) else where
         if not isinstance(unit, dict):
             _fail(f"{item}: a JSON {type(unit).__name__}; expected the true parameters of a unit")
+        if unit.get("format") == CALIBRATION_FORMAT:  # a calibration scored against itself: 0.0000 deg
+            _fail(f"{item}: a calibration (`fit -o`), not the true parameters of a unit; give the .truth.json "
+                  "that `simulate` wrote beside the recording")
         try:
             truth_from_json(unit)
         except KeyError as e:

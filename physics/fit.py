@@ -148,6 +148,9 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
                          f"heading is measured against, is {100 * horizontal:.1f} % of it, so heading and D are "
                          f"{1 / horizontal:.0f} times as sensitive to every reading's error as on the magnetic equator: "
                          "large heading errors here are the place's, not the calibration's")
+    hand = handedness_note(cal.mag.M_o, "magnetometer")
+    if hand:
+        cal.notes.append(hand)
     if rejected:
         cal.notes.append(f"dropped {len(rejected)} of {len(rec)} rows as bad samples ({_reason_counts(rejected)}): "
                          f"data rows {index_list(sorted(file_row(rec, i) for i in rejected))} (0-based)")
@@ -183,6 +186,27 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
                    "belong together; the calibration is not to be trusted")
         cal.notes.append(message + why)
     return cal
+
+
+def handedness_note(M_o: np.ndarray, sensor: str) -> str | None:
+    """What to check when the fitted sensor axes are not those of a right-handed triad set along the body
+    axes (PHYSICS.md: the right solution has M_o with a positive diagonal), else None. A fit that sees
+    the data through a mirror fits as well as the right one: with psi_t and theta_t counted the other way
+    it left 3 LSB and said 0.03 deg, and every heading with that calibration was 179 deg off."""
+    M_o = np.asarray(M_o, float)
+    det = float(np.linalg.det(M_o))
+    away = [i for i in range(3) if M_o[i, i] < 0]
+    if det > 0 and not away:
+        return None
+    axes = "xyz"
+    said = [f"{axes[i]}_m points {np.degrees(np.arccos(np.clip(M_o[i, i], -1.0, 1.0))):.1f} deg from {axes[i]}_b"
+            for i in away]
+    return (f"the {sensor}'s fitted axes " + ("form a left-handed set (det M_o = " + f"{det:.3f})" if det < 0 else
+                                             "do not lie along the body axes")
+            + (" and " + ", ".join(said) if said else "") + ": an axis wired inverted or two axes swapped in the unit, "
+            "or two of the table's angles counted the other way (then every heading with this calibration is about "
+            "180 deg off, though the fit looks perfect); check the unit's wiring and the recording's angle "
+            "convention (PHYSICS.md) before trusting it")
 
 
 #: A fit whose residual is this many times the noise within the poses is no fit of this recording: the

@@ -374,3 +374,23 @@ def test_the_true_calibration_scores_zero_on_a_weak_quantised_unit() -> None:
                       base_tilt_deg=(0.05, -0.03))
     s = truth_summary(cal, unit, world)
     assert s["level_max"] < 1e-9 and s["tilted_max"] < 1e-9, s
+
+
+def test_a_mirror_image_fit_is_said_to_be_one():
+    """PHYSICS.md: the right solution has M_o with a positive diagonal. psi_t and theta_t counted the other
+    way fit as well as the right angles (the data seen through a mirror: det M_o = -1), and every heading
+    with that calibration is about 180 deg off; the fit said nothing. A unit wired with one axis inverted
+    fits too. Both now carry a note naming the likely causes; the right recording none."""
+    rec = simulate_recording(reference_unit(3.0, 4.0), calibration_poses(CalibrateParams(samples=20)), World(),
+                             rng=np.random.default_rng(1))
+    assert not [n for n in fit(rec).notes if "left-handed" in n or "body axes" in n]
+    mirrored = Recording.from_arrays(t=rec.t, step=rec.step, psi_t=-np.asarray(rec.psi_t), theta_t=-np.asarray(rec.theta_t),
+                                     phi_t=rec.phi_t, mag=rec.mag, acc=rec.acc, temp_c=rec.temp_c, meta=dict(rec.meta))
+    cal = fit(mirrored)
+    assert np.linalg.det(cal.mag.M_o) < 0
+    note, = [n for n in cal.notes if "left-handed" in n]
+    assert "x_m points 17" in note and "angles counted the other way" in note and "wired inverted" in note, note
+    inverted = Recording.from_arrays(t=rec.t, step=rec.step, psi_t=rec.psi_t, theta_t=rec.theta_t, phi_t=rec.phi_t,
+                                     mag=np.asarray(rec.mag) * [1, -1, 1], acc=rec.acc, temp_c=rec.temp_c,
+                                     meta=dict(rec.meta))
+    assert [n for n in fit(inverted).notes if "left-handed" in n and "y_m points" in n], fit(inverted).notes

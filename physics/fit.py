@@ -43,7 +43,7 @@ from physics import methods as comparison
 from physics.calibration import STAGES, Calibration
 from physics.frames import field_direction
 from physics.heading import circular_mean_deg, error_summary, heading_error, levelled_field, reference_heading, wrap180
-from physics.recording import Recording, RecordingError, file_row
+from physics.recording import SKIPPED_KEY, Recording, RecordingError, file_row
 from physics.sensor import LinearSensor
 from physics.table import TableGeometry, base_rotation, platform_attitude
 
@@ -104,6 +104,13 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
         raise RecordingError(f"method {method} needs the table's angles, and this recording has none (psi_t, theta_t "
                              "and phi_t are empty: a hand-held recording); methods " + " and ".join(ANGLE_FREE_METHODS)
                              + " calibrate from the magnetometer alone (without the sensor-to-body misalignment)")
+    skipped = int(rec.meta.get(SKIPPED_KEY, 0) or 0)  # malformed rows the reader dropped (--skip-bad-rows)
+    if skipped > len(rec):
+        # a calibration from a sliver of the file is not the file's (a shuffled file: 1065 of 1080 rows "malformed",
+        # time going backwards, and a calibration from the 15 left, 30 times worse, with no trace of it)
+        raise RecordingError(f"{skipped} of the file's {skipped + len(rec)} rows were malformed and skipped, more than "
+                             "were kept: not a calibration of this recording; look at why (rows out of time order, "
+                             "another layout: --mapping) rather than skip them")
     check_angles(rec)
     check_magnetometer(rec)
     rejected = screen_rows(rec)
@@ -141,7 +148,11 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
     cal.serial = rec.serial
     cal.method = method
     cal.quality = quality(work, cal)
-    cal.quality.update(rejected_rows=rejected_rows(rec, rejected), rejected=len(rejected), samples_total=len(rec))
+    cal.quality.update(rejected_rows=rejected_rows(rec, rejected), rejected=len(rejected), samples_total=len(rec),
+                       skipped_malformed=skipped)
+    if skipped:
+        cal.notes.append(f"{skipped} malformed row(s) of the file were skipped before the fit (--skip-bad-rows); "
+                         f"{len(rec)} were read")
     if np.isfinite(cal.inclination_deg) and abs(cal.inclination_deg) > NEAR_POLE_DEG:
         horizontal = np.cos(np.radians(cal.inclination_deg))
         cal.notes.append(f"the field is {90 - abs(cal.inclination_deg):.1f} deg from vertical: its horizontal part, which "

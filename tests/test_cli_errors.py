@@ -311,9 +311,21 @@ def test_fit_says_how_many_rows_it_skipped(tmp_path: Path):
     for i in data[5:7]:
         lines[i] = lines[i].rsplit(",", 1)[0] + ",oops"
     rec.write_text("\n".join(lines) + "\n")
-    r = runner.invoke(app, ["fit", str(rec), "--skip-bad-rows"])
+    r = runner.invoke(app, ["fit", str(rec), "--skip-bad-rows", "-o", str(tmp_path / "cal.json")])
     assert r.exit_code == 0, r.output
     assert "2 malformed row(s) of rec.csv skipped (data rows 5, 6, 0-based" in " ".join(r.stderr.split()), r.stderr
+    # the calibration keeps the trace (its JSON had no word of the rows skipped)
+    cal = json.loads((tmp_path / "cal.json").read_text())
+    assert cal["quality"]["skipped_malformed"] == 2 and any("2 malformed row(s) of the file were skipped" in n
+                                                            for n in cal["notes"]), cal["notes"]
+    # most of the file skipped (rows out of time order: a shuffled file) is no calibration of it
+    head = [ln for ln in lines if ln.startswith("#") or ln.startswith("t,")]
+    body = [lines[i] for i in data]
+    rng = np.random.default_rng(0)
+    shuffled = tmp_path / "shuffled.csv"
+    shuffled.write_text("\n".join(head + [body[i] for i in rng.permutation(len(body))]) + "\n")
+    r = runner.invoke(app, ["fit", str(shuffled), "--skip-bad-rows"])
+    assert r.exit_code == 2 and "malformed and skipped, more than were kept" in " ".join(r.stderr.split()), r.stderr
 
 
 def test_fit_counts_a_dropped_samples_row_as_the_file_does_when_malformed_rows_were_skipped(tmp_path: Path):

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from urllib.parse import parse_qs, urlsplit
@@ -139,6 +140,9 @@ class BusURL:
     def parse(cls, url: str) -> BusURL:
         """Parse ``tcp://h:p``, ``rtu+tcp://h:p``, ``serial:///dev/ttyX?baud=..`` or a device path."""
         if "://" not in url:  # a bare device path or COM port: RS-485 RTU at the default baud
+            if re.fullmatch(r"[A-Za-z0-9.-]+:\d+", url):  # (taken for a device path, it failed "cannot connect")
+                raise ValueError(f"{url!r} is a host and port without a scheme; give tcp://{url} (or rtu+tcp://{url} "
+                                 "for RTU frames through a gateway)")
             return cls(kind="serial", device=url)
         parts = urlsplit(url)
         scheme = parts.scheme.lower()
@@ -148,6 +152,9 @@ class BusURL:
             if not parts.hostname:
                 raise ValueError(f"no host in Modbus URL {url!r}")
             kind = "rtu+tcp" if scheme.startswith("rtu") else "tcp"
+            if parts.port is None:  # (the driver tried 502 and said only "cannot connect"; the API took it)
+                raise ValueError(f"no port in Modbus URL {url!r}; give {kind}://{parts.hostname}:PORT (Modbus TCP's "
+                                 "usual port is 502)")
             return cls(kind=kind, host=parts.hostname, port=parts.port or 502, timeout=_timeout(url, q))
         if scheme in ("serial", "rtu"):
             _known_keys(url, q, ("baud", "parity", "stopbits", "timeout"))

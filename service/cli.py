@@ -777,20 +777,15 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
 
 def _station_urls(modbus: str, compasses: list[str]) -> None:
     """Refuse, before connecting anything, a table or compass URL the drivers cannot use."""
-    from urllib.parse import urlsplit
-
     import serial
 
     from drivers.modbus import BusURL
 
     try:
-        bus = BusURL.parse(modbus)
+        BusURL.parse(modbus)
     except ValueError as e:
         _fail(f"--modbus {modbus}: {e}; expected tcp://HOST:PORT, rtu+tcp://HOST:PORT, serial:///dev/ttyX?baud=N "
               "or a device path")
-    if bus.kind in ("tcp", "rtu+tcp") and urlsplit(modbus).port is None:
-        # (the driver would try 502 and say only "cannot connect")
-        _fail(f"--modbus {modbus}: no port; give {bus.kind}://{bus.host}:PORT (Modbus TCP's usual port is 502)")
     for url in compasses:
         try:
             serial.serial_for_url(url, do_not_open=True)  # checks the URL's scheme without opening anything

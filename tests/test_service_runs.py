@@ -118,6 +118,10 @@ def test_stations_need_admin_and_requests_are_validated(api: Api):
     for modbus in (f"tcp://localhost:{port}?timeout=0.8", f"rtu+tcp://127.0.0.1:{port}"):
         r = api.post("/stations", json={**two, "modbus": modbus})
         assert r.status_code == 409 and "already has table" in r.text and f"(as {body['modbus']})" in r.text, r.text
+    # a URL the CLI refuses, the API refuses too (it took them; the first run then put the station in fault)
+    for modbus, words in (("tcp://127.0.0.1", "no port"), ("127.0.0.1:1503", "give tcp://127.0.0.1:1503")):
+        r = api.post("/stations", json={**two, "modbus": modbus})
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.modbus" and words in r.text, r.text
     r = api.post("/stations", json={**two, "compasses": ["socket://localhost:4001"]})
     assert r.status_code == 409 and "already has compass" in r.text, r.text
     r = api.post("/stations", json={**two, "compasses": ["socket://127.0.0.1:4002", "socket://LOCALHOST:4002"]})

@@ -13,6 +13,7 @@ import os
 import socket
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import lru_cache
 from urllib.parse import urlsplit
 
 from drivers import Station
@@ -39,6 +40,7 @@ async def open_station(modbus: str, compasses: list[str], *, time_scale: float =
         await table.close()
 
 
+@lru_cache(maxsize=256)  # (a station check resolves every station's hosts: a slow resolver once, not each time)
 def _host(name: str) -> str:
     """A host as one address: an IP as written, a name resolved (``localhost`` is 127.0.0.1); a name that
     does not resolve here stays itself, lower-cased."""

@@ -133,6 +133,8 @@ def test_stations_page_offers_operators_a_start_form(api):
     assert page.find("button", cls="start", id="start-bench-1")
     assert page.find("select", name="procedure") and page.find("option", value="calibrate", selected="")
     assert page.find("input", name="samples")
+    # the form sends the samples only: a procedure that needs more is not offered (evaluate failed with 422)
+    assert page.find("option", value="rotate_z") and not page.find("option", value="evaluate")
 
 
 def test_run_page_shows_each_units_tables_curves_and_verdict(api):

@@ -76,6 +76,9 @@ def test_calibrate_against_a_sim_process_writes_recordings_and_calibrations(tmp_
                                 "--control", d["control"], "-o", str(out), "--truth", str(truth), "--adaptive"])
         contradicted = runner.invoke(app, ["calibrate", "--modbus", d["modbus"], "--compass", d["compasses"][0]["url"],
                                            "--control", d["control"], "--time-scale", "1", "-o", str(out)])
+        # no --control and no --time-scale against a simulator at 20: the run is said to be off by that factor
+        unscaled = runner.invoke(app, ["calibrate", "--modbus", d["modbus"], "--compass", d["compasses"][0]["url"],
+                                       "--samples", "5", "-o", str(tmp_path / "unscaled")])
     finally:
         sim.send_signal(signal.SIGINT)
         sim.communicate(timeout=10)
@@ -96,6 +99,8 @@ def test_calibrate_against_a_sim_process_writes_recordings_and_calibrations(tmp_
     # table time: the plan turns for minutes (at time scale 20 the run took seconds of wall time)
     assert np.ptp(rec.t) > 60, np.ptp(rec.t)
     assert contradicted.exit_code != 0 and "runs at time scale 20" in " ".join(contradicted.output.split())
+    said = " ".join(unscaled.stderr.split())
+    assert unscaled.exit_code == 0 and "times the plan's nominal" in said and "give --control" in said, unscaled.output
     assert (out / f"{serial}.png").stat().st_size > 10_000
 
 

@@ -181,6 +181,10 @@ def _output_dir(path: Path, option: str) -> None:
         _fail(f"{option} {path}: {existing} is a file, not a directory")
     if not os.access(existing, os.W_OK | os.X_OK):
         _fail(f"{option} {path}: {existing} is not writable")
+    try:  # now, so a place that refuses it (/proc, a read-only mount for root) is named as the option, not "station"
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        _fail(f"{option} {path}: cannot create the directory ({e.strerror or e})")
 
 
 def _port(value: Optional[int], option: str, any_free: bool = False) -> None:

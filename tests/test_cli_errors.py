@@ -538,6 +538,9 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_work(tmp_path: P
     # a file where its directory should be is said to be one (not "directory rec.csv does not exist")
     refused(["fit", str(rec), "-o", str(rec / "c.json")], "--output", f"{rec} is a file, not a directory")
     refused(["fit", str(rec), "-o", str(rec / "sub" / "c.json")], f"{rec} is a file, not a directory")
+    # calibrate's output directory too, before any connection (it was blamed on "station" after connecting)
+    refused(["calibrate", "--modbus", "tcp://127.0.0.1:1", "--compass", "socket://127.0.0.1:1", "-o", "/proc/compasscal-x"],
+            "--output /proc/compasscal-x", "cannot create the directory")
     monkeypatch.undo()
     out = tmp_path / "c.json"
     r = runner.invoke(app, ["fit", str(rec), "-o", str(out)])

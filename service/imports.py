@@ -287,6 +287,19 @@ def _finite_rows(path: Path, data: np.ndarray, name: str = "data") -> None:
         raise _fail(path, f"{name} has non-finite values in row(s) {(bad[:10] + 1).tolist()}")
 
 
+#: How the LSM9DS1's readings as the Arduino library gives them become one right-handed frame (the source's
+#: NED frame, compute_attitude.m): its accelerometer/gyro axes as read form a left-handed set, and its
+#: magnetometer's x axis points against theirs.
+LSM9DS1_AXES = "ax, ay, az = file ax, ay, -az; mx, my, mz = file -mx, my, -mz; gx, gy, gz = file gx, gy, -gz"
+
+
+def _lsm9ds1_axes(acc: np.ndarray, gyro: np.ndarray, mag: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The LSM9DS1's accelerometer, gyro and magnetometer columns in one right-handed frame
+    (:data:`LSM9DS1_AXES`)."""
+    sign = np.array([1.0, 1.0, -1.0])
+    return acc * sign, gyro * sign, mag * np.array([-1.0, 1.0, -1.0])
+
+
 def _read_gimbal(path: Path, d: dict[str, Any]) -> Recording:
     """GimbalPlatform (pabloramesc), ``matlab/datasets/ble33sense``: ``data`` N x 10 = dt [ms], ax ay az [g],
     gx gy gz [deg/s], mx my mz [uT]; the unit turned by hand or held still, no angles."""
@@ -303,6 +316,9 @@ def _read_gimbal(path: Path, d: dict[str, Any]) -> Recording:
     # dt is the time since the previous sample; the run starts at the first sample (t = 0).
     t = np.concatenate([[0.0], np.cumsum(dt_ms[1:])]) / 1000.0
     spin_z = "spin_z" in path.name.lower()
+    # in one right-handed frame, as the same chip's platform files are read (the raw axes, a left-handed
+    # accelerometer and a magnetometer x against it, gave a level unit az = +1 g, and a dip through a mirror)
+    acc, gyro, mag = _lsm9ds1_axes(data[:, 1:4], data[:, 4:7], data[:, 7:10])
     meta = {
         "source_file": path.name,
         "source": "pabloramesc/GimbalPlatform, matlab/datasets/ble33sense/"
@@ -313,10 +329,10 @@ def _read_gimbal(path: Path, d: dict[str, Any]) -> Recording:
         "time_source": "t = cumulative sum of the dt column (ms), first sample at t = 0",
         "note": ("rotation about the sensor z axis while level; " if spin_z else "motion as the file name says; ")
                 + "how it was driven is not documented; no heading reference",
+        "axes": LSM9DS1_AXES,
     }
     return _build(path, t=t, step=np.full(len(t), "spin_z" if spin_z else "data"),
-                  mag=data[:, 7:10] * MAG_COUNTS_PER_UT, acc=data[:, 1:4] * ACC_LSB_PER_G, meta=meta,
-                  extra=_extra(data[:, 4:7]))
+                  mag=mag * MAG_COUNTS_PER_UT, acc=acc * ACC_LSB_PER_G, meta=meta, extra=_extra(gyro))
 
 
 #: AS5600 magnetic encoder: 4096 counts per turn. The platform firmware (TFG_platformController.ino,
@@ -369,10 +385,7 @@ def _read_platform(path: Path, d: dict[str, Any]) -> Recording:
     zero = np.all(enc == 0.0, axis=1)
     n_hold = int(np.argmin(zero)) if not zero.all() else len(zero)
     step = np.where(np.arange(len(t_s)) < n_hold, "origin_hold", "platform")
-    sign = np.array([1.0, 1.0, -1.0])
-    acc_b = data[:, 4:7] * sign
-    gyr_b = data[:, 7:10] * sign
-    mag_b = data[:, 10:13] * np.array([-1.0, 1.0, -1.0])
+    acc_b, gyr_b, mag_b = _lsm9ds1_axes(data[:, 4:7], data[:, 7:10], data[:, 10:13])
     dt = np.diff(t_s)
     meta = {
         "source_file": path.name,
@@ -394,7 +407,7 @@ def _read_platform(path: Path, d: dict[str, Any]) -> Recording:
                   "middle y, inner x; body frame b = the source's NED frame (acc [ax ay -az], mag [-mx my -mz], "
                   "gyro [gx gy -gz] of the LSM9DS1 as read); 1.0102 = (360/4096)/0.087 undoes the firmware's "
                   "encoder scale",
-        "axes": "ax, ay, az = file ax, ay, -az; mx, my, mz = file -mx, my, -mz; gx, gy, gz = file gx, gy, -gz",
+        "axes": LSM9DS1_AXES,
         "origin_hold_rows": str(n_hold),
         "steps": "origin_hold: leading rows whose angles the firmware set to 0 before moving the servos "
                  "(not read); platform: the rest",

@@ -44,14 +44,15 @@ def test_gimbal_mat_units():
     # t from the dt column (ms), first sample at 0
     assert rec.t[0] == 0.0 and rec.t[-1] == pytest.approx(raw[1:, 0].sum() / 1000.0)
     assert np.all(np.diff(rec.t) > 0)
-    # uT -> 0.01 uT counts, g -> 1/16384 g counts, gyro deg/s as extra columns
-    assert np.allclose(rec.mag, raw[:, 7:10] * 100.0)
-    assert np.allclose(rec.acc, raw[:, 1:4] * 16384.0)
-    assert np.allclose(np.asarray(rec.extra["gz"], float), raw[:, 6], atol=1e-6)
+    # uT -> 0.01 uT counts, g -> 1/16384 g counts, gyro deg/s as extra columns; in one right-handed frame, as the
+    # same chip's platform files (the LSM9DS1's accelerometer/gyro read left-handed, its magnetometer x reversed)
+    assert np.allclose(rec.mag, raw[:, 7:10] * 100.0 * [-1, 1, -1])
+    assert np.allclose(rec.acc, raw[:, 1:4] * 16384.0 * [1, 1, -1])
+    assert np.allclose(np.asarray(rec.extra["gz"], float), -raw[:, 6], atol=1e-6)
     assert rec.meta["mag_unit"] == "0.01 uT per count" and rec.meta["gyro_unit"] == "deg/s"
-    assert rec.meta["acc_unit"].startswith("1/16384 g")
-    # level: gravity along +z of the sensor (specific force up), about 1 g
-    assert np.median(rec.acc[:, 2]) == pytest.approx(16384 * 0.98, rel=0.01)
+    assert rec.meta["acc_unit"].startswith("1/16384 g") and rec.meta["axes"].startswith("ax, ay, az = file ax, ay, -az")
+    # level: the specific force points up, -z of a z-down body frame (PHYSICS.md: at rest f = -g), about 1 g
+    assert np.median(rec.acc[:, 2]) == pytest.approx(-16384 * 0.98, rel=0.01)
 
 
 @pytest.mark.parametrize("name", BROAD)

@@ -430,3 +430,29 @@ def test_a_dip_far_beyond_its_noise_is_not_called_consistent():
     dip = [f for f in r["findings"] if f["effect"] == "unexplained" and f["where"].get("response") == "dip"]
     assert dip and "accelerations beyond gravity" in dip[0]["explanation"], r["findings"]
     assert any("unexplained-structure tests (magnitude and dip)" in n for n in r["notes"]), r["notes"]
+
+
+def test_an_offset_in_a_turn_about_one_axis_is_sized_on_the_axes_it_resolves():
+    """A turn about z leaves z unresolved; its offset column was nearly a resolved axis' (the plane a little
+    tilted), and the fit split that axis' offset between the two: 15.2 of 30 LSB reported on x."""
+    from physics.frames import rot_z
+
+    rng = np.random.default_rng(7)
+    unit = random_unit(rng)
+    t = np.arange(2400) / RATE_HZ
+    psi = 10.0 * t + 30.0 * np.sin(t / 7.0)  # deg: three turns and a bit, unevenly
+    H = field_direction(60.0, 10.0)
+    h = np.array([rot_z(p).T @ H for p in psi])
+    mag = h @ unit.mag.M.T + unit.mag.bias
+    window = (t >= 40.0) & (t < 70.0)
+    mag[window] += [30.0, -20.0, 0.0]
+    mag = np.round(mag + rng.normal(0.0, 3.0, mag.shape))
+    acc = np.round(np.tile(unit.acc.M @ np.array([0.0, 0.0, -1.0]) + unit.acc.bias, (len(t), 1))
+                   + rng.normal(0.0, 3.0, (len(t), 3)))
+    nan = np.full(len(t), np.nan)
+    rec = Recording.from_arrays(t=t, step=np.full(len(t), "turn"), psi_t=nan, theta_t=nan, phi_t=nan, mag=mag, acc=acc,
+                                temp_c=np.full(len(t), 23.0), meta={"serial": "SN-YAW"})
+    r = analyze_attitude_free(rec, null_sims=60).to_json()
+    f = next(f for f in r["findings"] if f["effect"] == "discovered" and f["model"]["form"] == "offset")
+    got, sd = f["parameters"]["offset_lsb"], f["sigma"]["offset_lsb"]
+    assert got[2] is None and abs(got[0] - 30.0) < 4 * sd[0] + 1.0 and abs(got[1] + 20.0) < 4 * sd[1] + 1.0, (got, sd)

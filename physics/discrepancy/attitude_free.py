@@ -262,8 +262,13 @@ class _Shape:
         return np.hstack(cols)
 
     def grad(self, m: np.ndarray) -> np.ndarray:
-        """d|h|/dm (n, 3): a raw-count distortion delta changes |h| by grad . delta."""
-        return (self.direction(m) @ self.E) @ self.P.T
+        """d|h|/dm (n, 3): a raw-count distortion delta changes |h| by grad . delta. Zero on an axis the
+        readings do not resolve (a turn in one plane): its column is nearly a resolved axis' (the plane is
+        tilted a little), and scaled alike the fit split a distortion between the two (a 20-LSB offset on
+        y came out -10.1 +- 0.1 LSB, the rest on the unresolved z, reported n/a)."""
+        g = (self.direction(m) @ self.E) @ self.P.T
+        g[:, ~self.resolved] = 0.0
+        return g
 
     @property
     def M3(self) -> np.ndarray:

@@ -456,3 +456,30 @@ def test_an_offset_in_a_turn_about_one_axis_is_sized_on_the_axes_it_resolves():
     f = next(f for f in r["findings"] if f["effect"] == "discovered" and f["model"]["form"] == "offset")
     got, sd = f["parameters"]["offset_lsb"], f["sigma"]["offset_lsb"]
     assert got[2] is None and abs(got[0] - 30.0) < 4 * sd[0] + 1.0 and abs(got[1] + 20.0) < 4 * sd[1] + 1.0, (got, sd)
+
+
+def test_an_input_with_a_few_empty_cells_is_filled_not_dropped():
+    """One empty temp_c cell (of 2400) had made the whole temperature unused: the gain following it was named
+    a gain drifting in time and a field drift. A few short gaps are now filled in time and said; long or
+    many gaps still leave the input out, saying how many."""
+    from proof.concealments import GainVsTemp
+
+    t = np.arange(2400) / RATE_HZ
+    temp = 23.0 + 4.0 * (1 - np.exp(-t / 30.0))
+    unit = random_unit(np.random.default_rng(4))
+    truth = 0.002 * np.array([1.0, -0.6, 0.8])
+    rec, _ = simulate_handheld(4, conceal=[GainVsTemp(gain_per_c=truth, bias=unit.mag.bias, t_ref_c=25.0)], temp_c=temp)
+    holed = np.array(temp)
+    holed[1000] = np.nan
+    rec = Recording.from_arrays(t=rec.t, step=rec.step, psi_t=rec.psi_t, theta_t=rec.theta_t, phi_t=rec.phi_t,
+                                mag=rec.mag, acc=rec.acc, temp_c=holed, extra=dict(rec.extra), meta=dict(rec.meta))
+    r = analyze_attitude_free(rec, null_sims=100).result
+    assert any("temp_c: 1 row(s) with empty cells filled" in n for n in r["notes"]), r["notes"]
+    f, = _discovered(r)
+    assert f["model"]["against"] == "temp_c" and f["model"]["form"] == "gain", r["findings"]
+    holed[1200:1300] = np.nan  # a long gap: not filled
+    rec = Recording.from_arrays(t=rec.t, step=rec.step, psi_t=rec.psi_t, theta_t=rec.theta_t, phi_t=rec.phi_t,
+                                mag=rec.mag, acc=rec.acc, temp_c=holed, extra=dict(rec.extra), meta=dict(rec.meta))
+    r = analyze_attitude_free(rec, null_sims=40).result
+    assert any("temp_c has 101 row(s) with empty cells (the longest gap 100 rows): temp_c is not used" in n
+               for n in r["notes"]), r["notes"]

@@ -76,6 +76,7 @@ from physics.discrepancy.schema import Analysis, finding_model
 from physics.discrepancy.twin import blocks, runs
 from physics.effects import CATALOGUE, PARAMETER_SHIFT, UNEXPLAINED, separating_experiment
 from physics.errorsep import InsufficientData
+from physics.fit import consecutive_runs
 from physics.methods import QUADRIC_MIN_THICKNESS, fit_ellipsoid
 from physics.recording import Recording
 
@@ -151,15 +152,37 @@ class _Data:
         return len(self.t)
 
 
+#: Empty cells of an input column (acc, temp_c, the gyro's) are filled by linear interpolation in time when each
+#: gap is at most this many rows and all of them at most MAX_FILLED_SHARE of the rows; else the input is not used.
+MAX_FILLED_GAP, MAX_FILLED_SHARE = 5, 0.02
+
+
+def _filled(x: np.ndarray | None, t: np.ndarray, what: str, notes: list[str]) -> np.ndarray | None:
+    """``x`` (n,) or (n, k) with its few short gaps filled (one empty cell had made a whole input unused: a
+    concealed turn of the axes went unseen, and a gain following temp_c was named a drift in time), or None
+    with a note when the gaps are too many or too long to fill."""
+    if x is None:
+        return None
+    bad = ~np.isfinite(x).reshape(len(x), -1).all(axis=1)
+    if not bad.any():
+        return x
+    runs, n_bad = consecutive_runs(bad), int(bad.sum())
+    longest = max(len(r) for r in runs)
+    if longest > MAX_FILLED_GAP or n_bad > MAX_FILLED_SHARE * len(x) or bad.all():
+        notes.append(f"{what} has {n_bad} row(s) with empty cells (the longest gap {longest} rows): {what} is not used")
+        return None
+    out = np.array(x, dtype=float).reshape(len(x), -1)
+    for j in range(out.shape[1]):
+        out[bad, j] = np.interp(t[bad], t[~bad], out[~bad, j])
+    notes.append(f"{what}: {n_bad} row(s) with empty cells filled by linear interpolation in time (gaps of at most "
+                 f"{longest} rows)")
+    return out.reshape(np.shape(x))
+
+
 def _columns(rec: Recording, notes: list[str]) -> _Data:
-    acc = None if rec.acc is None else np.asarray(rec.acc, dtype=float)
-    if acc is not None and not np.isfinite(acc).all():
-        notes.append("the accelerometer columns have empty cells: the accelerometer is not used")
-        acc = None
-    temp = None if rec.temp_c is None else np.asarray(rec.temp_c, dtype=float)
-    if temp is not None and not np.isfinite(temp).all():
-        notes.append("temp_c has empty cells: temperature is not used")
-        temp = None
+    t = np.asarray(rec.t, float)
+    acc = _filled(None if rec.acc is None else np.asarray(rec.acc, dtype=float), t, "the accelerometer", notes)
+    temp = _filled(None if rec.temp_c is None else np.asarray(rec.temp_c, dtype=float), t, "temp_c", notes)
     gyro = None
     if all(k in rec.extra for k in ("gx", "gy", "gz")):
         try:
@@ -167,13 +190,11 @@ def _columns(rec: Recording, notes: list[str]) -> _Data:
         except ValueError:
             notes.append("extra columns gx, gy, gz are not all numbers: gyro rates not used")
         else:
-            if np.isfinite(g).all():
+            g = _filled(g, t, "the gyro (gx, gy, gz)", notes)
+            if g is not None:
                 unit = rec.meta.get("gyro_unit", "deg/s").lower()
                 gyro = g if "rad" in unit else np.radians(g)  # the importers write deg/s
-            else:
-                notes.append("gyro columns gx, gy, gz have empty cells: not used")
-    return _Data(np.asarray(rec.t, float), np.asarray(rec.step, dtype=object), np.asarray(rec.mag, float),
-                 acc, temp, gyro)
+    return _Data(t, np.asarray(rec.step, dtype=object), np.asarray(rec.mag, float), acc, temp, gyro)
 
 
 def _decimate(d: _Data, factor: int) -> tuple[_Data, np.ndarray]:

@@ -175,6 +175,15 @@ FAULTS: dict[int, str] = {
 RESETTABLE_FAULTS = {0x10, 0x21, 0x30, 0x31, 0x4A, 0x62, 0x63, 0x66, 0x67, 0x70, 0x85}
 
 
+#: What the technician does about a fault a reset alone does not clear.
+FAULT_ADVICE: dict[int, str] = {
+    0x68: "release the E-stop, then reset",
+    0x20: "a reset does not clear it: check the motor and its cable, then power-cycle the axis controller",
+    0x25: "a reset does not clear it: check the axis controller's supply",
+    0x28: "a reset does not clear it: check the encoder cable, then power-cycle the axis controller",
+}
+
+
 def fault_name(code: int) -> str:
     """Human name of a FAULT_CODE value, e.g. ``0x10 following error``."""
     return f"0x{code:02X} {FAULTS.get(code, 'unknown fault')}"

@@ -31,6 +31,7 @@ from drivers.protocol import (
     CMD_RESULT_TEXT,
     COUNTS_PER_DEG,
     CmdResult,
+    FAULT_ADVICE,
     FAULTS,
     PROTOCOL_VERSION,
     Command,
@@ -71,7 +72,8 @@ class AxisFault(AxisError):
     def __init__(self, axis: str, code: int) -> None:
         self.code = code
         self.name = FAULTS.get(code, "unknown fault")
-        super().__init__(axis, f"fault 0x{code:02X} {self.name}")
+        advice = FAULT_ADVICE.get(code)
+        super().__init__(axis, f"fault 0x{code:02X} {self.name}" + (f" ({advice})" if advice else ""))
 
 
 class MoveTimeout(AxisError):

@@ -596,7 +596,10 @@ def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge
                 s.refresh(run)
                 lost_run_result(run)
                 s.execute(update(Station).where(Station.id == station.id, Station.run_id == run.id)
-                          .values(run_id=None, state="fault", reason=f"worker lost during run {run.id}"))
+                          .values(run_id=None, state="fault",
+                                  reason=f"worker lost during run {run.id}: the table may have stopped anywhere; start "
+                                         f"its worker (compasscal worker --station {station.name}), then "
+                                         f"POST /stations/{station.name}/reset"))
                 publish(s, run.id, "state", {"state": RunState.failed.value, "reason": why})
                 ended.append(run.id)
         # a batch between units (or whose unit's run just ended above) has no run to be caught by

@@ -523,7 +523,7 @@ def test_estop_faults_refuses_and_recovers() -> None:
             move = asyncio.ensure_future(table.move_to(90.0, 0.0, 0.0))
             await asyncio.sleep(0.05)
             sim.estop(True)
-            with pytest.raises(AxisFault, match="0x68 E-stop"):
+            with pytest.raises(AxisFault, match=r"0x68 E-stop \(release the E-stop, then reset\)"):  # what to do
                 await move
             st = await table.axes["z"].status()
             assert st.estop and not st.enabled

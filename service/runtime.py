@@ -192,7 +192,10 @@ def publish(session: Session, run_id: int, kind: str, data: dict[str, Any]) -> N
                 run.reason = data.get("reason")
                 if run.progress and data["state"] != RunState.completed.value:
                     # an ended run has no time left (its last progress still counted some: "~16 s left")
-                    run.progress = {**run.progress, "left_s": 0.0, "left_wall_s": 0.0}
+                    # and its samples are those kept (its last progress counted those of a pose before it ended:
+                    # 360 against 407 kept)
+                    run.progress = {**run.progress, "left_s": 0.0, "left_wall_s": 0.0,
+                                    **({"samples": run.samples_count} if run.samples_count is not None else {})}
     notify(session, run_id)
 
 

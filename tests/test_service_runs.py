@@ -320,6 +320,7 @@ def test_an_axis_fault_mid_run_fails_it_and_the_station_until_reset(api: Api):
         assert j["samples_count"] == 9 * 20  # the level turn and the first sweep pose
         # an ended run has no time left (its last progress event still counted some)
         assert j["progress"]["left_s"] == j["progress"]["left_wall_s"] == 0.0, j["progress"]
+        assert j["progress"]["samples"] == j["samples_count"], j["progress"]  # the samples kept, not a pose's before
         # its page draws what it kept and links the samples (it showed neither), its step line the last step
         page = api.get(f"/ui/runs/{j['id']}", role="viewer").text
         assert f'href="/runs/{j["id"]}/samples?slot=0"' in page and "180 kept" in page and 'class="samples-plot"' in page
@@ -345,6 +346,7 @@ def test_a_compass_that_stops_talking_puts_the_station_in_fault_until_it_answers
         r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
         j = wait_run(api, r.json()["id"])
         assert j["status"] == "failed" and "Compass" in j["reason"] and j["samples_count"] > 0, j["reason"]
+        assert j["progress"]["samples"] == j["samples_count"], j["progress"]  # the samples kept, not a pose's before
         st = api.get("/stations/lab-1", role="viewer").json()
         assert st["state"] == "fault" and st["run_id"] is None, st
         r = api.post("/stations/lab-1/reset", role="operator")

@@ -307,6 +307,10 @@ def _distinct_serials(serials: list[str]) -> list[str]:
     dup = _repeated(serials)
     if dup:
         raise ValueError(f"serial numbers listed twice: {', '.join(dup)}")
+    alike = _repeated([s.casefold() for s in serials])
+    if alike:  # SN-1 and sn-1: two devices and two certificates for what is one unit typed twice, most likely
+        said = [" and ".join(s for s in serials if s.casefold() == a) for a in alike]
+        raise ValueError(f"serial numbers that differ only in letter case: {'; '.join(said)}; type each unit once")
     return serials
 
 

@@ -248,6 +248,17 @@ def test_one_serial_typed_for_two_slots_is_refused(api: Api):
         assert err["field"] == "body.serials" and "listed twice: SAME-1" in err["problem"], err
     r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SAME-1", "SAME-1"]})
     assert r.status_code == 422 and "listed twice: SAME-1" in r.text
+    # in another letter case: most likely one unit typed twice (two devices, two certificates before)
+    r = api.post("/batches", role="operator", json={"station": "lab-1", "serials": ["SN-1", "sn-1", "SN-2"]})
+    assert r.status_code == 422 and "differ only in letter case: SN-1 and sn-1" in r.text, r.text
+    # a serial looked up in another letter case is pointed at the one stored
+    from service.db import Device
+
+    with api.client.app.state.sessions() as s:
+        s.add(Device(serial="SN-QE-1"))
+        s.commit()
+    r = api.get("/devices/sn-qe-1", role="viewer")
+    assert r.status_code == 404 and "did you mean 'SN-QE-1'" in r.text, r.text
 
 
 def test_a_unit_with_no_serial_at_all_is_refused_before_the_table_moves(api: Api):

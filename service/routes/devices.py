@@ -32,7 +32,11 @@ def calibration_json(row: Calibration) -> dict[str, Any]:
 def _device(session: Session, serial: str) -> Device:
     dev = session.scalar(select(Device).where(Device.serial == serial))
     if dev is None:
-        raise HTTPException(404, f"no device with serial number {serial!r}")
+        # a serial typed in another letter case finds nothing: name the ones that differ only so
+        alike = [d for d in session.scalars(select(Device.serial).where(func.lower(Device.serial) == serial.lower()))]
+        raise HTTPException(404, f"no device with serial number {serial!r}"
+                                 + (f"; serial numbers differ in letter case: did you mean {', '.join(map(repr, alike))}?"
+                                    if alike else ""))
     return dev
 
 

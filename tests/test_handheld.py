@@ -483,3 +483,26 @@ def test_an_input_with_a_few_empty_cells_is_filled_not_dropped():
     r = analyze_attitude_free(rec, null_sims=40).result
     assert any("temp_c has 101 row(s) with empty cells (the longest gap 100 rows): temp_c is not used" in n
                for n in r["notes"]), r["notes"]
+
+
+def test_a_3d_arc_that_fits_no_ellipsoid_is_not_taken_for_a_turn_in_a_plane(monkeypatch):
+    """When neither quadric fits, the ellipse in the readings' plane was the fallback whatever their thickness:
+    a short 3-D arc (thickness 0.143) got an ellipse leaving 261 LSB against 7 of noise, and five effects were
+    named. Readings that are not planar are now refused, saying what to record."""
+    from physics.discrepancy import attitude_free
+    from physics.errorsep import InsufficientData
+
+    def no_quadric(*a, **k):
+        raise InsufficientData("the best-fitting quadric is not an ellipsoid")
+
+    monkeypatch.setattr(attitude_free, "fit_ellipsoid", no_quadric)
+    monkeypatch.setattr(attitude_free, "_quadric3", no_quadric)
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0.0, 1.2, 300)
+    b = rng.uniform(0.0, 0.5, 300)
+    arc = 3000.0 * np.column_stack([np.cos(a) * np.cos(b), np.sin(a) * np.cos(b), np.sin(b)])  # a cap, not a plane
+    with pytest.raises(InsufficientData, match="do not lie in a plane either"):
+        attitude_free._fit_shape(arc, [])
+    turn = rng.uniform(0.0, 2 * np.pi, 300)  # a whole turn in a plane: the ellipse is fitted
+    flat = np.column_stack([3000.0 * np.cos(turn), 2800.0 * np.sin(turn), np.full(300, 500.0)])
+    assert attitude_free._fit_shape(flat + rng.normal(0, 1.0, flat.shape), []).planar

@@ -406,6 +406,12 @@ def _fit_shape(mag: np.ndarray, notes: list[str]) -> _Shape:
         c = mag.mean(axis=0)
         _, sv, vt = np.linalg.svd(mag - c, full_matrices=False)
         P = vt[:2].T
+        if sv[2] >= QUADRIC_MIN_THICKNESS * sv[0]:
+            # not a turn about one axis either: an ellipse in "the plane" of a 3-D arc (thickness 0.143) left
+            # 261 LSB against 7 of noise, and five effects were named
+            raise InsufficientData(f"attitude-free model: the field ellipsoid cannot be fitted ({e3}), and the readings "
+                                   f"do not lie in a plane either (thickness {sv[2] / sv[0]:.3f} of their extent) for "
+                                   "an ellipse; turn the unit through more attitudes (about every axis)") from None
         try:
             B2, E2 = _conic2((mag - c) @ P)
         except InsufficientData as e2:

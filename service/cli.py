@@ -1132,8 +1132,10 @@ def keys_revoke(
     """Revoke a key (audited); services stop accepting it within 10 s."""
     import getpass
 
+    from sqlalchemy import func, select
+
     from service.auth import Caller, find_key, revoke_key
-    from service.db import make_engine, sessions
+    from service.db import ApiKey, make_engine, sessions
 
     _open_database()
     engine = make_engine()
@@ -1146,6 +1148,11 @@ def keys_revoke(
             _fail(f"ID|PREFIX: key {row.id} ({row.prefix}, {row.owner}) is already revoked")
         revoke_key(session, row, Caller(f"cli:{getpass.getuser()}", "admin"))
         console.print(f"revoked key {row.id} ({row.prefix}, {escape(row.owner)}, {row.role})")
+        if row.role == "admin" and not session.scalar(select(func.count()).select_from(ApiKey).where(
+                ApiKey.role == "admin", ApiKey.revoked.is_(False))):
+            # allowed here (the API refuses it): this command is how an administrator gets back in
+            _note("that was the last admin key in force: no one can administer the service over the API until "
+                  "`compasscal keys create --owner NAME --role admin` makes another")
 
 
 @db_app.command("upgrade", cls=_Command)

@@ -1917,8 +1917,9 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
                  + (f", the window search of an offset in each of {len(WINDOW_FRAMES)} frames" if searchable else "")
                  + (f", {len(turns)} turns of the magnetometer's axes on the magnitude and dip at once" if turns else "")
                  + "); conditional re-tests during selection use the same factor")
-    notes.append(f"Bartlett factors from {sims_used} simulated AR(1) nulls per response (null model: the nominal fit); "
-                 "factors below 1 are taken as 1 (conservative)")
+    if sims_used:  # (with none, the note above says there is no correction)
+        notes.append(f"Bartlett factors from {sims_used} simulated AR(1) nulls per response (null model: the nominal "
+                     "fit); factors below 1 are taken as 1 (conservative)")
     notes.append("heading impact without table angles: the fitted distortion's component across the field, divided "
                  "by cos(dip) when an accelerometer gives the dip" + (
                      f" ({dip_deg:.1f} deg here)" if dip_deg is not None else

@@ -394,3 +394,21 @@ def test_a_mirror_image_fit_is_said_to_be_one():
                                      mag=np.asarray(rec.mag) * [1, -1, 1], acc=rec.acc, temp_c=rec.temp_c,
                                      meta=dict(rec.meta))
     assert [n for n in fit(inverted).notes if "left-handed" in n and "y_m points" in n], fit(inverted).notes
+
+
+def test_errors_the_same_for_a_whole_pose_widen_the_stated_sigmas():
+    """A noise-free unit's readings rounded to whole counts: every sample of a pose is the same, so its 15
+    samples are one measurement, not 15. Taken as independent they made the stated 1-sigma 8-14 times too
+    small (a mean |error/sigma| of 3.4); the pose means' scatter now widens them, and says so. White noise
+    keeps its sigmas (test_joint_sigmas_are_honest_over_random_units)."""
+    rng = np.random.default_rng(11)
+    z, said = [], []
+    for _ in range(8):
+        unit = random_unit(rng, mag_noise_lsb=0.0)
+        world = World(rng.uniform(40, 70), rng.uniform(0, 360))
+        cal = fit(simulate_recording(unit, calibration_poses(CalibrateParams(samples=15)), world, rng=rng), "joint")
+        z.append(np.r_[(cal.mag.k - unit.mag.k) / cal.sigma["k"], (cal.mag.bias - unit.mag.bias) / cal.sigma["bias"],
+                       ((cal.mag.angles_deg - unit.mag.angles_deg) / cal.sigma["angles_deg"]).ravel()])
+        said.append(any("the pose means scatter" in n for n in cal.notes))
+    z = np.abs(np.array(z))
+    assert all(said) and z.mean() < 1.2 and z.max() < 5.0, (z.mean(), z.max())

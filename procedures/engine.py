@@ -168,6 +168,12 @@ def _listed(rows: list[int], most: int = 20) -> str:
     return ", ".join(map(str, rows[:most])) + (f" and {len(rows) - most} more" if len(rows) > most else "")
 
 
+def _link_counts(compass: Any) -> tuple[int, int]:
+    """A compass's resets and reconnects so far (the serial driver counts them; a test double may not)."""
+    stats = getattr(compass, "stats", None)
+    return (int(getattr(stats, "resets", 0)), int(getattr(stats, "reconnects", 0))) if stats is not None else (0, 0)
+
+
 @dataclass
 class Engine:
     """Runs one procedure once. Control it from other tasks with :meth:`pause`, :meth:`resume`,
@@ -208,6 +214,7 @@ class Engine:
         # per slot: the label of the samples kept in the step under way, screened once it ends (_flag_pending)
         self._to_flag: dict[int, str] = {}
         self._held: Any = None  # encoder angles where the table holds since the last move, if known
+        self._link_events: dict[Any, tuple[int, int]] = {}  # each compass's (resets, reconnects) last seen
 
     # ---------------------------------------------------------------------------------- control
     def pause(self) -> None:
@@ -250,6 +257,7 @@ class Engine:
         plan = self.procedure.plan(self.params)
         nominal: list[float] = []
         self._t0 = time.monotonic()
+        self._link_events = {slot: _link_counts(c) for slot, c in self.station.fixture.compasses.items()}
         self._set_state(RunState.running)
         outcome: Outcome | None = None
         gen = self.procedure.run(self.params)
@@ -385,14 +393,20 @@ class Engine:
             return None
         if isinstance(step, Acquire):
             await self._stream()
-            return await self._acquire(step)
+            try:
+                return await self._acquire(step)
+            finally:
+                self._say_resets(step.step)
         self._held = None  # anything else (a scan, a prompt, a pause): read the encoders afresh
         if isinstance(step, Scan):
             await self._retry(lambda: self.station.table.move_to(
                 *step.start_angles, speed_dps=self.station.speed_dps, accel_dps2=self.station.accel_dps2), MoveTimeout)
             await self._stream()
             self._check_abort()
-            return await self._scan(step)  # never retried: it would repeat samples already kept
+            try:
+                return await self._scan(step)  # never retried: it would repeat samples already kept
+            finally:
+                self._say_resets(step.step)
         if isinstance(step, Checkpoint):
             if not self._resume.is_set():
                 self._set_state(RunState.paused)
@@ -468,6 +482,20 @@ class Engine:
                     raise
                 self.on_event(StepRetried(attempt + 1, _reason(e)))
         raise AssertionError("unreachable")
+
+    def _say_resets(self, label: str) -> None:
+        """A warning for each compass that reset itself (or reconnected) since the last look: its driver
+        applied its settings again and the run went on, but only the worker's log had said so."""
+        for slot, compass in self.station.fixture.compasses.items():
+            now = _link_counts(compass)
+            before = self._link_events.setdefault(slot, now)
+            if now != before:
+                what = " and ".join(x for x, n in (("reset itself", now[0] - before[0]),
+                                                   ("reconnected", now[1] - before[1])) if n > 0)
+                self.on_event(StepWarning(f"slot {slot}: the compass {what} during {label} (its settings were applied "
+                                          "again and its samples kept); a unit that resets itself may have a supply "
+                                          "or cable fault"))
+                self._link_events[slot] = now
 
     async def _acquire(self, step: Acquire) -> dict[int, Recording]:
         """Hold still and take exactly ``step.samples`` samples per slot.

@@ -357,6 +357,21 @@ def test_a_compass_that_stops_talking_puts_the_station_in_fault_until_it_answers
         assert r.status_code == 200 and r.json()["state"] == "idle" and r.json()["silent_compasses"] == {}, r.text
 
 
+def test_a_compass_that_resets_itself_mid_run_is_said_in_the_run(api: Api):
+    """A compass that reset itself mid-run had its settings applied again by its driver and the run went on
+    to PASS: only the worker's log said so. The run's events now carry a warning naming the slot and step."""
+    with sim_station(reference_config(seed=3, time_scale=20)) as info:
+        make_station(api, info)
+        fault = parse_fault({"kind": "compass_reset", "slot": 0, "at_s": 15.0})
+        info["loop"].call_soon_threadsafe(info["station"].inject, fault)
+        r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
+        j = wait_run(api, r.json()["id"])
+        assert j["status"] == "completed", j["reason"]
+        said = [d["warning"] for k, d in read_events(api, j["id"]) if k == "step" and "warning" in d]
+        assert any("slot 0: the compass reset itself during" in w and "settings were applied again" in w
+                   for w in said), said
+
+
 def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
     with sim_station(reference_config(seed=8, time_scale=20)) as info:
         make_station(api, info)

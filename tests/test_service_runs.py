@@ -309,13 +309,18 @@ def test_pause_resume_and_abort_keep_the_samples(api: Api):
         assert [a.detail["state"] for a in audited(api, "run.state")] == ["paused", "running", "aborted"]
 
 
+def _run_with_fault(api: Api, info: dict[str, Any], fault: dict[str, Any]) -> dict[str, Any]:
+    """Register simulated station ``info`` as lab-1, inject ``fault`` (the [[fault]] keys) and run a calibration
+    to its end: the run as GET /runs/{id} gives it."""
+    make_station(api, info)
+    info["loop"].call_soon_threadsafe(info["station"].inject, parse_fault(fault))
+    r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
+    return wait_run(api, r.json()["id"])
+
+
 def test_an_axis_fault_mid_run_fails_it_and_the_station_until_reset(api: Api):
     with sim_station(reference_config(seed=3, time_scale=20)) as info:
-        make_station(api, info)
-        fault = parse_fault({"kind": "axis_alarm", "axis": "y", "code": 48, "at_angle_deg": 100})
-        info["loop"].call_soon_threadsafe(info["station"].inject, fault)
-        r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
-        j = wait_run(api, r.json()["id"])
+        j = _run_with_fault(api, info, {"kind": "axis_alarm", "axis": "y", "code": 48, "at_angle_deg": 100})
         assert j["status"] == "failed" and "overload" in j["reason"] and "axis y" in j["reason"]
         assert j["samples_count"] == 9 * 20  # the level turn and the first sweep pose
         # an ended run has no time left (its last progress event still counted some)
@@ -340,11 +345,7 @@ def test_a_compass_that_stops_talking_puts_the_station_in_fault_until_it_answers
     """A compass silent mid-run failed the run but left the station "idle" (the next run failed at its
     identification), and a reset said "idle" with the compass still silent."""
     with sim_station(reference_config(seed=3, time_scale=20)) as info:
-        make_station(api, info)
-        fault = parse_fault({"kind": "compass_silent", "slot": 0, "at_s": 20.0})
-        info["loop"].call_soon_threadsafe(info["station"].inject, fault)
-        r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
-        j = wait_run(api, r.json()["id"])
+        j = _run_with_fault(api, info, {"kind": "compass_silent", "slot": 0, "at_s": 20.0})
         assert j["status"] == "failed" and "Compass" in j["reason"] and j["samples_count"] > 0, j["reason"]
         assert j["progress"]["samples"] == j["samples_count"], j["progress"]  # the samples kept, not a pose's before
         st = api.get("/stations/lab-1", role="viewer").json()
@@ -361,11 +362,7 @@ def test_a_compass_that_resets_itself_mid_run_is_said_in_the_run(api: Api):
     """A compass that reset itself mid-run had its settings applied again by its driver and the run went on
     to PASS: only the worker's log said so. The run's events now carry a warning naming the slot and step."""
     with sim_station(reference_config(seed=3, time_scale=20)) as info:
-        make_station(api, info)
-        fault = parse_fault({"kind": "compass_reset", "slot": 0, "at_s": 15.0})
-        info["loop"].call_soon_threadsafe(info["station"].inject, fault)
-        r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 20}})
-        j = wait_run(api, r.json()["id"])
+        j = _run_with_fault(api, info, {"kind": "compass_reset", "slot": 0, "at_s": 15.0})
         assert j["status"] == "completed", j["reason"]
         said = [d["warning"] for k, d in read_events(api, j["id"]) if k == "step" and "warning" in d]
         assert any("slot 0: the compass reset itself during" in w and "settings were applied again" in w

@@ -286,13 +286,16 @@ def test_the_window_search_raises_no_alarm_on_null_recordings():
 def test_concealed_mains_line_is_found_and_named():
     eff = effects.MainsInterference(amplitude_lsb=[12.0, -8.0, 6.0], freq_hz=50.0, phase_rad=0.7,
                                     sample_rate_hz=RATE_HZ)
-    rec, _ = simulate_handheld(23, conceal=[eff])
+    rec, unit = simulate_handheld(23, conceal=[eff])
     r = analyze_attitude_free(rec, null_sims=100).result
     assert r["verdict"] == "discrepancy"
     assert _names(r)[0] == "mains_interference", r["findings"]
     p = r["findings"][0]["parameters"]
     assert abs(p["alias_hz"] - eff.alias_hz) < 0.01
     assert np.allclose(np.abs(p["amplitude_lsb"]), [12, 8, 6], atol=3.0)
+    # the line fitted is not noise: the floor is the unit's noise (the line had raised it, and "after" fell below it)
+    floor = max(r["noise_floor_lsb"])
+    assert floor < 1.3 * unit.mag.noise_lsb and r["residual_rms_after_lsb"][0] > 0.85 * floor, (floor, unit.mag.noise_lsb)
 
 
 def test_concealed_time_lag_is_found_with_gyro():

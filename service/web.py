@@ -387,7 +387,8 @@ def ui_root() -> Response:
 @router.get("/ui/login", response_class=HTMLResponse)
 def login_form(request: Request, next: str | None = None) -> Response:
     """The login form: one API key, kept for the browser session."""
-    return _render(request, _caller(request), "login.html", title="Log in", next=_safe_next(next), error=None)
+    return _render(request, _caller(request), "login.html", title="Log in", next=_safe_next(next), error=None,
+                   session_hours=SESSION_HOURS)
 
 
 @router.post("/ui/login", response_class=HTMLResponse)
@@ -404,7 +405,7 @@ async def login(request: Request) -> Response:
     started = await asyncio.to_thread(check) if key else None
     if started is None:
         return _render(request, None, "login.html", status_code=401, title="Log in", next=target,
-                       error="That key is not valid (unknown or revoked).")
+                       error="That key is not valid (unknown or revoked).", session_hours=SESSION_HOURS)
     resp = RedirectResponse(target, status_code=303)
     # the cookie carries a session token (never the key), expiring with the session; HttpOnly keeps it
     # from page scripts, Secure from plain HTTP when the service is reached over HTTPS

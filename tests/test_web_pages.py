@@ -82,6 +82,7 @@ def test_login_sets_the_session_cookie_and_logout_clears_it(api):
     assert page.status_code == 200
     form = Elements(page.text)
     assert form.find("input", id="api-key") and form.find("button", id="login")
+    assert "a session that lasts 12 hours" in page.text  # as the cookie does (it said "this browser session only")
 
     bad = client.post("/ui/login", data={"key": "cc_wrong", "next": "/ui/stations"}, follow_redirects=False)
     assert bad.status_code == 401 and "not valid" in bad.text and COOKIE not in bad.headers.get("set-cookie", "")

@@ -804,18 +804,21 @@ def quality(rec: Recording, cal: Calibration) -> dict[str, object]:
     mag, f_b = mean.mag, es.specific_force(mean, cal.acc)
     ref = mean.psi_t - cal.declination_deg
     lev = _level(mean)
+    # PHYSICS.md: the heading error as its maximum absolute value and as RMS
     staged: dict[str, float | None] = {}
+    staged_rms: dict[str, float | None] = {}
     for stage in STAGES:
         if lev.any():
             e = heading_error(cal.heading(mag[lev], f_b[lev], stage), ref[lev])
-            staged[stage] = float(np.max(np.abs(e)))
+            staged[stage], staged_rms[stage] = float(np.max(np.abs(e))), float(np.sqrt(np.mean(e * e)))
         else:
-            staged[stage] = None
+            staged[stage] = staged_rms[stage] = None
     tilted = ~lev & (np.abs(wrap180(mean.theta_t)) <= 60.0) & (np.abs(wrap180(mean.phi_t)) <= 60.0)
     if tilted.any():
         e = heading_error(cal.heading(mag[tilted], f_b[tilted]), ref[tilted])
-        staged["tilted_full"] = float(np.max(np.abs(e)))
-    return {"residual_rms_lsb": rms, "heading_error_deg": staged, "samples": len(rec), "poses": len(mean)}
+        staged["tilted_full"], staged_rms["tilted_full"] = float(np.max(np.abs(e))), float(np.sqrt(np.mean(e * e)))
+    return {"residual_rms_lsb": rms, "heading_error_deg": staged, "heading_error_rms_deg": staged_rms,
+            "samples": len(rec), "poses": len(mean)}
 
 
 def pose_groups(rec: Recording) -> np.ndarray:

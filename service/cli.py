@@ -403,14 +403,16 @@ def print_calibration(cal: Calibration) -> None:
     console.print(f"field: I = {pm(cal.inclination_deg, sig.get('inclination_deg'), 4)} deg, "
                   f"D = {pm(cal.declination_deg, sig.get('declination_deg'), 4)} deg; "
                   f"base tilt (about x, about y) = {cal.base_tilt_deg[0]:.4f}, {cal.base_tilt_deg[1]:.4f} deg")
-    t3 = Table(title="Staged heading error on the recording's level turn (max |error|, deg; Fig. 5)")
+    t3 = Table(title="Staged heading error on the recording's level turn (max |error| and RMS, deg; Fig. 5)")
     labels = {"raw": "raw", "bias": "bias removed", "sensitivity": "+ sensitivity", "full": "+ non-orthogonality (full)",
               "tilted_full": "full, tilted poses (|pitch|, |roll| <= 60)"}
     t3.add_column("stage")
     t3.add_column("max error", justify="right")
+    t3.add_column("RMS", justify="right")
+    rms = cal.quality.get("heading_error_rms_deg") or {}  # (a calibration stored before it was kept has none)
     for key, label in labels.items():
         if he.get(key) is not None:
-            t3.add_row(label, f"{he[key]:.4f}")
+            t3.add_row(label, f"{he[key]:.4f}", f"{rms[key]:.4f}" if rms.get(key) is not None else "-")
     console.print(t3)
     if cal.heading_model:
         console.print(f"heading model: {escape(str(cal.heading_model))}")

@@ -412,3 +412,13 @@ def test_errors_the_same_for_a_whole_pose_widen_the_stated_sigmas():
         said.append(any("the pose means scatter" in n for n in cal.notes))
     z = np.abs(np.array(z))
     assert all(said) and z.mean() < 1.2 and z.max() < 5.0, (z.mean(), z.max())
+
+
+def test_the_staged_heading_error_is_kept_as_max_and_rms():
+    """PHYSICS.md: report the heading error as its maximum absolute value and as RMS (the RMS was computed
+    nowhere the calibration kept)."""
+    rec = simulate_recording(reference_unit(3.0, 4.0), calibration_poses(CalibrateParams(samples=20)), World(),
+                             rng=np.random.default_rng(2))
+    q = fit(rec).quality
+    for stage, worst in q["heading_error_deg"].items():
+        assert 0.0 < q["heading_error_rms_deg"][stage] <= worst, (stage, q["heading_error_rms_deg"], worst)

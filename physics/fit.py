@@ -382,7 +382,14 @@ def screen_rows(rec: Recording) -> dict[int, str]:
         # whole counts resolve nothing under a count: when half of a hold's readings sit on the two
         # counts by its median, their MAD says 0.7 LSB and ordinary noise would look 9 sigma off
         counts = np.all(x[multi] == np.round(x[multi]), axis=0)
-        sigma = _robust_sigma(dev[multi], np.maximum(2e-4 * amplitude, np.where(counts, 1.0, 1e-12)))
+        # nor below the noise from one held sample to the next: poses of a few repeats of one reading (an
+        # optical reference's sample-and-hold) have a MAD of nothing, and ordinary readings of a hand-held
+        # recording were dropped as 3810 sigma off (0.03 LSB against 24 of sample-to-sample noise)
+        idx = np.flatnonzero(multi)
+        steps = np.diff(x[idx], axis=0)[np.diff(idx) == 1]
+        step_sigma = 1.4826 * np.median(np.abs(steps), axis=0) / np.sqrt(2.0) if len(steps) >= 10 else 0.0
+        sigma = _robust_sigma(dev[multi], np.maximum.reduce([np.full(3, 2e-4) * amplitude,
+                                                             np.where(counts, 1.0, 1e-12), step_sigma * np.ones(3)]))
         z = np.abs(dev) / sigma
         # gross needs an amplitude, i.e. two poses (a run's first hold alone has none: lone rows only)
         gross = np.any((z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude) & (amplitude > 0), axis=1)

@@ -155,7 +155,7 @@ class BusURL:
             if parts.port is None:  # (the driver tried 502 and said only "cannot connect"; the API took it)
                 raise ValueError(f"no port in Modbus URL {url!r}; give {kind}://{parts.hostname}:PORT (Modbus TCP's "
                                  "usual port is 502)")
-            return cls(kind=kind, host=parts.hostname, port=parts.port or 502, timeout=_timeout(url, q))
+            return cls(kind=kind, host=parts.hostname, port=parts.port, timeout=_timeout(url, q))
         if scheme in ("serial", "rtu"):
             _known_keys(url, q, ("baud", "parity", "stopbits", "timeout"))
             device = parts.path or parts.netloc

@@ -61,7 +61,10 @@ def hardware_key(url: str, modbus: bool = False) -> str:
     as its real path (``/dev/serial/by-id/...`` is the ``/dev/ttyUSB0`` it links to). Two URLs with one
     key drive one device."""
     if modbus:
-        bus = BusURL.parse(url)
+        try:
+            bus = BusURL.parse(url)
+        except ValueError:  # a station stored before its form was refused ("tcp://HOST", no port): as written
+            return url
         return f"{_host(bus.host)}:{bus.port}" if bus.kind != "serial" else os.path.realpath(bus.device)
     if "://" not in url:
         return os.path.realpath(url)

@@ -124,6 +124,16 @@ def test_stations_need_admin_and_requests_are_validated(api: Api):
         assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.modbus" and words in r.text, r.text
     r = api.post("/stations", json={**two, "compasses": ["socket://localhost:4001"]})
     assert r.status_code == 409 and "already has compass" in r.text, r.text
+    # a station stored before a URL without its port was refused does not make every check fail (500)
+    from service.db import Station
+
+    with api.client.app.state.sessions() as s:
+        s.add(Station(name="old-1", modbus="tcp://10.9.9.9", compasses=["socket://10.9.9.9:4009"], time_scale=1.0,
+                      state="idle", serial_policy="prompt"))
+        s.commit()
+    r = api.post("/stations", json={**two, "name": "lab-3", "modbus": "tcp://127.0.0.1:1509",
+                                    "compasses": ["socket://127.0.0.1:4019"]})
+    assert r.status_code == 201, r.text
     r = api.post("/stations", json={**two, "compasses": ["socket://127.0.0.1:4002", "socket://LOCALHOST:4002"]})
     assert r.status_code == 422 and "two slots" in r.text, r.text
     for compasses, words in ((["ftp://x"], "protocol 'ftp' not known"), (["/dev/ttyS7", "/dev/ttyS7"], "two slots")):

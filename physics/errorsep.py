@@ -324,6 +324,7 @@ class VectorFit:
     cov: np.ndarray
     noise: np.ndarray
     residuals: np.ndarray
+    scatter: float = 1.0  # the pose means' scatter over the noise's, when significant: the factor on cov (pose_scatter)
 
     def propagate(self, fn: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Value and 1-sigma of ``fn(M, b, v)`` by linear propagation of the covariance."""
@@ -421,8 +422,9 @@ def fit_vector_sensor(R: np.ndarray, raw: np.ndarray, starts: list[np.ndarray]) 
     weights = 1.0 / np.maximum(noise, 1e-9 * np.abs(raw).max())
     basis = _tangent_basis(best_v)
     J = _jacobian(R, M, best_v, basis, weights)
-    cov = np.linalg.pinv(J.T @ J) * pose_scatter(R, r, noise, J.shape[1])
-    return VectorFit(M=M, b=b, v=best_v, basis=basis, cov=cov, noise=noise, residuals=r)
+    scatter = pose_scatter(R, r, noise, J.shape[1])
+    return VectorFit(M=M, b=b, v=best_v, basis=basis, cov=np.linalg.pinv(J.T @ J) * scatter, noise=noise, residuals=r,
+                     scatter=scatter)
 
 
 #: The pose means' scatter is taken for errors the samples' noise does not show only when it is this unlikely

@@ -722,13 +722,11 @@ def _joint(rec: Recording, acc: es.Accel) -> Calibration:
     except es.InsufficientData:
         v_start = None
         notes.append("no complete set of sweeps: joint fit started from a search over field directions")
-    R = es.rotations(rec)
-    fit_ = es.joint_magnetometer(R, rec.mag, v_start)
-    scatter = es.pose_scatter(R, fit_.residuals, fit_.noise, fit_.cov.shape[0])
-    if scatter > 1.0:
-        notes.append(f"the pose means scatter {scatter:.3g} times as much as the samples' noise predicts (an error the "
-                     "same for a whole pose: the table's axes, a reading rounded to whole counts): the uncertainties "
-                     f"are widened by {np.sqrt(scatter):.2g} to cover it")
+    fit_ = es.joint_magnetometer(es.rotations(rec), rec.mag, v_start)
+    if fit_.scatter > 1.0:
+        notes.append(f"the pose means scatter {fit_.scatter:.3g} times as much as the samples' noise predicts (an error "
+                     "the same for a whole pose: the table's axes, a reading rounded to whole counts): the "
+                     f"uncertainties are widened by {np.sqrt(fit_.scatter):.2g} to cover it")
     ft = es.field_and_tilt(fit_, acc.fit)
     sigma: dict[str, object] = es.sensor_sigmas(fit_)
     sigma.update({"inclination_deg": ft["field_sigma"][0], "declination_deg": ft["field_sigma"][1],

@@ -184,6 +184,11 @@ FAULT_ADVICE: dict[int, str] = {
 }
 
 
+def with_advice(text: str, code: int) -> str:
+    """``text`` about fault ``code`` and, for one a reset alone does not clear, what to do (:data:`FAULT_ADVICE`)."""
+    return text + (f" ({FAULT_ADVICE[code]})" if code in FAULT_ADVICE else "")
+
+
 def fault_name(code: int) -> str:
     """Human name of a FAULT_CODE value, e.g. ``0x10 following error``."""
     return f"0x{code:02X} {FAULTS.get(code, 'unknown fault')}"

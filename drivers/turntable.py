@@ -31,7 +31,6 @@ from drivers.protocol import (
     CMD_RESULT_TEXT,
     COUNTS_PER_DEG,
     CmdResult,
-    FAULT_ADVICE,
     FAULTS,
     PROTOCOL_VERSION,
     Command,
@@ -42,6 +41,7 @@ from drivers.protocol import (
     status_names,
     to_i16,
     to_words,
+    with_advice,
 )
 
 POLL_INTERVAL = 0.005  # s wall between status polls while waiting (a poll itself takes ~1 ms)
@@ -72,8 +72,7 @@ class AxisFault(AxisError):
     def __init__(self, axis: str, code: int) -> None:
         self.code = code
         self.name = FAULTS.get(code, "unknown fault")
-        advice = FAULT_ADVICE.get(code)
-        super().__init__(axis, f"fault 0x{code:02X} {self.name}" + (f" ({advice})" if advice else ""))
+        super().__init__(axis, with_advice(f"fault 0x{code:02X} {self.name}", code))
 
 
 class MoveTimeout(AxisError):

@@ -42,7 +42,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from drivers.compass import CompassDisconnected, CompassTimeout, FixtureError, SerialFixture
 from drivers.modbus import BusError
-from drivers.protocol import FAULT_ADVICE
+from drivers.protocol import with_advice
 from drivers.station import open_station
 from drivers.turntable import AxisError, Turntable
 from physics.calibration import Calibration as PhysCalibration, json_safe
@@ -853,9 +853,8 @@ async def reset_station(ctx: WorkerContext, name: str, token: str) -> None:
                 await table.reset_faults()
                 after = await table.status_all()
                 return {"reset_axes": [n for n, st in before.items() if st.fault],
-                        "still_faulted": {n: (st.fault_name or str(st.fault_code)) + (
-                            f" ({FAULT_ADVICE[st.fault_code]})" if st.fault_code in FAULT_ADVICE else "")
-                            for n, st in after.items() if st.fault}}
+                        "still_faulted": {n: with_advice(st.fault_name or str(st.fault_code), st.fault_code)
+                                          for n, st in after.items() if st.fault}}
             out.update(ok=True, **await asyncio.wait_for(go(), OPEN_TIMEOUT_S))
         except Exception as e:  # noqa: BLE001 - any driver or network failure is reported; the state stays
             out.update(ok=False, status=503, error=f"could not reset station {name}: {_reason(e)}")

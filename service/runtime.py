@@ -324,11 +324,11 @@ def batch_json(s: Session, batch: Batch) -> dict[str, Any]:
     cals = {c.run_id: c for c in s.scalars(select(Calibration).where(Calibration.run_id.in_([r.id for r in runs]),
                                                                       Calibration.slot == 0))} if runs else {}
     units, prompt = [], None
+    ended = batch.finished_at is not None
     for serial in batch.serials:
         r = by_serial.get(serial)
         if r is None:
             # a unit of an ended batch without a run was never run (its summary says why), not pending
-            ended = batch.finished_at is not None
             units.append({"serial": serial, "run_id": None, "status": "not run" if ended else "pending", "verdict": None,
                           "reason": (batch.summary or {}).get(serial, "").removeprefix(NOT_RUN) or None if ended else None})
             continue

@@ -98,13 +98,14 @@ async def put_batch_state(batch_id: Id, body: BatchStateIn, request: Request,
         audit(s, caller, "batch.state", f"batch {batch_id}", body.model_dump())
         s.commit()
         current = s.scalars(select(Run.id).where(Run.batch_id == batch_id, Run.status.in_(ACTIVE))).all()
-        station = s.get(Station, batch.station_id).name
+        station_id = batch.station_id
+        station = s.get(Station, station_id).name
     if await request.app.state.jobs.cancel_queued("batch", station_queue(station), batch_id=batch_id):
         # no worker had taken it (the station's worker is down or busy): it ends here, as an unstarted run
         # does (it stayed "aborting", and its station busy with it, until a worker came)
         with sessions(request)() as s:
-            end_lost_batches(s, [s.get(Batch, batch_id).station_id],
-                             "the batch was aborted before its station's worker took it", queued_too=True)
+            end_lost_batches(s, [station_id], "the batch was aborted before its station's worker took it",
+                             queued_too=True)
             s.commit()
     for run_id in current:  # (the worker starts no unit once it sees the batch aborting)
         try:

@@ -47,6 +47,9 @@ class _Group(typer.core.TyperGroup):
         return _no_flag_types(super().get_params(ctx))
 
 
+#: Seconds a stopping service waits for open requests (live event streams included) before closing them.
+SHUTDOWN_GRACE_S = 5
+
 app = typer.Typer(help="Electronic-compass calibration station.", no_args_is_help=True, add_completion=False,
                   pretty_exceptions_show_locals=False, cls=_Group)
 console = Console()
@@ -959,7 +962,8 @@ async def _api_demo(cfg: object, sock: socket.socket, keep_serving: bool) -> int
         d = st.describe()
         app = create_app()
         port = sock.getsockname()[1]
-        server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+        server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
+                                               timeout_graceful_shutdown=SHUTDOWN_GRACE_S))
         serving = asyncio.create_task(server.serve(sockets=[sock]))
         while not server.started:
             if serving.done():
@@ -1208,7 +1212,11 @@ def serve(
     console.print(f"database: {database}; {workers} API process(es); stations driven "
                   + ("here" if embedded else "by their `compasscal worker`s"), soft_wrap=True, markup=False, highlight=False)
     os.environ["COMPASSCAL_STATION_WORKER"] = "1" if embedded else "0"  # read by service.app:app_from_env
-    config = uvicorn.Config("service.app:app_from_env", factory=True, host=host, port=port, workers=workers)
+    # a run's live events stream until the run ends: without a bound, a stop waited for every watcher (a
+    # browser on a run page kept the API down, its port held, until the run ended); watchers reconnect
+    # with Last-Event-ID
+    config = uvicorn.Config("service.app:app_from_env", factory=True, host=host, port=port, workers=workers,
+                            timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
     if workers > 1:
         from uvicorn.supervisors import Multiprocess
         Multiprocess(config, sockets=[sock]).run()

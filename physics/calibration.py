@@ -115,8 +115,9 @@ class Calibration:
             if s is None:
                 return None
             try:
-                return LinearSensor(np.array(s["M_o"], float), np.array(s["k"], float), np.array(s["bias"], float))
-            except (KeyError, ValueError) as e:
+                return LinearSensor(*(_numbers(f"{key}.{name}", s[name], shape)
+                                      for name, shape in (("M_o", (3, 3)), ("k", (3,)), ("bias", (3,)))))
+            except (KeyError, TypeError, ValueError) as e:
                 raise ValueError(f"{key}: needs M_o (3x3), k (3) and bias (3): {e}") from None
 
         mag = sensor("magnetometer", d.get("magnetometer"))
@@ -138,6 +139,25 @@ class Calibration:
             heading_model=d.get("heading_model"),
             notes=list(d.get("notes") or []),
         )
+
+
+def _numbers(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a finite float array of ``shape``; true/false, text and null are refused by their place
+    (numpy read ``true`` as a sensitivity of 1 and ``"1108"`` as 1108)."""
+    def walk(x: Any, at: str) -> None:
+        if isinstance(x, (list, tuple)):
+            for i, e in enumerate(x):
+                walk(e, f"{at}[{i}]")
+        elif isinstance(x, (bool, str)) or x is None:
+            raise ValueError(f"{at}: a number is required, got {x!r}")
+
+    walk(value, name)
+    a = np.array(value, dtype=float)
+    if a.shape != shape:
+        raise ValueError(f"{name}: expected {'x'.join(map(str, shape))} numbers, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected finite numbers, got {value!r}")
+    return a
 
 
 def deviation5_curve(psi_deg: np.ndarray, coef_deg: list[float]) -> np.ndarray:

@@ -42,6 +42,8 @@ class _Params(BaseModel):
         # a number field (not one that also takes a bool or text) takes a number only
         kinds = get_args(cls.model_fields[info.field_name].annotation) or (cls.model_fields[info.field_name].annotation,)
         if (int in kinds or float in kinds) and bool not in kinds and str not in kinds:
+            if isinstance(v, list):  # a list of numbers (list[float]'s argument is float): each one a number
+                return [request_number(x) for x in v]
             return request_number(v)
         return v
 
@@ -540,7 +542,7 @@ class LevelParams(_Params):
     """Base tilt by reversal (a level turn), then optionally level the platform at psi = 0."""
 
     step_deg: float = _step(90.0, "azimuth step of the reversals")
-    apply: bool = True
+    apply: StrictBool = True
 
 
 def level(p: LevelParams) -> ProcedureGen:
@@ -642,7 +644,7 @@ class CharacterizeParams(_Params):
     azimuths: int = Field(8, ge=3, le=72, description="level holds per turn, each approached from both sides")
     tilt_deg: float = Field(60.0, gt=0, le=80, description="pitch and roll of the tilted holds, deg")
     tilt_azimuths: int = Field(4, ge=2, le=36, description="azimuths of the tilted holds")
-    diagonal: bool = Field(True, description="also hold pitched and rolled at once")
+    diagonal: StrictBool = Field(True, description="also hold pitched and rolled at once")
     z_speeds_dps: list[float] = Field([10.0, 30.0], min_length=1, max_length=4,
                                       description="speeds of the turns about z (each turned both ways), deg/s")
     tilt_scan_speed_dps: float = Field(30.0, ge=0, le=60, description="speed of the turns about y and x (0: none)")

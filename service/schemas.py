@@ -527,7 +527,8 @@ class BatchOut(BaseModel):
 class AnalysisIn(In):
     """What to analyse; every field optional (an empty body analyses every unit of the run)."""
 
-    slot: Index | None = Field(None, description="the fixture slot (unit) to analyse; default: every slot with samples")
+    slot: Annotated[Index, BeforeValidator(request_number)] | None = Field(
+        None, description="the fixture slot (unit) to analyse; default: every slot with samples")
     null_sims: Annotated[int, Field(ge=0, le=5000), BeforeValidator(request_number)] = Field(
         200, description="simulated null recordings calibrating the tests' false-alarm rate")
     calibration_id: Id | None = Field(None, description="a stored calibration as the unit's nominal model (the "

@@ -151,3 +151,42 @@ def test_maxmin_holds_its_extremes_in_a_short_tour_from_where_the_sweep_ended():
         travel = sum(abs(b - a) for a, b in zip([300.0, *holds], holds))
         assert travel <= 360.0, (sweep, holds, travel)
         assert all(-180.0 <= a <= 300.0 for a in holds)
+
+
+def test_nested_numbers_and_switches_take_their_type():
+    """Lax parsing had read strings and booleans deeper in a request as numbers and switches: an evaluate
+    run took a calibration whose sensitivity was ``true`` (a k of 1: level heading error 67.9 deg on a
+    unit that had passed), ``"z_speeds_dps": ["10"]`` was 10, ``"apply": 1`` and ``"diagonal": "yes"`` were
+    true, an analysis' ``"slot": "0"`` slot 0. Each is refused by its place, as the top-level numbers are."""
+    from procedures.calibrate import CharacterizeParams, EvaluateParams, LevelParams
+    from service.schemas import AnalysisIn
+
+    for model, body, field, words in ((CharacterizeParams, {"z_speeds_dps": ["10"]}, "z_speeds_dps", "not the string '10'"),
+                                      (CharacterizeParams, {"z_speeds_dps": [True]}, "z_speeds_dps", "not true or false"),
+                                      (CharacterizeParams, {"diagonal": "yes"}, "diagonal", "boolean"),
+                                      (LevelParams, {"apply": 1}, "apply", "boolean"),
+                                      (LevelParams, {"apply": "true"}, "apply", "boolean"),
+                                      (AnalysisIn, {"slot": "0"}, "slot", "not the string '0'")):
+        with pytest.raises(ValidationError) as e:
+            model.model_validate(body)
+        assert e.value.errors()[0]["loc"][0] == field and words in str(e.value), (body, str(e.value))
+    assert CharacterizeParams.model_validate({"z_speeds_dps": [10, 20.5]}).z_speeds_dps == [10.0, 20.5]
+    assert LevelParams.model_validate({"apply": False}).apply is False
+
+    from physics.calibration import Calibration
+    from physics.fit import fit
+    from physics.simulate import simulate_recording
+
+    rec = simulate_recording(reference_unit(3.0, 4.0, serial="SN-TYPE"), calibration_poses(CalibrateParams(samples=5)),
+                             World(), rng=np.random.default_rng(1))
+    good = fit(rec, "joint", bootstrap=0).to_json()
+    assert EvaluateParams.model_validate({"calibrations": {"0": good}}).calibrations[0]["serial"] == "SN-TYPE"
+    for key, value, words in (("k", [good["magnetometer"]["k"][0], True, good["magnetometer"]["k"][2]], "magnetometer.k[1]"),
+                              ("bias", ["1", 0.0, 0.0], "magnetometer.bias[0]"),
+                              ("k", [1000.0, 1000.0], "expected 3 numbers")):
+        bad = {**good, "magnetometer": {**good["magnetometer"], key: value}}
+        with pytest.raises(ValidationError) as e:
+            EvaluateParams.model_validate({"calibrations": {"0": bad}})
+        assert e.value.errors()[0]["loc"][0] == "calibrations" and words in str(e.value), str(e.value)
+        with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
+            Calibration.from_json(bad)

@@ -105,6 +105,21 @@ class RunResult:
     plan_seconds: float = 0.0
 
 
+def table_time_note(result: RunResult, adaptive: bool) -> str | None:
+    """What a completed run's table time says of its station's time scale, or None: a simulator taken at
+    another time scale than it runs at stamps every sample's ``t`` off by that factor (a 50x simulator's
+    run took "4.2 s" of a 113-s plan; one at 20 taken at 1 recorded 20-Hz samples 2 ms apart, without a
+    word). An adaptive run's extension only adds time, so only a short table time is said of it."""
+    if result.state is not RunState.completed or result.plan_seconds <= 0:
+        return None
+    ratio = result.table_seconds / result.plan_seconds
+    if 0.5 < ratio and (adaptive or ratio < 2.0):
+        return None
+    return (f"the table time is {ratio:.3g} times the plan's nominal ({result.table_seconds:.1f} s for "
+            f"{result.plan_seconds:.1f} s): if the station is a simulator running at another time scale than the "
+            "station's, every sample's t is off by that factor")
+
+
 #: Wall seconds between the table's status polls while a run stands paused.
 PAUSED_WATCH_S = 1.0
 

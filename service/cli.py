@@ -664,7 +664,7 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from drivers.station import open_station
-    from procedures.engine import RecordingSink, run_procedure
+    from procedures.engine import RecordingSink, run_procedure, table_time_note
     from procedures import events
     from procedures.steps import Acquire, Compute
     from service.plots import calibration_figure
@@ -744,13 +744,9 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                   + f"{result.samples} samples kept")
     for note in name_notes:
         _note(note)
-    ratio = result.table_seconds / result.plan_seconds if result.plan_seconds > 0 else 1.0
-    if result.state.value == "completed" and not params.get("adaptive") and not 0.5 < ratio < 2.0:
-        # a simulator running faster, taken at time scale 1: every t of the recording is off by that factor (a
-        # 50x simulator's run took "4.2 s" of a 113-s plan, and fit and analyze read 20-Hz samples 4 ms apart)
-        _note(f"the table time is {ratio:.3g} times the plan's nominal: if the station is a simulator running at "
-              f"another time scale, give --control (it tells the scale) or --time-scale, or the recording's t is off "
-              f"by that factor (now --time-scale {time_scale:g})")
+    said = table_time_note(result, bool(params.get("adaptive")))
+    if said:
+        _note(f"{said}: give --control (it tells the scale) or --time-scale (now --time-scale {time_scale:g})")
     for slot in sorted(serials):
         if slot in sink.parts:
             console.print(f"slot {slot} ({escape(str(serials[slot]))}): recording {escape(str(sink.path(slot)))}")

@@ -360,8 +360,12 @@ def test_a_compass_that_stops_talking_puts_the_station_in_fault_until_it_answers
         assert j["progress"]["samples"] == j["samples_count"], j["progress"]  # the samples kept, not a pose's before
         st = api.get("/stations/lab-1", role="viewer").json()
         assert st["state"] == "fault" and st["run_id"] is None, st
+        # the fault says what to do before a reset (it said what went wrong only)
+        assert "to clear it: check the compass's cable and power" in st["fault"], st["fault"]
         r = api.post("/stations/lab-1/reset", role="operator")
         assert r.status_code == 503 and "compass slot 0 does not answer" in r.text and "cable" in r.text, r.text
+        # the silent compasses by slot beside the sentence, as a script reads them (the sentence only before)
+        assert list(r.json()["silent_compasses"]) == ["0"] and r.json()["still_faulted"] == {}, r.json()
         assert api.get("/stations/lab-1", role="viewer").json()["state"] == "fault"
         info["loop"].call_soon_threadsafe(info["station"].clear_faults)
         r = api.post("/stations/lab-1/reset", role="operator")
@@ -404,7 +408,10 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
                 assert all(abs(axes[a].position_deg()) < 0.01 for a in "zyx"), {a: axes[a].position_deg() for a in "zyx"}
                 assert api.post(f"/runs/{run_id}/prompts/unmount", role="operator", json={"answer": "x"}).status_code == 404
                 mount(info, ["SN-A", "SN-B"][len(answered)])  # the unit it names, which reports its own serial
-                r = api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": "mounted"})
+                # a mount prompt has one answer: "skip" went on, and the unit was measured and certified
+                r = api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": "skip"})
+                assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.answer" and "'done'" in r.text
+                r = api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": " Done "})
                 assert r.status_code == 200, r.text
                 answered.append(text)
             time.sleep(0.05)
@@ -706,3 +713,35 @@ def test_a_stored_run_the_procedure_now_refuses_fails_and_the_worker_goes_on(api
         r = api.post("/runs", role="operator", json={"station": "lab-1", "parameters": {"samples": 10}})
         assert r.status_code == 202, r.text
         assert wait_run(api, r.json()["id"], timeout=90)["status"] == "completed"
+
+
+def test_a_station_change_keeps_what_it_does_not_name(api: Api):
+    """A PUT that gave new URLs only reset a simulator's time scale of 20 to 1 (its next run's samples were
+    stamped 20 times too close together, without a word); an omitted time scale is now kept, as the
+    serial policy is. A station made by PUT still starts at 1."""
+    body = {"name": "lab-7", "modbus": "tcp://127.0.0.1:1577", "compasses": ["socket://127.0.0.1:4077"], "time_scale": 20}
+    assert api.post("/stations", json=body).status_code == 201
+    moved = {"modbus": "tcp://127.0.0.1:1578", "compasses": ["socket://127.0.0.1:4078"]}
+    r = api.put("/stations/lab-7", json=moved)
+    assert r.status_code == 200 and r.json()["time_scale"] == 20 and r.json()["modbus"] == moved["modbus"], r.text
+    assert api.put("/stations/lab-7", json={**moved, "time_scale": 1}).json()["time_scale"] == 1
+    r = api.put("/stations/lab-8", json={"modbus": "tcp://127.0.0.1:1579", "compasses": ["socket://127.0.0.1:4079"]})
+    assert r.status_code == 200 and r.json()["time_scale"] == 1, r.text
+
+
+def test_a_station_at_another_time_scale_than_its_simulator_is_said(api: Api):
+    """A station registered at time scale 1 on a simulator running at 20 completed its runs with samples
+    stamped 20 times too close together and no word (the command line said it; the service did not).
+    The run's notes now say it, and how to set it right; at the right scale nothing is said."""
+    with sim_station(reference_config(seed=6, time_scale=20)) as info:
+        body = {"name": "lab-1", "modbus": info["modbus"], "compasses": [c["url"] for c in info["compasses"]],
+                "time_scale": 1}
+        assert api.post("/stations", json=body).status_code == 201
+        run = {"station": "lab-1", "procedure": "rotate_z", "parameters": {"samples": 5, "step_deg": 90}}
+        j = wait_run(api, api.post("/runs", role="operator", json=run).json()["id"], timeout=90)
+        assert j["status"] == "completed", j
+        notes = " ".join(j["result"]["notes"])
+        assert "times the plan's nominal" in notes and "set the station's time_scale (PUT /stations/lab-1)" in notes, j
+        assert api.put("/stations/lab-1", json={**body, "time_scale": 20}).status_code == 200
+        j = wait_run(api, api.post("/runs", role="operator", json=run).json()["id"], timeout=90)
+        assert j["status"] == "completed" and "plan's nominal" not in " ".join(j["result"]["notes"]), j

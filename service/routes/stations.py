@@ -11,6 +11,8 @@ import uuid
 from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.responses import JSONResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -20,8 +22,8 @@ from service.db import Run, Station
 from service.deps import sessions
 from service.identity import DEFAULT_POLICY
 from service.runtime import CONFIRM_S, Conflict, NotFound, Unavailable, invalid, run_json, station_json, wait_for
-from service.schemas import (ERRORS, ErrorOut, StationConfigIn, StationDetail, StationIn, StationName, StationOut,
-                             StationResetOut)
+from service.schemas import (ERRORS, StationConfigIn, StationDetail, StationIn, StationName, StationOut,
+                             StationResetOut, StationResetRefusedOut)
 from service.worker import station_queue
 
 router = APIRouter(tags=["stations"])
@@ -87,10 +89,15 @@ async def put_station(name: StationName, body: StationConfigIn, request: Request
         else:
             if row.run_id is not None:
                 raise HTTPException(409, f"station {name!r} is {row.state} (run {row.run_id}); change it when idle")
-            row.modbus, row.compasses, row.time_scale = full.modbus, list(full.compasses), full.time_scale
-            if full.serial_policy is not None:  # omitted: kept (a URL change must not reset the policy)
+            row.modbus, row.compasses = full.modbus, list(full.compasses)
+            # omitted: kept (a URL change reset a simulator's time scale 20 to 1, and its next run's samples
+            # were stamped 20 times too close together, without a word; nor may it reset the policy)
+            if "time_scale" in body.model_fields_set:
+                row.time_scale = full.time_scale
+            if full.serial_policy is not None:
                 row.serial_policy = full.serial_policy
-        audit(s, caller, "station.put", name, full.model_dump())
+        audit(s, caller, "station.put", name, {**full.model_dump(), "time_scale": row.time_scale,
+                                               "serial_policy": row.serial_policy})
         s.commit()
         return station_json(row)
 
@@ -108,8 +115,8 @@ async def get_station(name: StationName, request: Request, _: Caller = Depends(r
     return out
 
 
-@router.post("/stations/{name}/reset", response_model=StationResetOut, responses={**ERRORS, 503: {"model": ErrorOut, "description": "the table or the station's worker does not answer"}})
-async def reset_station(name: StationName, request: Request, caller: Caller = Depends(require("operator"))) -> dict[str, Any]:
+@router.post("/stations/{name}/reset", response_model=StationResetOut, responses={**ERRORS, 503: {"model": StationResetRefusedOut, "description": "the table, an axis, a compass or the station's worker does not answer, or an axis is still faulted"}})
+async def reset_station(name: StationName, request: Request, caller: Caller = Depends(require("operator"))) -> Any:
     """Reset the table's axis faults, check that every compass answers, and make the station idle
     (operator), through the station's worker. 409 while a run uses it; 503 when the table cannot be
     reached, an axis is still faulted, a compass does not answer, or no worker of the station takes
@@ -147,7 +154,10 @@ async def reset_station(name: StationName, request: Request, caller: Caller = De
         if row.state == "fault":
             audit(s, caller, "station.reset", name, {"ok": False, "error": row.reason, **out})
             s.commit()
-            raise Unavailable(f"station {name}: {row.reason}")
+            # which axes and compasses, by name, beside the sentence (the README promised silent_compasses)
+            return JSONResponse(status_code=503, content=jsonable_encoder(
+                {"detail": f"station {name}: {row.reason}", **{k: out.get(k) for k in ("reset_axes", "still_faulted",
+                                                                                       "silent_compasses") if k in out}}))
         audit(s, caller, "station.reset", name, {"ok": True, "fault": before, **out})
         s.commit()
         return {**station_json(row), **out}

@@ -22,6 +22,27 @@ class DriverError(Exception):
     """Base of every driver error."""
 
 
+#: What the operator does about a station fault, by the driver error (its class name) or the word that
+#: names it in the fault's text, before a reset can clear it (the faults said what went wrong only).
+FAULT_REMEDIES: dict[str, str] = {
+    "E-stop": "release the E-stop",
+    "BusUnreachable": "check the table's power and its network or serial line to the Modbus URL",
+    "AxisUnreachable": "check that axis controller's power and its bus cable",
+    "MoveTimeout": "check that nothing blocks the table",
+    "CompassTimeout": "check the compass's cable and power, and that no other program holds its port",
+    "CompassDisconnected": "check the compass's cable and power, and that no other program holds its port",
+    "FixtureError": "check the compass's cable and power, and that no other program holds its port",
+}
+
+
+def advised(fault: str) -> str:
+    """A station fault's text with what to do about it (:data:`FAULT_REMEDIES`, each remedy once, in the
+    order the text names them), then reset the station; the text alone when none applies or it says so."""
+    found = sorted((fault.find(key), remedy) for key, remedy in FAULT_REMEDIES.items() if key in fault)
+    remedies = list(dict.fromkeys(r for _, r in found if r not in fault))
+    return fault + (f" (to clear it: {'; '.join(remedies)}; then reset the station)" if remedies else "")
+
+
 #: The interpreter's thread switch interval for a process that drives hardware (s; Python's default
 #: is 5 ms). The drivers answer on sub-second timeouts (a Modbus request 0.4 s) from threads and event
 #: loops that share the interpreter with fits and analyses: each hand-over of the GIL from a

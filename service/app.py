@@ -11,8 +11,10 @@ from typing import AsyncIterator
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.db import default_url, make_engine, sessions, upgrade
 from service.routes import ROUTERS
@@ -77,6 +79,16 @@ def create_app(database_url: str | None = None, worker: bool = True) -> FastAPI:
     async def _domain(request: Request, exc: DomainError) -> JSONResponse:
         # the run-time layer's refusals (no FastAPI there): one mapping to HTTP
         return JSONResponse(status_code=exc.status, content=jsonable_encoder({"detail": exc.detail}))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
+        # a body FastAPI could not even decode (not UTF-8, nested beyond the parser's depth) was a 400 "There
+        # was an error parsing the body", documented nowhere and naming nothing; a body that is no JSON is 422
+        cause = exc.__cause__
+        if exc.status_code == 400 and isinstance(cause, (UnicodeDecodeError, RecursionError)):
+            why = "its bytes are not UTF-8 text" if isinstance(cause, UnicodeDecodeError) else "nested too deeply to read"
+            return JSONResponse(status_code=422, content={"detail": [{"field": "body", "problem": f"not valid JSON: {why}"}]})
+        return await http_exception_handler(request, exc)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> Response:

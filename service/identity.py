@@ -11,7 +11,8 @@ right away; a batch's unit after its mount prompt, which the table awaits at its
 - it reports another one: ``differs``, settled by the serial policy (the request's, else the
   station's): ``prompt`` asks the operator (answers ``typed``, ``identified`` or ``skip``), ``refuse``
   leaves the slot uncalibrated with the reason, ``trust-typed`` certifies the typed serial and records
-  what the unit reported;
+  what the unit reported (refused when the typed serial is a unit known to report its own: this unit,
+  reporting another, is not that one); a serial typed in another letter case is the one it reports;
 - it reports a serial already certified earlier in the same batch (or in another slot of the run):
   ``duplicate``, the same physical unit mounted again; not certified, whatever the policy;
 - it would be certified under a serial another unit of the batch (or of the run) is already
@@ -144,6 +145,9 @@ class UnitCheck:
     #: told each slot's identity once all are settled (before the table moves): the worker keeps them,
     #: so a run whose worker dies still names the units it measured
     on_settled: Callable[[dict[int, Identity]], None] | None = None
+    #: whether a unit certified under a serial number reported it itself (the worker asks the database);
+    #: None: nothing is known of earlier units
+    reports_itself: Callable[[str], bool] | None = None
     done: bool = False
     #: serials certified in this run so far -> which unit (one serial is one unit, whoever typed it)
     certified: dict[str, str] = field(default_factory=dict)
@@ -235,6 +239,10 @@ class UnitCheck:
         if typed is None or typed == identified:
             out = Identity(slot, typed, identified, "identified", identified,
                            f"the unit reports {identified}" + (", as typed" if typed else ""))
+        elif typed.lower() == identified.lower():  # one serial typed in another letter case: one unit, as it says
+            out = Identity(slot, typed, identified, "identified", identified,
+                           f"the unit reports {identified}, typed {typed} (letter case aside the same): certified as "
+                           f"{identified}")
         else:
             out = yield from self._differs(slot, typed, identified)
         return out
@@ -243,6 +251,15 @@ class UnitCheck:
         both = f"the serial number typed is {typed} but the unit reports {identified}"
         policy = self.policy
         if policy == "trust-typed":
+            # trusting the typed serial is for units whose own is wrong or unset (a shared factory default); a
+            # typed serial whose unit reports it itself (calibrated before as itself) is not this unit, and filing
+            # this one under it superseded that unit's current calibration without a word
+            if self.reports_itself is not None and self.reports_itself(typed):
+                return Identity(slot, typed, identified, "differs", typed,
+                                f"{both}; refused although the serial policy is trust-typed: unit {typed} reports its own "
+                                f"serial number (calibrated before as {typed}), so the unit on the fixture is not {typed}; "
+                                f"mount unit {typed}, or start the run with serial {identified}", "refused", policy,
+                                certify=False)
             return Identity(slot, typed, identified, "differs", typed,
                             f"{both}; certified as {typed} (serial policy trust-typed)", "trust-typed", policy)
         if policy == "refuse":

@@ -30,11 +30,11 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from pydantic import ValidationError
-from sqlalchemy import ColumnElement, String, cast, or_, select, text, update
+from sqlalchemy import ColumnElement, String, cast, func, or_, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from physics.calibration import json_safe
-from procedures.calibrate import BATCH, LOOKAHEAD_S, needed_budget_s
+from procedures.calibrate import BATCH, LOOKAHEAD_S, MOUNT_PROMPT, needed_budget_s
 from procedures.states import ACTIVE, FINAL, RunState, check_transition
 from service.db import Batch, Calibration, Device, Run, RunCommand, RunEvent, Station, utcnow
 from service.identity import CHOICES, DEFAULT_POLICY, POLICIES, is_serial_prompt, normalise
@@ -428,6 +428,35 @@ def _resumable(s: Session, resume: int, station_name: str, procedure: str | None
     return old, passed
 
 
+def in_other_case(s: Session, serial: str) -> list[str]:
+    """The devices' serial numbers that differ from ``serial`` in letter case only (one unit, typed otherwise)."""
+    return [d for d in s.scalars(select(Device.serial).where(func.lower(Device.serial) == serial.lower()))
+            if d != serial]
+
+
+def check_typed(s: Session, field: str, serial: str) -> str:
+    """A typed serial number by the service's rule, and not a stored unit's in another letter case (typed
+    "sim-a1" for unit SIM-A1, its calibration made a second device)."""
+    from service.schemas import check_serial
+
+    try:
+        serial = check_serial(serial)
+    except ValueError as e:
+        raise invalid(field, str(e)) from None
+    alike = in_other_case(s, serial)
+    if alike:
+        raise invalid(field, f"{serial!r} differs from the stored unit {', '.join(map(repr, alike))} in letter case only: "
+                             "type it as stored (one unit, one serial number)")
+    return serial
+
+
+def reports_itself(s: Session, serial: str) -> bool:
+    """Whether a unit certified under ``serial`` reported that serial itself (it identifies itself)."""
+    rows = s.scalars(select(Calibration.identity).join(Device, Device.id == Calibration.device_id)
+                     .where(Device.serial == serial))
+    return any(isinstance(i, dict) and i.get("identified_serial") == serial for i in rows)
+
+
 def create_run(s: Session, station_name: str, procedure: str | None, parameters: dict[str, Any] | None,
                serials: dict[str, str] | None, operator: str, software_version: str,
                batch_id: int | None = None, resume: int | None = None, serial_policy: str | None = None) -> Run:
@@ -441,7 +470,6 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
     passed: its procedure, parameters and units are taken over, and its worker replays its samples
     up to there (``procedure`` None: the resumed run's, else "calibrate")."""
     from procedures.calibrate import PROCEDURES
-    from service.schemas import check_serial
 
     resumed: dict[str, Any] | None = None
     if resume is not None:
@@ -484,10 +512,8 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
             raise invalid(f"body.serials.{key}", f"not a slot of station {row.name} (slots 0 to {len(row.compasses) - 1})")
         if str(int(key)) in given:  # "0" and "00": one slot typed twice (the second silently won)
             raise invalid(f"body.serials.{key}", f"slot {int(key)} is given twice; give each slot once")
-        try:  # the API checked it already; a batch's unit and a resumed run's serials come this way too
-            given[str(int(key))] = check_serial(str(serial))
-        except ValueError as e:
-            raise invalid(f"body.serials.{key}", str(e)) from None
+        # the API checked the rule already; a batch's unit and a resumed run's serials come this way too
+        given[str(int(key))] = check_typed(s, f"body.serials.{key}", str(serial))
     policy = serial_policy or row.serial_policy or DEFAULT_POLICY
     if policy not in POLICIES:
         raise invalid("body.serial_policy", f"expected one of {', '.join(POLICIES)}")
@@ -570,6 +596,10 @@ def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> int:
     if is_serial_prompt(prompt_id) and normalise(answer) not in CHOICES:
         # which serial a unit is certified under is not left to a guess at a stray answer
         raise invalid("body.answer", f"answer {', '.join(repr(c) for c in CHOICES)} to a serial prompt")
+    if prompt_id == MOUNT_PROMPT and normalise(answer) != "done":
+        # any answer went on with the unit measured and certified ("skip" too): there is one answer
+        raise invalid("body.answer", "answer 'done' to a mount prompt once the unit is on the fixture (to stop, "
+                                     "abort the batch: PUT /batches/{id}/state)")
     command = RunCommand(run_id=run_id, kind="answer", data={"id": prompt_id, "answer": answer}, created_at=utcnow())
     s.add(command)
     s.commit()
@@ -617,6 +647,26 @@ def reap_lost_workers(sessions: sessionmaker, now: datetime | None = None, judge
 BATCH_ABORTING = "aborting"
 #: How a batch summary's line of a unit that was never run begins (the reason follows).
 NOT_RUN = "not run: "
+#: The verdicts a batch summary's line of a calibrated unit begins with.
+VERDICTS = ("PASS", "MARGINAL", "FAIL")
+
+
+def summary_verdict(line: str) -> str | None:
+    """The verdict a batch summary's line begins with ("PASS (resumed as run 19)": PASS), or None."""
+    first = str(line).split(" ", 1)[0]
+    return first if first in VERDICTS else None
+
+
+def settle_resumed_unit(batch: Batch, serial: str, line: str) -> None:
+    """An ended batch's unit, resumed on its own (its worker lost mid-batch), came out as ``line``: the
+    batch's summary says so (it kept "failed: worker lost"), and a batch that failed for that unit alone,
+    all its units now run and some calibrated, is completed, as a batch that went through is (it said
+    "failed" beside "1 pass")."""
+    batch.summary = {**(batch.summary or {}), serial: line}
+    lines = [str(v) for v in batch.summary.values()]
+    if batch.status == "failed" and set(batch.serials or []) <= set(batch.summary) \
+            and not any(v.startswith(NOT_RUN) for v in lines) and any(map(summary_verdict, lines)):
+        batch.status = "completed"
 
 
 def end_lost_batches(s: Session, station_ids: list[int] | None, why: str, queued_too: bool = False,

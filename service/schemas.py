@@ -129,6 +129,18 @@ Index = Annotated[int, Field(ge=0, le=INT32_MAX), BeforeValidator(_not_bool)]
 #: A number of a request body: finite, and a number (not true/false, not a string of digits).
 Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 
+def _search_text(value: str) -> str:
+    v = value.strip(" ")
+    if not v or "\x00" in v:
+        raise ValueError("a serial number to look for: some text, without NUL characters")
+    return v
+
+
+#: A serial number looked for (``GET /runs?serial=``): what a unit reported is found too where it is no serial
+#: number by :data:`Serial`'s rule ("SN B/1": its runs could not be looked up by it).
+SerialSearch = Annotated[str, Field(max_length=200, description="a serial number typed, certified under or reported "
+                                                                 "by a unit (any text)"), AfterValidator(_search_text)]
+
 
 class In(BaseModel):
     """Base of every request body: no field, however deep (``parameters``), may carry a NUL
@@ -368,7 +380,7 @@ class AnswerIn(In):
 
     # required: an empty body is no answer (it dismissed a mount prompt); "" may still be given
     answer: str = Field(max_length=1000, description="a serial prompt (serial-SLOT) takes " + ", ".join(CHOICES)
-                        + "; any other prompt any text (e.g. \"done\")")
+                        + "; a batch's mount prompt (mount) \"done\"; any other prompt any text")
 
 
 class PromptOut(BaseModel):
@@ -420,6 +432,15 @@ class StationDetail(StationOut):
 class StationResetOut(StationOut):
     """A station after its reset: the axes whose faults were reset and any still faulted, and the
     compasses (by slot) that did not answer."""
+
+    reset_axes: list[str] = []
+    still_faulted: dict[str, str] = {}
+    silent_compasses: dict[str, str] = {}
+
+
+class StationResetRefusedOut(ErrorOut):
+    """A reset that left the station in fault (503): why (``detail``), and when the table answered, the axes
+    reset, those still faulted and the compasses (by slot) that did not answer."""
 
     reset_axes: list[str] = []
     still_faulted: dict[str, str] = {}

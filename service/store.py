@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
+from service.identity import check_serial
 from service.db import Calibration, Device, Limit, Run, Sample, SampleExtra
 from service.runtime import unit_serial
 
@@ -84,6 +85,11 @@ def load_recording(session: Session, run: Run, slot: int) -> Recording | None:
         meta[key] = value
     if not meta["serial"]:  # no unit's serial known: no "# serial:" line (it was written empty)
         del meta["serial"]
+    else:
+        try:
+            check_serial(meta["serial"])
+        except ValueError:  # a unit's answer that is no serial number ("SN B/1"): said as what it reported,
+            meta["reported_serial"] = meta.pop("serial")  # so the file uploads again (its "serial" was refused)
     typed = str((run.serials or {}).get(str(slot)) or "")
     if typed and typed != meta.get("serial"):  # the serial typed for a unit that reported another, kept beside it
         meta["typed_serial"] = typed

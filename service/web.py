@@ -38,7 +38,7 @@ from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_se
 from service.db import Analysis, Batch, Calibration, Device, Limit, Run, RunEvent, Sample, Station
 from service.identity import CHOICES, check_serial, is_serial_prompt
 from service.schemas import Id, Index, Serial, no_nul
-from service.runtime import NOT_RUN, runs_of_serial, unit_serial
+from service.runtime import NOT_RUN, VERDICTS, runs_of_serial, summary_verdict, unit_serial
 from service.store import limit_result, load_recording
 
 HERE = Path(__file__).parent
@@ -636,7 +636,8 @@ def batch_rows(session: Session, limit: int = BATCHES_LISTED) -> list[dict[str, 
     out = []
     for b, station in rows:
         summary = {str(k): str(v) for k, v in (b.summary or {}).items()}
-        counts = {v: sum(1 for r in summary.values() if r == v) for v in ("PASS", "MARGINAL", "FAIL")}
+        # by the verdict a line begins with ("PASS (resumed as run 19)", "PASS (certified as SN-T)" were "other")
+        counts = {v: sum(1 for r in summary.values() if summary_verdict(r) == v) for v in VERDICTS}
         out.append({"id": b.id, "station": station, "status": b.status, "operator": b.operator,
                     # done: the units whose run ended, as the batch's page counts them (not those never run)
                     "units": len(b.serials or []), "done": sum(not v.startswith(NOT_RUN) for v in summary.values()),

@@ -40,6 +40,7 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
+from drivers import advised
 from drivers.compass import CompassDisconnected, CompassTimeout, FixtureError, SerialFixture
 from drivers.modbus import BusError
 from drivers.protocol import with_advice
@@ -48,14 +49,14 @@ from drivers.turntable import AxisError, Turntable
 from physics.calibration import Calibration as PhysCalibration, json_safe
 from physics.recording import Recording
 from procedures.calibrate import BATCH, MOUNT_PROMPT, PROCEDURES
-from procedures.engine import IDENTIFY_TIMEOUT_S, Engine, Replay, identify_units
+from procedures.engine import IDENTIFY_TIMEOUT_S, Engine, Replay, identify_units, table_time_note
 from procedures.events import Event, PromptAnswered, Result, StateChanged, StepWarning
 from procedures.states import ACTIVE, FINAL, RunState
 from service.db import Analysis, Batch, Calibration, Run, RunCommand, RunEvent, Sample, Station, utcnow
 from service.identity import DEFAULT_POLICY, Identity, UnitCheck
 from service.runtime import (ANALYSIS_FINAL, BATCH_ABORTING, HEARTBEAT_S, IDENTITIES_KEY, NOT_RUN, SAMPLE_RATE_HZ,
                              SOFTWARE_VERSION, Conflict, DomainError, analysis_topic, create_run, end_lost_batches,
-                             lost_run_result, notify, other_workers, publish, slot_result)
+                             lost_run_result, notify, other_workers, publish, reports_itself, settle_resumed_unit, slot_result)
 from service.store import insert_samples, load_recording, store_calibration
 
 log = logging.getLogger("compasscal.worker")
@@ -333,7 +334,8 @@ async def execute_run(ctx: WorkerContext, run_id: int) -> None:
     check = UnitCheck(typed={int(k): str(v) for k, v in given.items()}, slots=list(range(len(snapshot["compasses"]))),
                       policy=str(meta.get("serial_policy") or DEFAULT_POLICY), seen=seen, certified_before=under,
                       mounted_after=MOUNT_PROMPT if name == BATCH else None,
-                      on_settled=lambda ids: ctx.retry(lambda: _keep_identities(ctx, run_id, ids), f"run {run_id}"))
+                      on_settled=lambda ids: ctx.retry(lambda: _keep_identities(ctx, run_id, ids), f"run {run_id}"),
+                      reports_itself=lambda serial: ctx.retry(lambda: _reports_itself(ctx, serial), f"run {run_id}"))
     control = RunControl(ctx, run_id)
     ctx.executing[run_id] = control
     follower = asyncio.create_task(control.follow())
@@ -390,6 +392,11 @@ def _keep_identities(ctx: WorkerContext, run_id: int, identities: dict[int, Iden
         s.commit()
 
 
+def _reports_itself(ctx: WorkerContext, serial: str) -> bool:
+    with ctx.sessions() as s:
+        return reports_itself(s, serial)
+
+
 async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot: dict[str, Any], proc: Any,
                  params: Any, given: dict[str, str], resume: dict[str, Any] | None,
                  check: UnitCheck) -> tuple[_Finish, float | None]:
@@ -401,7 +408,7 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
                 sample_rate_hz=SAMPLE_RATE_HZ, name=snapshot["name"])), OPEN_TIMEOUT_S)
         except Exception as e:  # noqa: BLE001 - unreachable table or compass, bad URL: the station's fault
             why = f"could not open station {snapshot['name']}: {_reason(e)}"
-            return _Finish(RunState.failed.value, why, fault=why), None
+            return _Finish(RunState.failed.value, why, fault=advised(why)), None
         idents: dict[int, tuple[str, str, str]] = {}
         if identify_first and control.abort_reason is None:
             try:  # (a compass that cannot identify itself is left out: its unit is "not identified")
@@ -464,6 +471,10 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
         if "units" not in fin.summary and check.identities:  # ended without results after naming its units: whom
             fin.summary["identities"] = _identities_json(check.identities)
         fin.summary = {**fin.summary, "samples": result.samples}
+        said = table_time_note(result, bool(getattr(params, "adaptive", False)))
+        if said and "units" in fin.summary:
+            fin.summary["notes"] = [*fin.summary.get("notes", []), f"{said}: set the station's time_scale (PUT /stations/"
+                                                                    f"{snapshot['name']}) to the simulator's"]
         return fin, result.table_seconds
 
 
@@ -491,10 +502,11 @@ async def _probe(station: Any, reason: str | None) -> str | None:
     try:
         status = await asyncio.wait_for(station.table.status_all(), 3.0)
     except Exception as e:  # noqa: BLE001
-        return f"{reason}; the table does not answer: {_reason(e)}"
-    faulted = [f"axis {n}: fault {s.fault_name or s.fault_code}" for n, s in status.items() if s.fault]
+        return advised(f"{reason}; the table does not answer: {_reason(e)}")
+    faulted = [with_advice(f"axis {n}: fault {s.fault_name or s.fault_code}", s.fault_code) for n, s in status.items()
+               if s.fault]
     if faulted or _is_hardware_error(reason):
-        return reason or ", ".join(faulted)
+        return advised(reason or ", ".join(faulted))
     return None
 
 
@@ -569,8 +581,7 @@ def _finish(ctx: WorkerContext, run_id: int, fin: _Finish, table_seconds: float 
         if batch is not None and batch.finished_at is not None and (run.meta or {}).get("resume"):
             # a unit of an ended batch, resumed on its own (its worker lost mid-batch): the batch's summary
             # says how it came out (it kept "failed: worker lost", the certificate unlinked from the batch)
-            serial = str((run.serials or {}).get("0", ""))
-            batch.summary = {**(batch.summary or {}), serial: f"{_verdict(run)} (resumed as run {run.id})"}
+            settle_resumed_unit(batch, str((run.serials or {}).get("0", "")), f"{_verdict(run)} (resumed as run {run.id})")
         s.commit()
     ctx.poke(run_id)
 
@@ -857,7 +868,7 @@ async def reset_station(ctx: WorkerContext, name: str, token: str) -> None:
                                           for n, st in after.items() if st.fault}}
             out.update(ok=True, **await asyncio.wait_for(go(), OPEN_TIMEOUT_S))
         except Exception as e:  # noqa: BLE001 - any driver or network failure is reported; the state stays
-            out.update(ok=False, status=503, error=f"could not reset station {name}: {_reason(e)}")
+            out.update(ok=False, status=503, error=advised(f"could not reset station {name}: {_reason(e)}"))
         finally:
             await table.close()
         if out.get("ok"):
@@ -1033,9 +1044,18 @@ async def serve_worker(database_url: str, stations: list[str], analyses: bool = 
 
         def stop() -> None:
             # the jobs see it at once: a batch starts no further unit and stops waiting for one to be
-            # mounted; a run measuring goes on to its end (the worker waits for its job)
+            # mounted; a run measuring goes on to its end (the worker waits for its job); a run standing
+            # paused is aborted, to be resumed from its checkpoint (the worker waited, silent, for a resume)
             ctx.stopping.set()
             worker.cancel()
+            for run_id, control in list(ctx.executing.items()):
+                engine = control.engine
+                if engine is not None and engine.state is RunState.paused:
+                    log.warning("stopping: run %s stood paused; aborted (resume it from its last checkpoint)", run_id)
+                    engine.abort("the station's worker stopped while the run stood paused: resume it (POST /runs "
+                                 f'with "resume": {run_id}) once a worker runs')
+                elif engine is not None:
+                    log.warning("stopping: waiting for run %s to end its measuring", run_id)
         loop = asyncio.get_running_loop()
         for sig in STOP_SIGNALS:
             loop.add_signal_handler(sig, stop)

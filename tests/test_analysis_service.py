@@ -504,8 +504,19 @@ def test_api_analysis_roles_and_errors(api, fake):
                         ({"slots": 0}, "body.slots"), ([1, 2], "body")):
         r = api.post(f"/runs/{run_id}/analysis", role="operator", json=body)
         assert r.status_code == 422 and r.json()["detail"][0]["field"] == field, (body, r.text)
+    # a slot without samples is the body's mistake (it was a 409 naming no field)
     r = api.post(f"/runs/{run_id}/analysis", role="operator", json={"slot": 3})
-    assert r.status_code == 409 and "slot 3" in r.json()["detail"] and "slots with samples: 0" in r.json()["detail"]
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.slot", r.text
+    assert "slot 3" in r.text and "slots with samples: 0" in r.text, r.text
+    # too few samples for any analysis: refused at once, not queued to fail (a 3-sample upload was)
+    short = simulated("SN-SHORT", 1).select(slice(0, 3))
+    r = api.post("/recordings", role="operator", content=format_recording(short).encode())
+    assert r.status_code == 201, r.text
+    short_id = r.json()["id"]
+    r = api.post(f"/runs/{short_id}/analysis", role="operator")
+    assert r.status_code == 409 and "slot 0: 3 samples, the analysis needs at least 200" in r.text, r.text
+    r = api.post(f"/runs/{short_id}/analysis", role="operator", json={"slot": 0})
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.slot" and "3 samples" in r.text, r.text
     with api.client.app.state.sessions() as s:
         empty = Run(procedure="import", procedure_version="1", parameters={}, status="completed", operator="t",
                     serials={"0": "SN-E"}, software_version="test")

@@ -12,6 +12,7 @@ import re
 import time
 from typing import Any
 
+import numpy as np
 import pytest
 
 from conftest import Api, sim_station
@@ -236,6 +237,11 @@ def test_a_body_that_is_not_json_is_named_as_the_body(api: Api):
     assert r.status_code == 422, r.text
     [err] = r.json()["detail"]
     assert err["field"] == "body" and err["problem"].startswith("not valid JSON at character"), err
+    # bytes that are no UTF-8 text, and a body nested beyond the parser: 422 naming the body (a bare 400
+    # "There was an error parsing the body", documented nowhere)
+    for body, words in ((b'\xff\xfe{', "not UTF-8 text"), (b"[" * 100_000, "nested too deeply")):
+        r = api.post("/runs", role="operator", content=body, headers={"Content-Type": "application/json"})
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body" and words in r.text, r.text
 
 
 def test_one_serial_typed_for_two_slots_is_refused(api: Api):
@@ -332,7 +338,7 @@ def run_batch(api: Api, info: dict[str, Any], serials: list[str], on_mount: dict
             typed = run["parameters"]["serial"]
             if b["prompt"]["id"] == "mount":
                 mount(info, on_mount[typed])
-                answer = "mounted"
+                answer = "done"
             else:
                 asked.append(b["prompt"]["text"])
                 answer = answers[typed]
@@ -440,7 +446,7 @@ def test_a_batch_is_aborted_as_a_whole(api: Api):
             assert time.monotonic() < deadline, b
             time.sleep(0.05)
         run_id = b["prompt"]["run_id"]
-        api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": "mounted"})
+        api.post(f"/runs/{run_id}/prompts/mount", role="operator", json={"answer": "done"})
         while api.get(f"/runs/{run_id}", role="viewer").json()["samples_count"] < 40:  # on the table now
             assert time.monotonic() < deadline
             time.sleep(0.05)
@@ -477,3 +483,63 @@ def test_a_batch_is_aborted_as_a_whole(api: Api):
         assert b["status"] == "aborted" and b["summary"]["SN-4"].startswith("aborted"), b
         assert api.put("/batches/999/state", role="operator", json={"state": "aborted"}).status_code == 404
         assert [x["id"] for x in api.get("/batches?status=aborted", role="viewer").json()] == [bid, first_bid]
+
+
+def test_one_unit_keeps_one_serial_number_whatever_is_typed(api: Api):
+    """A serial typed in another letter case made a second device beside the unit's own; trust-typed filed
+    another unit under a serial whose unit reports its own, superseding its current calibration without a
+    word. Now a serial typed in another case than the unit reports is the one it reports; typed in another
+    case than a stored unit's it is refused by its field; and trust-typed refuses a typed serial whose unit
+    is known to report it itself."""
+    with sim_station(reference_config(seed=24, time_scale=20)) as info:
+        make_station(api, info)
+        done = wait_run(api, start(api, serials={"0": UNIT.lower()}), timeout=90)
+        unit = done["result"]["units"]["0"]
+        assert done["status"] == "completed" and unit["serial"] == UNIT and unit["identification"] == "identified", done
+        assert api.get(f"/devices/{UNIT.lower()}", role="viewer").status_code == 404
+        current = api.get(f"/devices/{UNIT}/calibrations/current", role="viewer").json()
+        assert current["run_id"] == done["id"], current
+        for path, body, field in (("/runs", {"station": "lab-1", "serials": {"0": UNIT.title()}}, "body.serials.0"),
+                                  ("/batches", {"station": "lab-1", "serials": ["SN-NEW", UNIT.lower()]}, "body.serials.1")):
+            r = api.post(path, role="operator", json=body)
+            assert r.status_code == 422 and r.json()["detail"][0]["field"] == field and "letter case" in r.text, r.text
+        # trust-typed, typed as that unit while another unit, reporting its own serial, is on the fixture
+        mount(info, "SN-B9")
+        refused = wait_run(api, start(api, serials={"0": UNIT}, serial_policy="trust-typed"), timeout=90)
+        assert refused["status"] == "failed" and f"unit {UNIT} reports its own serial" in refused["reason"], refused
+        assert "the unit on the fixture is not" in refused["reason"], refused
+        assert api.get(f"/devices/{UNIT}/calibrations/current", role="viewer").json()["id"] == current["id"]
+        # a unit whose typed serial was never its own (a shared factory default) is still trusted
+        done = wait_run(api, start(api, serials={"0": "SN-C1"}, serial_policy="trust-typed"), timeout=90)
+        assert done["status"] == "completed" and done["result"]["units"]["0"]["serial"] == "SN-C1", done
+
+
+def test_what_a_unit_reported_that_is_no_serial_number_is_kept_findable_and_uploads_again(api: Api):
+    """A unit whose answer is no serial number ("SN B/1") was exported as "# serial: SN B/1", and that file
+    was refused on upload ("character '/' ... is not allowed"); nor could its runs be looked up by what it
+    reported (422). The export says it as ``reported_serial``, the file uploads, and the search finds it."""
+    from physics.simulate import World, simulate_recording
+    from physics.sensor import reference_unit
+    from procedures.calibrate import CalibrateParams, calibration_poses
+    from service.db import Run
+    from service.store import insert_samples
+
+    rec = simulate_recording(reference_unit(3.0, 4.0), calibration_poses(CalibrateParams(samples=3)), World(),
+                             rng=np.random.default_rng(2))
+    with api.client.app.state.sessions() as s:
+        run = Run(procedure="calibrate", procedure_version="2", parameters={}, status="completed", operator="t",
+                  software_version="t", meta={"result": {"units": {"0": {"serial": "SN B/1", "identified_serial": "SN B/1",
+                                                                         "error": "not a serial number"}}}})
+        s.add(run)
+        s.flush()
+        insert_samples(s, run.id, 0, rec)
+        s.commit()
+        rid = run.id
+    text = api.get(f"/runs/{rid}/samples?slot=0", role="viewer").text
+    header = [line for line in text.splitlines() if line.startswith("#")]
+    assert "# reported_serial: SN B/1" in header and not any(h.startswith("# serial:") for h in header), header
+    r = api.post("/recordings", role="operator", content=text.encode(), headers={"content-type": "text/csv"})
+    assert r.status_code == 201, r.text
+    found = api.get("/runs", role="viewer", params={"serial": "SN B/1"})
+    assert found.status_code == 200 and rid in [j["id"] for j in found.json()], found.text
+    assert api.get("/runs", role="viewer", params={"serial": "A\x00B"}).status_code == 422

@@ -37,6 +37,9 @@ def test_upload_a_foreign_recording_as_an_import_run(api):
     assert r.status_code == 201, r.text
     run = r.json()
     assert run["procedure"] == "import" and run["serial"] == "SN-UP" and run["samples"] == 18 * 20
+    # an import starts and ends as it is stored (both were null)
+    got = api.get(f"/runs/{run['id']}", role="viewer").json()
+    assert got["started_at"] and got["finished_at"] and got["started_at"] <= got["finished_at"], got
     csv = api.get(f"/runs/{run['id']}/samples", role="viewer")
     assert csv.status_code == 200
     back = parse_recording(csv.text)

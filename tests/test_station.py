@@ -213,3 +213,19 @@ def test_the_simulated_worlds_samples_are_the_sensor_model_plus_white_noise_at_e
     for psi in np.linspace(0.0, 90.0, 50):
         C = platform_attitude(psi, 0.0, 0.0, world.geometry)[0]
         assert moving.read(0, 0.0)[0] == [round(v) for v in unit.mag.expected(C.T @ world.field_L)[0]]
+
+
+def test_a_station_fault_says_what_to_do_about_it():
+    """Station faults said what went wrong only ("CommandRefused: axis z: RESET_FAULT refused: E-stop",
+    "CompassTimeout: ..."): each now says what clears it, each remedy once, in the order named, and
+    nothing is added to a fault that says it already or that no remedy fits."""
+    from drivers import advised
+
+    said = advised("could not reset station lab-1: CommandRefused: axis z: RESET_FAULT refused: E-stop")
+    assert said.endswith("(to clear it: release the E-stop; then reset the station)"), said
+    both = advised("FixtureError: port lost; stopping the axes failed: AxisUnreachable: axis x: no answer; "
+                   "CompassTimeout: slot 1")
+    assert both.count("compass's cable") == 1 and both.index("compass's cable") < both.index("axis controller's power"), both
+    kept = "axis z: E-stop (release the E-stop, then reset)"
+    assert advised(kept) == kept
+    assert advised("ValueError: a bug") == "ValueError: a bug"

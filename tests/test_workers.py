@@ -342,7 +342,7 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
         bid = c.call("POST", "/batches", "operator", json=body).json()["id"]
         b = _batch(c, bid, lambda b: b["prompt"] is not None)
         assert c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator",
-                      json={"answer": "mounted"}).status_code == 200
+                      json={"answer": "done"}).status_code == 200
         first = c.wait(b["prompt"]["run_id"], lambda j: j["samples_count"] >= 3 * 20)  # past a checkpoint or two
         _kill(worker)
         b = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
@@ -384,6 +384,10 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
         assert b["summary"]["SN-1"] == f"{verdict} (resumed as run {resumed['id']})", b["summary"]
         assert b["units"][0]["run_id"] == resumed["id"] and b["units"][0]["calibration_id"], b["units"][0]
         assert b["status"] == "failed" and b["summary"]["SN-2"].startswith("not run"), b  # the rest as they were
+        # the batches' list counts the resumed unit by its verdict (it counted "PASS (resumed as run N)" as "other")
+        page = c.call("GET", "/ui/batches", "viewer").text
+        row = re.search(rf'<tr data-batch="{bid}">(.*?)</tr>', page, re.S).group(1)
+        assert f'<td class="verdict-{verdict.lower()}">1</td>' in row, row
 
         # SIGTERM while the next batch's first unit waits to be mounted: the worker exits at once
         bid2 = c.call("POST", "/batches", "operator", json={**body, "serials": ["SN-4", "SN-5"]}).json()["id"]
@@ -400,6 +404,27 @@ def test_a_batch_ends_with_its_worker_killed_or_stopped_and_frees_the_station(tm
         assert c.call("GET", "/stations/lab-1", "viewer").json()["batch_id"] is None
 
 
+
+def test_a_worker_stopped_while_its_run_stands_paused_aborts_it_and_exits(tmp_path: Path):
+    """SIGTERM to a worker whose run stood paused: it waited, silent, until someone resumed the run (a
+    service manager then kills it, and the run ends "worker lost"). The paused run is now aborted with a
+    reason that says how to resume it, and the worker exits."""
+    with _station_with_worker(tmp_path, seed=8) as (c, info, url, procs):
+        worker = procs[-1]
+        r = c.call("POST", "/runs", "operator", json={"station": "lab-1", "procedure": "rotate_z",
+                                                       "parameters": {"samples": 40, "step_deg": 20}})
+        rid = r.json()["id"]
+        c.wait(rid, lambda j: j["status"] == "running")
+        assert c.call("PUT", f"/runs/{rid}/state", "operator", json={"state": "paused"}).status_code == 202
+        c.wait(rid, lambda j: j["status"] == "paused")
+        t0 = time.monotonic()
+        worker.send_signal(signal.SIGTERM)
+        assert worker.wait(30) == 0
+        assert time.monotonic() - t0 < 20
+        j = c.wait(rid, lambda j: j["status"] in ("aborted", "failed", "completed"), timeout=10)
+        assert j["status"] == "aborted" and "stood paused" in j["reason"] and f'"resume": {rid}' in j["reason"], j
+        assert j["samples_count"] > 0, j
+
 def test_a_worker_that_wakes_from_a_freeze_leaves_what_was_ended_without_it(tmp_path: Path):
     """A worker frozen (SIGSTOP: a PC that hangs, a debugger) is taken for lost: its run failed, its batch
     ended, the station in fault. Woken, it drove the table through the rest of the plan, adding samples and
@@ -414,7 +439,7 @@ def test_a_worker_that_wakes_from_a_freeze_leaves_what_was_ended_without_it(tmp_
                                                             "parameters": {"samples": 20}}).json()["id"]
         b = _batch(c, bid, lambda b: b["prompt"] is not None)
         os.killpg(worker.pid, signal.SIGSTOP)
-        r = c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator", json={"answer": "mounted"})
+        r = c.call("POST", f"/runs/{b['prompt']['run_id']}/prompts/mount", "operator", json={"answer": "done"})
         assert r.status_code == 409 and "before its worker took the answer" in r.text, r.text
         ended = _batch(c, bid, lambda b: b["status"] != "running", timeout=30)
         assert ended["status"] == "failed" and "worker lost" in ended["summary"]["SN-1"], ended
@@ -477,3 +502,25 @@ def test_a_batch_no_worker_has_taken_is_aborted_at_once(tmp_path: Path):
         assert left == 0
     finally:
         _kill(api)
+
+
+def test_a_resumed_unit_settles_its_batch():
+    """A batch that failed because its worker was lost mid-unit stayed "failed" beside "1 pass" once that
+    unit was resumed and passed. Resumed, the unit's line says how it came out, and a batch whose units
+    have all run, some calibrated, is completed; with units never run it stays failed."""
+    from service.db import Batch
+    from service.runtime import settle_resumed_unit
+
+    lone = Batch(serials=["SN-1"], status="failed", summary={"SN-1": "failed: worker lost"})
+    settle_resumed_unit(lone, "SN-1", "PASS (resumed as run 19)")
+    assert lone.status == "completed" and lone.summary == {"SN-1": "PASS (resumed as run 19)"}
+    rest = Batch(serials=["SN-1", "SN-2"], status="failed",
+                 summary={"SN-1": "failed: worker lost", "SN-2": "not run: station lab-1's worker stopped beating"})
+    settle_resumed_unit(rest, "SN-1", "MARGINAL (resumed as run 20)")
+    assert rest.status == "failed" and rest.summary["SN-1"] == "MARGINAL (resumed as run 20)"
+    again = Batch(serials=["SN-1"], status="failed", summary={"SN-1": "failed: worker lost"})
+    settle_resumed_unit(again, "SN-1", "failed: compass timeout (resumed as run 21)")
+    assert again.status == "failed"
+    aborted = Batch(serials=["SN-1"], status="aborted", summary={"SN-1": "aborted: stop"})
+    settle_resumed_unit(aborted, "SN-1", "PASS (resumed as run 22)")
+    assert aborted.status == "aborted"

@@ -14,10 +14,12 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import HTMLResponse, StreamingResponse
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration
+from physics.discrepancy.analysis import MIN_SAMPLES as TABLE_MIN_SAMPLES
+from physics.discrepancy.attitude_free import MIN_SAMPLES as FREE_MIN_SAMPLES
 from procedures.states import ACTIVE
 from service.auth import Caller, audit, require
 from service.db import Analysis, Calibration, Device, Run, Sample
@@ -62,14 +64,29 @@ def _plan(s: Session, run_id: int, body: AnalysisIn) -> tuple[Run, dict[int, int
         raise NotFound(f"no run {run_id}")
     if run.status in ACTIVE:
         raise Conflict(f"run {run_id} is {run.status}; analyse it when it has ended")
-    slots = sorted(s.scalars(select(Sample.slot).where(Sample.run_id == run_id).distinct()))
+    # samples, and samples with table angles, per slot: what the analysis needs is known before it is queued
+    counts = {slot: (n, angled) for slot, n, angled in s.execute(
+        select(Sample.slot, func.count(), func.count(Sample.psi_t)).where(Sample.run_id == run_id).group_by(Sample.slot))}
+    slots = sorted(counts)
     if not slots:
         raise Conflict(f"run {run_id} has no samples to analyse")
+    if body.slot is not None and body.slot not in slots:
+        raise invalid("body.slot", f"run {run_id} has no samples from slot {body.slot} "
+                                   f"(slots with samples: {', '.join(map(str, slots))})")
+
+    def short(slot: int) -> str | None:  # why the analysis of a slot would fail for want of samples (it was queued)
+        n, angled = counts[slot]
+        need = TABLE_MIN_SAMPLES if angled else FREE_MIN_SAMPLES
+        return f"slot {slot}: {n} samples, the analysis needs at least {need}" if n < need else None
+
     if body.slot is not None:
-        if body.slot not in slots:
-            raise Conflict(f"run {run_id} has no samples from slot {body.slot} "
-                           f"(slots with samples: {', '.join(map(str, slots))})")
+        if short(body.slot):
+            raise invalid("body.slot", f"run {run_id} {short(body.slot)}")
         slots = [body.slot]
+    elif all(short(x) for x in slots):
+        raise Conflict(f"run {run_id} has too few samples to analyse: {'; '.join(short(x) or '' for x in slots)}")
+    else:
+        slots = [x for x in slots if not short(x)]
     if body.calibration_id is not None:
         cal = s.get(Calibration, body.calibration_id)
         if cal is None:
@@ -106,7 +123,8 @@ async def create_analysis(run_id: Id, request: Request, response: Response, body
     against the unit's calibration from this run, else its current one (or ``calibration_id``) as
     the nominal model. Answers 202 at once with the analyses ``queued``: follow each at its ``url``
     (poll) or ``events_url`` (server-sent events) until ``completed`` (or ``failed``, with the
-    reason). 404 unknown run, 409 a run still active or without samples, 422 a bad body."""
+    reason). 404 unknown run, 409 a run still active or with too few samples, 422 a bad body (a slot without
+    samples, or with too few)."""
     body = body or AnalysisIn()
     sessions = request.app.state.sessions
 

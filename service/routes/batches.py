@@ -15,8 +15,8 @@ from procedures.states import ACTIVE
 from service.auth import Caller, audit, require
 from service.db import Batch, Run, Station
 from service.deps import sessions
-from service.runtime import (BATCH_ABORTING, Conflict, Invalid, NotFound, batch_json, end_lost_batches, field_errors, invalid,
-                             station_filter)
+from service.runtime import (BATCH_ABORTING, Conflict, Invalid, NotFound, batch_json, check_typed, end_lost_batches,
+                             field_errors, invalid, station_filter)
 from service.routes.runs import change_run_state
 from service.schemas import ERRORS, BatchIn, BatchOut, BatchStateIn, Id, Index, StationName
 from service.worker import station_queue
@@ -43,6 +43,8 @@ async def create_batch(body: BatchIn, request: Request, caller: Caller = Depends
             raise invalid("body.station", f"station {row.name} has {len(row.compasses)} compass slots; a batch mounts one "
                                           "unit at a time in slot 0: use a station of one slot, or POST /runs with "
                                           '"serials" for a full fixture')
+        for i, serial in enumerate(body.serials):
+            check_typed(s, f"body.serials.{i}", serial)
         batch = Batch(station_id=row.id, serials=list(body.serials), status="running", operator=caller.owner, summary={})
         s.add(batch)
         s.flush()

@@ -16,6 +16,7 @@ from service import plots
 from service.auth import Caller, require
 from service.db import Calibration, Device
 from service.deps import db
+from service.runtime import in_other_case
 from service.schemas import ERRORS, CalibrationOut, DeviceOut, HistoryEntry, Id, Index, Serial, content
 from service.web import certificate_context, limit_pairs
 
@@ -33,7 +34,7 @@ def _device(session: Session, serial: str) -> Device:
     dev = session.scalar(select(Device).where(Device.serial == serial))
     if dev is None:
         # a serial typed in another letter case finds nothing: name the ones that differ only so
-        alike = [d for d in session.scalars(select(Device.serial).where(func.lower(Device.serial) == serial.lower()))]
+        alike = in_other_case(session, serial)
         raise HTTPException(404, f"no device with serial number {serial!r}"
                                  + (f"; serial numbers differ in letter case: did you mean {', '.join(map(repr, alike))}?"
                                     if alike else ""))

@@ -18,7 +18,7 @@ from sqlalchemy.orm import sessionmaker
 from physics.fit import check_angles
 from physics.recording import RecordingError, parse_recording
 from service.auth import Caller, audit, require
-from service.db import Run
+from service.db import Run, utcnow
 from service.runtime import SOFTWARE_VERSION, invalid
 from service.schemas import ERRORS, NAME_MAX, STEP_MAX, ErrorOut, RecordingOut, check_serial
 from service.store import insert_samples
@@ -99,10 +99,11 @@ def _store(chunks: list[bytes], caller: Caller, sessions: sessionmaker) -> dict[
     if not math.isfinite(span):  # each t finite, their difference too large for a double
         raise invalid("body", "column t: the recording's time span is not a finite number of seconds")
     with sessions() as session:
+        now = utcnow()  # an import starts and ends as it is stored (its run had no start or end time)
         run = Run(procedure="import", procedure_version="1", parameters={}, status="completed", operator=caller.owner,
                   # no serial: none stored (an empty one is no serial number; the run lists no unit's)
                   serials={"0": serial} if serial else {}, software_version=SOFTWARE_VERSION, meta=dict(rec.meta),
-                  table_seconds=span)
+                  table_seconds=span, created_at=now, started_at=now, finished_at=now)
         session.add(run)
         session.flush()
         insert_samples(session, run.id, 0, rec)

@@ -32,7 +32,7 @@ from service.deps import event_stream, sessions
 from service.runtime import (CONFIRM_S, SOFTWARE_VERSION, Conflict, NotFound, Unavailable, create_run, events_after, finish_unstarted,
                              invalid, queue_answer, request_state, run_json, runs_of_serial, station_filter, wait_for)
 from service.schemas import (ERRORS, AnswerIn, AnswerOut, ErrorOut, Id, Index, Name, ProcedureOut, RunDetail, RunIn, RunOut, RunStateOut,
-                             Serial, StateIn, StationName, content)
+                             SerialSearch, StateIn, StationName, content)
 from service.store import load_recording
 from service.worker import station_queue
 
@@ -80,7 +80,7 @@ async def create_run_route(body: RunIn, request: Request, caller: Caller = Depen
 
 @router.get("/runs", response_model=list[RunOut], responses=ERRORS)
 async def list_runs(request: Request, station: StationName | None = None, status: RunState | None = None,
-                    procedure: Name | None = None, serial: Serial | None = None,
+                    procedure: Name | None = None, serial: SerialSearch | None = None,
                     limit: int = Query(50, ge=1, le=1000), offset: Index = 0,
                     _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
     """Runs, newest first, filtered by station name, status, procedure and unit serial number (typed for

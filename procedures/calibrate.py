@@ -44,6 +44,10 @@ class _Params(BaseModel):
         if (int in kinds or float in kinds) and bool not in kinds and str not in kinds:
             if isinstance(v, list):  # a list of numbers (list[float]'s argument is float): each one a number
                 return [request_number(x) for x in v]
+            if int in kinds and float not in kinds and isinstance(v, float) and v.is_integer():
+                # a whole number written as 1e30 is judged by the field's range ("less than or equal to 10000"),
+                # not refused as "an input string ... exceeded maximum size"
+                return int(v)
             return request_number(v)
         return v
 
@@ -762,6 +766,16 @@ MOUNT_PROMPT = "mount"
 
 #: The parameters a batch sets for each of its units (never a request's; no part of the calibration's plan).
 BATCH_SETS = ("serial", "unmount")
+#: The parameters only an adaptive calibration reads.
+ADAPTIVE_ONLY = ("target_level_deg", "target_tilted_deg", "budget_s")
+
+
+def parameters_said(parameters: dict[str, Any]) -> dict[str, Any]:
+    """A run's parameters as its certificate states them: those of its plan, without what a batch set for
+    the unit nor, unless adaptive, the targets and budget it never read (a plain run's certificate listed
+    "budget_s = 180.0", which a run not adaptive refuses to be given)."""
+    return {k: v for k, v in parameters.items()
+            if k not in BATCH_SETS and (parameters.get("adaptive") or k not in ADAPTIVE_ONLY)}
 
 
 class BatchCalibrateParams(CalibrateParams):

@@ -584,12 +584,16 @@ def finish_unstarted(s: Session, run_id: int, status: str, reason: str) -> bool:
 
 
 def queue_answer(s: Session, run_id: int, prompt_id: str, answer: str) -> int:
-    """Queue the operator's answer to a waiting prompt (committed; its command's id); NotFound when none
-    is waiting, Invalid when a serial prompt's answer is not one of :data:`~service.identity.CHOICES`."""
+    """Queue the operator's answer to a waiting prompt (committed; its command's id); Conflict when the run
+    has ended, NotFound when no such prompt is waiting, Invalid when a serial prompt's answer is not one of
+    :data:`~service.identity.CHOICES` or a mount prompt's not "done"."""
     row = s.get(Run, run_id)
     if row is None:
         raise NotFound(f"no run {run_id}")
-    waiting = dict(row.prompts or {}) if row.status in ACTIVE else {}
+    if row.status not in ACTIVE:  # (it said "no prompt waiting", as if the id were wrong)
+        raise Conflict(f"run {run_id} has ended ({row.status}{': ' + row.reason if row.reason else ''}); "
+                       "it waits for no answer")
+    waiting = dict(row.prompts or {})
     if prompt_id not in waiting:
         raise NotFound(f"run {run_id} has no prompt {prompt_id!r} waiting"
                        + (f" (waiting: {', '.join(waiting)})" if waiting else ""))

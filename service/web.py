@@ -31,7 +31,7 @@ from sqlalchemy.orm import Session
 
 from physics.calibration import Calibration as PhysCalibration
 from physics.recording import Recording
-from procedures.calibrate import BATCH_SETS
+from procedures.calibrate import parameters_said
 from procedures.states import ACTIVE
 from service import plots
 from service.auth import COOKIE, ROLES, SESSION_HOURS, Caller, caller_of, end_session, require, start_session
@@ -311,7 +311,7 @@ def certificate_context(session: Session, row: Calibration) -> tuple[dict[str, A
         "notes": list(cal.notes), "limits": limit_rows(limits, row.figures), "software_version": _software_version(),
         # issued when the calibration was stored: every copy of one certificate (page, PDF, a reprint) says the same
         "issued": _when(row.created_at),
-        "parameters": {k: v for k, v in ((run.parameters if run else {}) or {}).items() if k not in BATCH_SETS},
+        "parameters": parameters_said((run.parameters if run else {}) or {}),
         "snapshot": snap, "identity": row.identity,
     }
     return cert, cal, rec, limits
@@ -535,8 +535,10 @@ def run_page(request: Request, run_id: Id) -> Response:
                 if slot not in stored and isinstance(entry, dict) and "calibration_id" not in entry:
                     errors.append({"slot": slot, "serial": entry.get("serial", ""),
                                    "error": entry.get("error") or "no calibration from this slot"})
-        # what each unit reported, by slot, shown next to the serial typed
-        identities = {str(k): e for k, e in ((run["result"] or {}).get("units") or {}).items()
+        # what each unit reported, by slot, shown next to the serial typed; a run that ended without results (aborted
+        # at its serial prompt) keeps its units' identities alone, and its page showed none
+        result = run["result"] or {}
+        identities = {str(k): e for k, e in {**(result.get("identities") or {}), **(result.get("units") or {})}.items()
                       if isinstance(e, dict) and "identification" in e}
         progress = run["progress"] or {}
         if run["status"] == "completed":

@@ -171,6 +171,9 @@ def test_nested_numbers_and_switches_take_their_type():
             model.model_validate(body)
         assert e.value.errors()[0]["loc"][0] == field and words in str(e.value), (body, str(e.value))
     assert CharacterizeParams.model_validate({"z_speeds_dps": [10, 20.5]}).z_speeds_dps == [10.0, 20.5]
+    # a whole number written large is judged by its range (it was "an input string ... exceeded maximum size")
+    with pytest.raises(ValidationError, match="less than or equal to 10000"):
+        CalibrateParams.model_validate({"samples": 1e30})
     assert LevelParams.model_validate({"apply": False}).apply is False
 
     from physics.calibration import Calibration
@@ -190,3 +193,16 @@ def test_nested_numbers_and_switches_take_their_type():
         assert e.value.errors()[0]["loc"][0] == "calibrations" and words in str(e.value), str(e.value)
         with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
             Calibration.from_json(bad)
+
+
+def test_a_certificate_states_the_parameters_its_plan_read():
+    """A plain run's certificate listed the adaptive targets and budget it never read (and a batch's unit
+    its batch's own settings): only what the plan read is stated."""
+    from procedures.calibrate import parameters_said
+
+    plain = CalibrateParams().model_dump()
+    said = parameters_said({**plain, "serial": "SN-1", "unmount": None})
+    assert said["adaptive"] is False and said["samples"] == plain["samples"]
+    assert not {"budget_s", "target_level_deg", "target_tilted_deg", "serial", "unmount"} & set(said), said
+    adaptive = parameters_said(CalibrateParams(adaptive=True, budget_s=150).model_dump())
+    assert adaptive["budget_s"] == 150 and "target_level_deg" in adaptive

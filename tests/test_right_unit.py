@@ -98,6 +98,8 @@ def test_prompt_policy_asks_the_operator_before_the_table_moves(api: Api):
         ident = aborted["result"]["identities"]["0"]
         assert aborted["status"] == "aborted" and ident["identified_serial"] == UNIT and ident["serial_decision"] == "asked"
         assert rid in [r["id"] for r in api.get(f"/runs?serial={UNIT}", role="viewer").json()]
+        # and its page says it too (it showed the typed serial alone)
+        assert f"the unit reports <strong>{UNIT}</strong>" in api.get(f"/ui/runs/{rid}", role="viewer").text
 
         rid = start(api, serials={"0": "SN-TYPED"})
         assert wait_prompt(api, rid)["id"] == "serial-0"

@@ -435,6 +435,8 @@ def test_a_batch_prompts_to_mount_each_unit_and_summarises(api: Api):
             params = re.search(r'<p class="params-line">(.*?)</p>', api.get(
                 f"/ui/calibrations/{cur['id']}/certificate", role="viewer").text, re.S).group(1)
             assert "samples = 20" in params and "unmount" not in params and "serial =" not in params, params
+            # nor, not adaptive, the targets and budget it never read ("budget_s = 180.0" was listed)
+            assert "adaptive = False" in params and "budget_s" not in params and "target_level_deg" not in params, params
         assert api.get("/stations/lab-1", role="viewer").json()["batch_id"] is None
         assert len(audited(api, "run.prompt")) == 2 and len(audited(api, "batch.start")) == 1
         # listed, newest first, filtered by station and status
@@ -742,6 +744,9 @@ def test_a_station_at_another_time_scale_than_its_simulator_is_said(api: Api):
         assert j["status"] == "completed", j
         notes = " ".join(j["result"]["notes"])
         assert "times the plan's nominal" in notes and "set the station's time_scale (PUT /stations/lab-1)" in notes, j
+        # an answer to an ended run says it ended (it said "no prompt waiting", as if the id were wrong)
+        r = api.post(f"/runs/{j['id']}/prompts/mount", role="operator", json={"answer": "done"})
+        assert r.status_code == 409 and "has ended (completed)" in r.text, r.text
         assert api.put("/stations/lab-1", json={**body, "time_scale": 20}).status_code == 200
         j = wait_run(api, api.post("/runs", role="operator", json=run).json()["id"], timeout=90)
         assert j["status"] == "completed" and "plan's nominal" not in " ".join(j["result"]["notes"]), j

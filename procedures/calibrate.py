@@ -616,7 +616,9 @@ def evaluate(p: EvaluateParams) -> ProcedureGen:
     out = Outcome()
     for slot, rec in data.recordings().items():
         if slot in p.calibrations:
-            out.results[slot] = evaluate_recording(rec, Calibration.from_json(p.calibrations[slot]), p.max_tilt_deg)
+            cal = Calibration.from_json(p.calibrations[slot])
+            # whose calibration it was: the worker compares it with the unit the slot identified
+            out.results[slot] = {**evaluate_recording(rec, cal, p.max_tilt_deg), "calibration_serial": cal.serial}
         else:
             out.results[slot] = {"error": f"no calibration given for slot {slot}"}
     return out

@@ -108,6 +108,8 @@ def field_errors(errors: list[Any], prefix: tuple[str, ...] = ()) -> list[dict[s
 
 #: A run's meta key holding its units' identities from the moment they are settled (service.worker).
 IDENTITIES_KEY = "identities"
+#: Serial decisions that certified no serial (refused, skipped by the operator, asked and never answered).
+UNSETTLED = ("refused", "skip", "asked")
 
 
 def lost_run_result(run: Run) -> None:
@@ -132,6 +134,10 @@ def unit_serial(run: Run, slot: int) -> str:
     labelled them, and a re-import would have filed them under it."""
     meta = run.meta or {}
     for entry in (slot_result(meta.get("result"), slot), (meta.get(IDENTITIES_KEY) or {}).get(str(slot)) or {}):
+        if entry.get("serial_decision") in UNSETTLED and entry.get("identified_serial"):
+            # the typed serial was refused, skipped or never decided: the unit on the table is the one it reports
+            # (its samples went by the refused serial, and their analysis took that unit's calibration)
+            return str(entry["identified_serial"])
         if entry.get("serial"):
             return str(entry["serial"])
     return str((run.serials or {}).get(str(slot)) or "")
@@ -514,6 +520,11 @@ def create_run(s: Session, station_name: str, procedure: str | None, parameters:
             raise invalid(f"body.serials.{key}", f"slot {int(key)} is given twice; give each slot once")
         # the API checked the rule already; a batch's unit and a resumed run's serials come this way too
         given[str(int(key))] = check_typed(s, f"body.serials.{key}", str(serial))
+    for slot, cal in (getattr(params, "calibrations", None) or {}).items():
+        owner, typed = str(cal.get("serial") or ""), given.get(str(int(slot)))
+        if owner and typed and owner != typed:  # another unit's calibration evaluated on this one (15 deg, no word)
+            raise invalid(f"body.parameters.calibrations.{slot}", f"a calibration of unit {owner}, but slot {slot} is "
+                                                                  f"typed {typed}: give {typed}'s calibration")
     policy = serial_policy or row.serial_policy or DEFAULT_POLICY
     if policy not in POLICIES:
         raise invalid("body.serial_policy", f"expected one of {', '.join(POLICIES)}")

@@ -181,6 +181,12 @@ class DeviceOut(BaseModel):
     current_calibration_id: int | None
 
 
+#: What a calibration's ``identity`` holds.
+IDENTITY_SAID = ("the serial typed (typed_serial), the one the unit reported (identified_serial), how it was identified "
+                 "(identification) and the decision between them (serial_decision, serial_policy, serial_note); null "
+                 "for a calibration made before the check or from the command line")
+
+
 class CalibrationOut(BaseModel):
     """A stored calibration: the calibration JSON of PHYSICS.md (M_o, M_k, bias, ... as further
     keys) with its id, run, time, status (current, superseded, rejected) and verdict."""
@@ -194,6 +200,7 @@ class CalibrationOut(BaseModel):
     verdict: str | None
     reasons: list[Any] | None
     serial: str
+    identity: dict[str, Any] | None = Field(None, description=IDENTITY_SAID)
 
 
 class HistoryEntry(BaseModel):
@@ -208,6 +215,7 @@ class HistoryEntry(BaseModel):
     method: str | None
     slot: int | None
     figures: dict[str, Any] | None
+    identity: dict[str, Any] | None = Field(None, description=IDENTITY_SAID)
 
 # ---------------------------------------------------------------------------------------- limits
 

@@ -542,6 +542,10 @@ def _store(ctx: WorkerContext, run_id: int, outcome: Any, serials: dict[int, str
                 entry["error"] = str(res["error"])
             else:
                 entry["result"] = json_safe(res)
+                owner = res.get("calibration_serial")
+                if owner and serial and owner != serial:  # evaluated another unit's calibration on this one
+                    entry["warning"] = (f"the calibration evaluated is of unit {owner}, but the unit in slot {slot} is "
+                                        f"{serial}: these heading errors are not of {serial}'s calibration")
             units[str(slot)] = entry
         s.commit()
     return {"units": units, "notes": list(outcome.notes)}

@@ -254,6 +254,20 @@ def test_a_limit_must_be_a_finite_number(api: Api, fail: str):
     assert ok.status_code == 200 and ok.json()["fail"] == 2.0
 
 
+def test_a_limit_must_be_one_a_calibration_can_meet_or_miss(api: Api):
+    """1e308 was taken as a limit (the certificates printed it as 309 digits) and a fail limit of 0 too
+    (every calibration fails): refused by their field, in the limit's own unit."""
+    before = stored(api)
+    for name, body, field, words in (("bias_lsb", {"marginal": 1e308, "fail": 1e308}, "body.marginal", "at most 65536 LSB"),
+                                     ("heading_error_level_deg", {"marginal": 0.05, "fail": 400}, "body.fail", "180 deg"),
+                                     ("sensitivity_mismatch", {"marginal": 0.1, "fail": 20}, "body.fail", "10 ratio"),
+                                     ("bias_lsb", {"marginal": 0, "fail": 0}, "body.fail", "every calibration fails")):
+        r = api.put(f"/limits/{name}", role="admin", json=body)
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == field and words in r.text, (name, r.text)
+    assert stored(api) == before
+    assert api.put("/limits/heading_error_level_deg", role="admin", json={"marginal": 0, "fail": 180}).status_code == 200
+
+
 @pytest.mark.parametrize("scale", ["Infinity", "NaN", "1e999", "true", "false", '"2"'])
 def test_a_time_scale_must_be_a_finite_number(api: Api, scale: str):
     before = stored(api)

@@ -529,6 +529,13 @@ def test_a_short_clean_recording_is_not_called_a_discrepancy():
         assert r["verdict"] == "consistent" and not _names(r), (seed, _names(r))
         assert r["residual_rms_before_lsb"][0] < 1.3 * r["noise_floor_lsb"][0], (r["residual_rms_before_lsb"],
                                                                                    r["noise_floor_lsb"])
+    # 6 s: thin readings that vary across their plane far beyond the noise are no turn about one axis (the
+    # in-plane ellipse left 17 LSB against 1.7 and named a field drift): refused, saying what to record
+    from physics.errorsep import InsufficientData
+
+    rec, _ = simulate_handheld(0, n=132)
+    with pytest.raises(InsufficientData, match="vary across their plane by .* not a turn about one axis"):
+        analyze_attitude_free(rec, null_sims=20)
 
 
 def test_the_ellipsoid_refinement_does_not_diverge_on_weak_attitudes():

@@ -157,6 +157,11 @@ def test_trust_typed_is_recorded_on_the_page_and_the_certificate(api: Api):
         assert unit["serial"] == "SN-TRUST" and unit["identified_serial"] == UNIT and unit["serial_decision"] == "trust-typed"
         [cal] = done["calibrations"]
         assert cal["serial"] == "SN-TRUST" and cal["identity"]["identified_serial"] == UNIT
+        # the calibration's own JSON and the unit's history say it too (only the run and the certificate did)
+        stored = api.get(f"/calibrations/{cal['id']}", role="viewer").json()
+        assert stored["identity"]["identified_serial"] == UNIT and stored["identity"]["serial_decision"] == "trust-typed"
+        [line] = api.get("/devices/SN-TRUST/calibrations", role="viewer").json()
+        assert line["identity"]["typed_serial"] == "SN-TRUST" and line["identity"]["identified_serial"] == UNIT, line
         page = api.get(f"/ui/runs/{done['id']}", role="viewer").text
         assert "the unit reports <strong>GAO2017-REF</strong>" in page and "serial policy trust-typed" in page
         html, pdf = certificate_texts(api, cal["id"])
@@ -514,6 +519,17 @@ def test_one_unit_keeps_one_serial_number_whatever_is_typed(api: Api):
         # a unit whose typed serial was never its own (a shared factory default) is still trusted
         done = wait_run(api, start(api, serials={"0": "SN-C1"}, serial_policy="trust-typed"), timeout=90)
         assert done["status"] == "completed" and done["result"]["units"]["0"]["serial"] == "SN-C1", done
+        # another unit's calibration evaluated on this one: refused when typed so, said when the unit reports so
+        other = api.get(f"/devices/{UNIT}/calibrations/current", role="viewer").json()
+        evaluate = {"station": "lab-1", "procedure": "evaluate", "parameters": {
+            "calibrations": {"0": other}, "samples": 5, "tilted_samples": 5, "max_tilt_deg": 0}}
+        r = api.post("/runs", role="operator", json={**evaluate, "serials": {"0": "SN-B9"}})
+        assert r.status_code == 422 and r.json()["detail"][0]["field"] == "body.parameters.calibrations.0", r.text
+        assert f"a calibration of unit {UNIT}" in r.text, r.text
+        j = wait_run(api, api.post("/runs", role="operator", json=evaluate).json()["id"], timeout=90)
+        unit = j["result"]["units"]["0"]
+        assert j["status"] == "completed" and unit["serial"] == "SN-B9", j
+        assert f"the calibration evaluated is of unit {UNIT}, but the unit in slot 0 is SN-B9" in unit["warning"], unit
 
 
 def test_what_a_unit_reported_that_is_no_serial_number_is_kept_findable_and_uploads_again(api: Api):
@@ -545,3 +561,33 @@ def test_what_a_unit_reported_that_is_no_serial_number_is_kept_findable_and_uplo
     found = api.get("/runs", role="viewer", params={"serial": "SN B/1"})
     assert found.status_code == 200 and rid in [j["id"] for j in found.json()], found.text
     assert api.get("/runs", role="viewer", params={"serial": "A\x00B"}).status_code == 422
+
+
+def test_a_refused_units_samples_go_by_the_serial_it_reported(api: Api):
+    """A unit refused (or skipped, or left at its prompt) on a fixture whose other units ran: its samples were
+    exported under the typed serial just ruled out, and their analysis took that serial's calibration (another
+    unit's) and named a "parameter shift". They now go by the serial the unit reported, the typed one beside it."""
+    from physics.simulate import World, simulate_recording
+    from physics.sensor import reference_unit
+    from procedures.calibrate import CalibrateParams, calibration_poses
+    from service.db import Run
+    from service.runtime import unit_serial
+    from service.store import insert_samples
+
+    rec = simulate_recording(reference_unit(3.0, 4.0), calibration_poses(CalibrateParams(samples=3)), World(),
+                             rng=np.random.default_rng(3))
+    with api.client.app.state.sessions() as s:
+        ids = []
+        for decision in ("refused", "skip", "asked"):
+            entry = {"serial": "SN-WRONG", "typed_serial": "SN-WRONG", "identified_serial": UNIT, "identification": "differs",
+                     "serial_decision": decision}
+            run = Run(procedure="calibrate", procedure_version="2", parameters={}, status="completed", operator="t",
+                      software_version="t", serials={"0": "SN-WRONG"}, meta={"result": {"units": {"0": entry}}})
+            s.add(run)
+            s.flush()
+            assert unit_serial(run, 0) == UNIT, decision
+            insert_samples(s, run.id, 0, rec)
+            ids.append(run.id)
+        s.commit()
+    header = [line for line in api.get(f"/runs/{ids[0]}/samples?slot=0", role="viewer").text.splitlines() if line[:1] == "#"]
+    assert f"# serial: {UNIT}" in header and "# typed_serial: SN-WRONG" in header, header

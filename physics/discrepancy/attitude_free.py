@@ -121,6 +121,9 @@ MISALIGNMENT_LIMIT_DEG = 5.0  # magnetometer triad vs accelerometer triad
 #: partial arc determines an ellipse only weakly; the nominal fit's Jacobian stays in every test, so a weak
 #: ellipse costs power, not validity).
 CONIC_SEPARATION = 1.5
+#: Readings in a plane are a turn about one axis only when their spread across it is within this many times its
+#: noise (first differences): a real gimbal's spin measured 1.6, 6-s hand-held paths 2.4-6.9.
+PLANAR_MAX_SPREAD = 2.0
 #: The accelerometer's own ellipsoid is used only when its semi-axes agree within this fraction.
 ACC_RADIUS_SPREAD = 0.3
 #: The dip is tested only when its nuisance (the triad rotation, the dip and the field ellipsoid's
@@ -417,6 +420,12 @@ def _quadric3(m: np.ndarray, separation: float = 0.0) -> tuple[np.ndarray, np.nd
     return c0 + s * centre, (V * np.sqrt(w)) @ V.T / s
 
 
+def _highpass_sd(x: np.ndarray) -> float:
+    """The white noise of a time series from its first differences (robust: MAD), over sqrt 2."""
+    d = np.diff(x)
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+
+
 def _thickness(m: np.ndarray) -> float:
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov((m - m.mean(axis=0)).T)), 0.0))
     return float(spread[0] / spread[2]) if spread[2] > 0 else 0.0
@@ -443,6 +452,16 @@ def _fit_shape(mag: np.ndarray, notes: list[str]) -> _Shape:
             raise InsufficientData(f"attitude-free model: the field ellipsoid cannot be fitted ({e3}), and the readings "
                                    f"do not lie in a plane either (thickness {sv[2] / sv[0]:.3f} of their extent) for "
                                    "an ellipse; turn the unit through more attitudes (about every axis)") from None
+        across = (mag - c) @ vt[2]
+        spread, noise = float(np.sqrt(np.mean(across ** 2))), _highpass_sd(across)
+        if spread > PLANAR_MAX_SPREAD * noise:
+            # thin but not a turn about one axis: the ellipse in the plane takes the field across it as constant,
+            # and what it varies by stays in the residual (6 s of hand-held turning, 11 LSB across the plane
+            # against 1.6 of noise, left 17 LSB and a field drift was named on clean readings)
+            raise InsufficientData(f"attitude-free model: the field ellipsoid cannot be fitted ({e3}), and the readings "
+                                   f"vary across their plane by {spread:.3g} LSB against {noise:.3g} of noise: not a "
+                                   "turn about one axis either; record longer, turning the unit about every axis (or "
+                                   "about one axis only)") from None
         try:
             B2, E2 = _conic2((mag - c) @ P)
         except InsufficientData as e2:
@@ -946,8 +965,7 @@ def _noise_floor(d: _Data, resid_lsb: np.ndarray, notes: list[str]) -> dict[str,
     dt = np.diff(d.t)
     med = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
     w = max(STATIC_MIN_WINDOW, int(round(STATIC_WINDOW_S / med)))
-    dr = np.diff(resid_lsb)
-    sigma_hp = float(1.4826 * np.median(np.abs(dr - np.median(dr))) / math.sqrt(2.0))
+    sigma_hp = _highpass_sd(resid_lsb)
     labelled = np.array([bool(STATIC_LABEL.match(str(s))) for s in d.step])
     static = labelled.copy()
     windows: list[tuple[int, int]] = []

@@ -24,10 +24,12 @@ router = APIRouter(tags=["devices"])
 
 
 def calibration_json(row: Calibration) -> dict[str, Any]:
-    """A stored calibration: the physics JSON plus its id, run, time, status and verdict, and the
-    acceptance limits that verdict was judged against (null for one stored before they were kept)."""
+    """A stored calibration: the physics JSON plus its id, run, time, status and verdict, the acceptance
+    limits that verdict was judged against (null for one stored before they were kept) and the identity
+    decision it was certified under (the run's result and the certificate had it; this JSON did not)."""
     return {**row.data, "id": row.id, "run_id": row.run_id, "created_at": row.created_at, "status": row.status,
-            "verdict": row.verdict, "reasons": row.reasons, "serial": row.device.serial, "limits": row.limits}
+            "verdict": row.verdict, "reasons": row.reasons, "serial": row.device.serial, "limits": row.limits,
+            "identity": row.identity}
 
 
 def _device(session: Session, serial: str) -> Device:
@@ -68,14 +70,16 @@ async def device_calibrations(request: Request, serial: Serial, limit: int = Que
     with request.app.state.sessions() as session:
         rows = session.execute(
             select(Calibration.id, Calibration.run_id, Calibration.created_at, Calibration.status, Calibration.verdict,
-                   cast(Calibration.reasons, Text), Calibration.method, Calibration.slot, cast(Calibration.figures, Text))
+                   cast(Calibration.reasons, Text), Calibration.method, Calibration.slot, cast(Calibration.figures, Text),
+                   cast(Calibration.identity, Text))
             .join(Device, Device.id == Calibration.device_id).where(Device.serial == serial)
             .order_by(Calibration.created_at.desc(), Calibration.id.desc()).limit(limit).offset(offset)).all()
         if not rows and offset == 0:
             _device(session, serial)  # 404 for an unknown serial; a known one may have no calibrations
     body = ",".join(
         f'{{"id":{r[0]},"run_id":{json.dumps(r[1])},"created_at":"{_utc(r[2])}","status":"{r[3]}","verdict":{json.dumps(r[4])},'
-        f'"reasons":{r[5] or "[]"},"method":{json.dumps(r[6])},"slot":{r[7]},"figures":{r[8] or "null"}}}' for r in rows)
+        f'"reasons":{r[5] or "[]"},"method":{json.dumps(r[6])},"slot":{r[7]},"figures":{r[8] or "null"},'
+        f'"identity":{r[9] or "null"}}}' for r in rows)
     return Response(f"[{body}]", media_type="application/json")
 
 

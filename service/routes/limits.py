@@ -16,6 +16,10 @@ from service.schemas import ERRORS, LimitIn, LimitOut, Name
 
 router = APIRouter(tags=["limits"])
 
+#: The largest limit of each unit that can mean anything: a heading error or angle of half a turn, a 16-bit
+#: reading's whole span, a ratio of ten.
+LIMIT_CEILINGS = {"deg": 180.0, "LSB": 65536.0, "ratio": 10.0}
+
 
 @router.get("/limits", response_model=list[LimitOut], responses=ERRORS)
 def get_limits(session: Session = Depends(db), _: Caller = Depends(require("viewer"))) -> list[dict[str, Any]]:
@@ -32,6 +36,13 @@ def put_limit(name: Name, body: LimitIn, session: Session = Depends(db), caller:
         raise HTTPException(404, f"no limit {name!r}; known: " + ", ".join(session.scalars(select(Limit.name))))
     if body.fail < body.marginal:
         raise invalid("body.fail", "must be >= marginal")
+    if body.fail <= 0:  # every unit would FAIL (0 was taken)
+        raise invalid("body.fail", "must be > 0: with 0 every calibration fails")
+    ceiling = LIMIT_CEILINGS.get(row.unit)
+    for field in ("marginal", "fail"):
+        if ceiling is not None and getattr(body, field) > ceiling:
+            # 1e308 was taken, and the certificates printed it as 309 digits
+            raise invalid(f"body.{field}", f"at most {ceiling:g} {row.unit}: no {name} can be larger")
     old = {"marginal": row.marginal, "fail": row.fail}
     row.marginal, row.fail = body.marginal, body.fail
     audit(session, caller, "limit.update", name, {"old": old, "new": body.model_dump()})

@@ -243,8 +243,10 @@ class Engine:
         self._resume.set()
 
     def abort(self, reason: str = "aborted by the operator") -> None:
-        """Stop as soon as possible: axes stopped, samples kept, run marked aborted."""
-        self._abort = reason
+        """Stop as soon as possible: axes stopped, samples kept, run marked aborted (for the first abort's
+        reason: a second abort while the first is under way overwrote it)."""
+        if self._abort is None:
+            self._abort = reason
         self._aborted.set()
         self._resume.set()
         for fut in self._answers.values():

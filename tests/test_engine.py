@@ -279,6 +279,7 @@ def test_pause_resume_and_abort_at_checkpoints():
                 engine.pause()
             if isinstance(e, SamplesStored) and e.count == 3 * 60:
                 engine.abort("operator pressed abort")
+                engine.abort("pressed again")  # the first abort is what stopped the run (the second overwrote it)
         engine.on_event = on_event
     result, *_ = run(cfg, "rotate_z", {"samples": 60}, control=control)
     assert seen == ["running", "paused", "running", "aborted"]

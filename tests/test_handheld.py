@@ -388,7 +388,8 @@ def test_an_accelerometer_quadric_the_readings_do_not_determine_is_not_used():
         assert r["nominal"]["accelerometer"] == "normalised only", (seed, r["nominal"])
         assert "do not determine an ellipsoid" in " ".join(r["notes"]), r["notes"]
         assert r["verdict"] == "consistent" and not _names(r), (seed, _names(r))
-        assert r["residual_rms_before_lsb"][1] < 2.0 * max(r["noise_floor_lsb"]), r["residual_rms_before_lsb"]
+        # nor is the dip tested on an accelerometer only normalised (its own errors would be in it)
+        assert r["residual_rms_before_lsb"][1] is None, r["residual_rms_before_lsb"]
 
 
 def test_the_final_model_is_never_worse_held_out_than_the_nominal_one(monkeypatch):
@@ -552,3 +553,23 @@ def test_the_ellipsoid_refinement_does_not_diverge_on_weak_attitudes():
     # at the noise: 3.6 LSB of a mean sensitivity of some thousands of LSB per field unit
     kbar = float(np.mean(1.0 / np.linalg.eigvalsh(shape.E)))
     assert after * kbar < 5.0, after * kbar
+
+
+def test_a_table_plan_stripped_of_its_angles_does_not_test_a_dip_its_accelerometer_cannot_give():
+    """A clean calibration run of a production unit, its table angles left empty: the accelerometer's own
+    ellipsoid is not determined by the plan's few poses, so its bias and scale errors moved the dip from pose
+    to pose, and a turn of the axes (0.9 deg, p 3e-57) and lab windows were named. The dip is not tested
+    then, and the note says why."""
+    from physics.simulate import World, simulate_recording
+    from procedures.calibrate import CalibrateParams, calibration_poses
+
+    for seed in (41, 44):
+        rec = simulate_recording(random_unit(np.random.default_rng(seed)), calibration_poses(CalibrateParams()), World(),
+                                 rng=np.random.default_rng(seed))
+        nan = np.full(len(rec), np.nan)
+        rec = Recording.from_arrays(t=rec.t, step=rec.step, psi_t=nan, theta_t=nan, phi_t=nan, mag=rec.mag, acc=rec.acc,
+                                    temp_c=rec.temp_c, meta=dict(rec.meta))
+        r = analyze_attitude_free(rec, null_sims=60).to_json()
+        assert r["nominal"]["accelerometer"] == "normalised only" and r["residual_columns"][1] is None, r["nominal"]
+        assert "the accelerometer's own calibration is not determined" in " ".join(r["notes"]), r["notes"]
+        assert r["verdict"] == "consistent" and not _names(r), (seed, _names(r))

@@ -148,8 +148,9 @@ def _ends_at_its_edge(rec: Recording, edge: np.ndarray, group: np.ndarray, bad: 
 def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dict[str, Any]]] | None]:
     """``rec`` without its bad samples, and the note and rows to report (None when there are none): rows
     whose three axes of a sensor read exactly 0 (a brown-out, a dropped frame), rows with a magnetometer
-    axis at the int16 limit (saturated), and, on a turntable, lone rows or short runs far off their hold
-    (garbage that passed the checksum). Left in, each would be "structure" that no physics explains."""
+    axis at the int16 limit (saturated), rows that repeat the one before exactly (a sample written twice), and,
+    on a turntable, lone rows or short runs far off their hold (garbage that passed the checksum). Left in,
+    each would be "structure" that no physics explains."""
     screened = screen_rows(rec)
     zero = {i for i, why in screened.items() if reason_kind(why) == "all zeros"}
     clipped = {i for i, why in screened.items() if reason_kind(why) == "saturated"}
@@ -173,12 +174,23 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
         if edge.any() and len(np.unique(group[edge])) <= EDGE_GARBAGE_SHARE * holds:
             lone |= _ends_at_its_edge(rec, edge, group, bad_rows)
         short = {int(i) for i in off if lone[i]}
-    bad = {i: screened[i] for i in sorted(zero | short | clipped)}
+    # a row that repeats the one before exactly (time stamp and readings): a logger that wrote a sample twice.
+    # Kept, every row written twice was "unexplained structure in time" (Ljung-Box p 2e-284), a field "varying
+    # too slowly for a hold to resolve"
+    same = np.r_[False, (np.diff(rec.t) == 0) & np.all(np.diff(rec.mag, axis=0) == 0, axis=1)]
+    if rec.acc is not None:
+        acc = np.nan_to_num(rec.acc, nan=np.inf)
+        same[1:] &= np.all(acc[1:] == acc[:-1], axis=1)
+    repeated = {int(i): "repeats the row before exactly (same time stamp and readings): a sample written twice"
+                for i in np.flatnonzero(same)}
+    bad = {**{i: screened[i] for i in sorted(zero | short | clipped)}, **repeated}
+    bad = dict(sorted(bad.items()))
     if not bad:
         return rec, None
     keep = np.ones(len(rec), bool)
     keep[list(bad)] = False
-    kinds = [f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
+    kinds = [f"{len(repeated)} repeating the row before exactly (a sample written twice)" if repeated else "",
+             f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
              f"{len(short)} far off their hold's median, alone or in runs of at most {BAD_RUN}" if short else "",
              (f"{len(clipped)} saturated, at t {rec.t[min(clipped)]:.1f}-{rec.t[max(clipped)]:.1f} s (a field beyond the "
               "sensor's range: a strong magnet near the unit?)") if clipped else ""]

@@ -412,6 +412,11 @@ def test_overlapping_windows_that_cancel_leave_a_gap() -> None:
     assert dv.present_segments([outer, cancel, other]) == [[5.0, 30.0], [50.0, 85.0], [105.0, 130.0]]
     stronger = ([[85.0, 105.0]], np.array([4.0, 0.0, 0.0]), sd)
     assert dv.present_segments([outer, stronger]) == [[50.0, 130.0]]
+    # two blocks starting at one time, their refined edges 1e-8 s apart, cancel from there: no phantom segment
+    # between the two edges ("from 214.3 s to 214.3 s" was reported)
+    came = ([[214.27500000174, 270.0]], np.array([8.0, -4.0, 6.0]), sd)
+    gone = ([[214.27500001292, 249.9]], np.array([-8.0, 4.0, -6.0]), sd)
+    assert dv.present_segments([came, gone]) == [[249.9, 270.0]]
 
 
 def test_merged_windows_report_where_the_departure_is_present() -> None:

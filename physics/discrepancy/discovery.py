@@ -1303,6 +1303,10 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
             "confusable_with": alike, "separating_experiment": experiment, "effective_windows": f.m_eff if segs else None}
 
 
+#: Window edges closer than this (s) are one time.
+EDGE_TIE_S = 1e-6
+
+
 def present_segments(windows: list[tuple[list[list[float]], np.ndarray, np.ndarray]], n_sigma: float = 3.0) -> list[list[float]]:
     """Where a departure made of several windowed blocks of one frame and form is present: each block is
     (segments, values, sigmas), and at any time the departure is the sum of the blocks active then. A
@@ -1312,6 +1316,10 @@ def present_segments(windows: list[tuple[list[list[float]], np.ndarray, np.ndarr
     edges = sorted({float(e) for segs, _, _ in windows for seg in segs for e in seg})
     out: list[list[float]] = []
     for a, b in zip(edges[:-1], edges[1:]):
+        if b - a <= EDGE_TIE_S:
+            # two blocks' edges at one time, refined apart by rounding (214.2750000017 and ...0129): no stretch
+            # between them ("from 214.3 s to 214.3 s" was reported)
+            continue
         mid = 0.5 * (a + b)
         on = [(v, sd) for segs, v, sd in windows if any(s0 <= mid < s1 for s0, s1 in segs)]
         if not on:
@@ -1321,7 +1329,7 @@ def present_segments(windows: list[tuple[list[list[float]], np.ndarray, np.ndarr
             sd = np.sqrt(np.sum([sd ** 2 for _, sd in on], axis=0))
             if np.all(np.abs(total) <= n_sigma * sd):
                 continue
-        if out and abs(out[-1][1] - a) < 1e-9:
+        if out and abs(out[-1][1] - a) <= EDGE_TIE_S:
             out[-1][1] = b
         else:
             out.append([a, b])

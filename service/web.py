@@ -526,6 +526,7 @@ def run_page(request: Request, run_id: Id) -> Response:
         active = run["status"] in ACTIVE
         units: list[dict[str, Any]] = []
         errors: list[dict[str, Any]] = []
+        evaluations: list[dict[str, Any]] = []
         if not active:
             cals = s.scalars(select(Calibration).where(Calibration.run_id == run_id).order_by(Calibration.slot)).all()
             for c in cals:
@@ -533,6 +534,11 @@ def run_page(request: Request, run_id: Id) -> Response:
             stored = {str(c.slot) for c in cals}
             for slot, entry in sorted(((run["result"] or {}).get("units") or {}).items()):
                 if slot not in stored and isinstance(entry, dict) and "calibration_id" not in entry:
+                    said = (entry.get("result") or {}) if "error" not in entry else {}
+                    if "level_max_deg" in said:  # an evaluation: its figures (the page said "no calibration")
+                        evaluations.append({"slot": slot, "serial": entry.get("serial", ""), **said,
+                                            "warning": entry.get("warning")})
+                        continue
                     errors.append({"slot": slot, "serial": entry.get("serial", ""),
                                    "error": entry.get("error") or "no calibration from this slot"})
         # what each unit reported, by slot, shown next to the serial typed; a run that ended without results (aborted
@@ -561,7 +567,7 @@ def run_page(request: Request, run_id: Id) -> Response:
         from service.routes.analyses import analysis_summary
         analyses = [analysis_summary(a) for a in s.scalars(select(Analysis).where(Analysis.run_id == run_id).order_by(Analysis.id))]
     return _render(request, who, "run.html", title=f"Run {run_id}", run=run, active=active, units=units,
-                   errors=errors, identities=identities, percent=percent, time_scale=time_scale, last_step=last_step, live_step=live_step,
+                   errors=errors, evaluations=evaluations, identities=identities, percent=percent, time_scale=time_scale, last_step=last_step, live_step=live_step,
                    left_wall_s=(wall_seconds_left(progress, time_scale) if active else 0.0), analyses=analyses,
                    recorded=recorded)
 

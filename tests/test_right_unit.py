@@ -530,6 +530,10 @@ def test_one_unit_keeps_one_serial_number_whatever_is_typed(api: Api):
         unit = j["result"]["units"]["0"]
         assert j["status"] == "completed" and unit["serial"] == "SN-B9", j
         assert f"the calibration evaluated is of unit {UNIT}, but the unit in slot 0 is SN-B9" in unit["warning"], unit
+        # its page shows the evaluation (it said "no calibration from this slot")
+        page = " ".join(api.get(f"/ui/runs/{j['id']}", role="viewer").text.split())
+        assert f"evaluated with the calibration of {UNIT}" in page and "heading error, level: max" in page, page[-3000:]
+        assert "no calibration from this slot" not in page and "but the unit in slot 0 is SN-B9" in page
 
 
 def test_what_a_unit_reported_that_is_no_serial_number_is_kept_findable_and_uploads_again(api: Api):

@@ -574,6 +574,10 @@ def test_api_analysis_answers_at_once_and_its_progress_is_pollable_and_streamabl
     assert r.status_code == 409 and "running" in r.json()["detail"]
     [line] = api.get(f"/runs/{run_id}/analyses", role="viewer").json()
     assert line["status"] == "running" and line["verdict"] is None and line["report_url"] is None
+    # the same analysis asked again while it runs is that one (a retry queued four of one run and slot)
+    again = api.post(f"/runs/{run_id}/analysis", role="operator", json={"null_sims": 5})
+    assert again.status_code == 202 and [a["id"] for a in again.json()["analyses"]] == [queued["id"]], again.text
+    assert len(api.get(f"/runs/{run_id}/analyses", role="viewer").json()) == 1
     gated.open.set()
     with api.client.stream("GET", queued["events_url"], headers={"X-API-Key": api.keys["viewer"]}) as s:
         assert s.status_code == 200 and s.headers["content-type"].startswith("text/event-stream")

@@ -123,26 +123,39 @@ async def create_analysis(run_id: Id, request: Request, response: Response, body
     against the unit's calibration from this run, else its current one (or ``calibration_id``) as
     the nominal model. Answers 202 at once with the analyses ``queued``: follow each at its ``url``
     (poll) or ``events_url`` (server-sent events) until ``completed`` (or ``failed``, with the
-    reason). 404 unknown run, 409 a run still active or with too few samples, 422 a bad body (a slot without
-    samples, or with too few)."""
+    reason). The same analysis asked again while it waits or runs answers with that one. 404 unknown run,
+    409 a run still active or with too few samples, 422 a bad body (a slot without samples, or with too few)."""
     body = body or AnalysisIn()
     sessions = request.app.state.sessions
 
-    def create() -> list[int]:
+    def create() -> tuple[list[int], list[int]]:
+        """The analyses answering the request, and those of them made now (to queue)."""
         with sessions() as s:
             run, plan = _plan(s, run_id, body)
-            rows = [Analysis(run_id=run_id, slot=slot, status="queued", report=None,
-                             request={"null_sims": body.null_sims, "calibration_id": cal_id,
-                                      "serial": unit_serial(run, slot) or None, "operator": caller.owner})
-                    for slot, cal_id in plan.items()]
-            s.add_all(rows)
-            s.flush()
-            audit(s, caller, "analysis.create", f"run {run_id}",
-                  {**body.model_dump(), "analyses": [{"id": r.id, "slot": r.slot} for r in rows]})
+            ids, new = [], []
+            for slot, cal_id in plan.items():
+                asked = {"null_sims": body.null_sims, "calibration_id": cal_id}
+                # the same analysis asked again while it waits or runs is that one (a script's retry queued
+                # four of one run and slot, some of 200 null simulations each)
+                same = next((a for a in s.scalars(select(Analysis).where(
+                    Analysis.run_id == run_id, Analysis.slot == slot, Analysis.status.in_(("queued", "running"))))
+                    if all((a.request or {}).get(k) == v for k, v in asked.items())), None)
+                if same is not None:
+                    ids.append(same.id)
+                    continue
+                row = Analysis(run_id=run_id, slot=slot, status="queued", report=None,
+                               request={**asked, "serial": unit_serial(run, slot) or None, "operator": caller.owner})
+                s.add(row)
+                s.flush()
+                ids.append(row.id)
+                new.append(row.id)
+            if new:
+                audit(s, caller, "analysis.create", f"run {run_id}",
+                      {**body.model_dump(), "analyses": [{"id": i, "slot": s.get(Analysis, i).slot} for i in new]})
             s.commit()
-            return [r.id for r in rows]
-    ids = await asyncio.to_thread(create)
-    for analysis_id in ids:
+            return ids, new
+    ids, new = await asyncio.to_thread(create)
+    for analysis_id in new:
         await request.app.state.jobs.defer("analysis", queue=ANALYSIS_QUEUE, analysis_id=analysis_id)
     response.headers["Location"] = f"/analyses/{ids[0]}"
     with sessions() as s:

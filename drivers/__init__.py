@@ -24,14 +24,13 @@ class DriverError(Exception):
 
 #: What the operator does about a station fault, by the driver error (its class name) or the word that
 #: names it in the fault's text, before a reset can clear it (the faults said what went wrong only).
+_COMPASS_REMEDY = "check the compass's cable and power, and that no other program holds its port"
 FAULT_REMEDIES: dict[str, str] = {
     "E-stop": "release the E-stop",
     "BusUnreachable": "check the table's power and its network or serial line to the Modbus URL",
     "AxisUnreachable": "check that axis controller's power and its bus cable",
     "MoveTimeout": "check that nothing blocks the table",
-    "CompassTimeout": "check the compass's cable and power, and that no other program holds its port",
-    "CompassDisconnected": "check the compass's cable and power, and that no other program holds its port",
-    "FixtureError": "check the compass's cable and power, and that no other program holds its port",
+    **dict.fromkeys(("CompassTimeout", "CompassDisconnected", "FixtureError"), _COMPASS_REMEDY),
 }
 
 

@@ -387,9 +387,9 @@ def screen_rows(rec: Recording) -> dict[int, str]:
         # recording were dropped as 3810 sigma off (0.03 LSB against 24 of sample-to-sample noise)
         idx = np.flatnonzero(multi)
         steps = np.diff(x[idx], axis=0)[np.diff(idx) == 1]
-        step_sigma = 1.4826 * np.median(np.abs(steps), axis=0) / np.sqrt(2.0) if len(steps) >= 10 else 0.0
+        step_sigma = _robust_sigma(steps, np.zeros(3)) / np.sqrt(2.0) if len(steps) >= 10 else np.zeros(3)
         sigma = _robust_sigma(dev[multi], np.maximum.reduce([np.full(3, 2e-4) * amplitude,
-                                                             np.where(counts, 1.0, 1e-12), step_sigma * np.ones(3)]))
+                                                             np.where(counts, 1.0, 1e-12), step_sigma]))
         z = np.abs(dev) / sigma
         # gross needs an amplitude, i.e. two poses (a run's first hold alone has none: lone rows only)
         gross = np.any((z > REJECT_SIGMA) & (np.abs(dev) > GROSS_FRACTION * amplitude) & (amplitude > 0), axis=1)

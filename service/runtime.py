@@ -37,7 +37,7 @@ from physics.calibration import json_safe
 from procedures.calibrate import BATCH, LOOKAHEAD_S, MOUNT_PROMPT, needed_budget_s
 from procedures.states import ACTIVE, FINAL, RunState, check_transition
 from service.db import Batch, Calibration, Device, Run, RunCommand, RunEvent, Station, utcnow
-from service.identity import CHOICES, DEFAULT_POLICY, POLICIES, is_serial_prompt, normalise
+from service.identity import CHOICES, DEFAULT_POLICY, POLICIES, check_serial, is_serial_prompt, normalise
 
 try:
     SOFTWARE_VERSION = version("compasscal")
@@ -443,8 +443,6 @@ def in_other_case(s: Session, serial: str) -> list[str]:
 def check_typed(s: Session, field: str, serial: str) -> str:
     """A typed serial number by the service's rule, and not a stored unit's in another letter case (typed
     "sim-a1" for unit SIM-A1, its calibration made a second device)."""
-    from service.schemas import check_serial
-
     try:
         serial = check_serial(serial)
     except ValueError as e:

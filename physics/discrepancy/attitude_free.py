@@ -1444,27 +1444,30 @@ def analyze_attitude_free(rec: Recording, *, alpha: float = 0.01, null_sims: int
                    temp_ref=float(np.mean(full.temp)) if full.temp is not None else None)
     untestable: list[dict[str, str]] = [{"effect": e, "reason": r} for e, r in NEEDS_ANGLES.items()]
     lag_ok = False
+
+    def dip_not_tested(why: str, record: str) -> None:
+        notes.append(f"the dip (the field's angle to gravity) is not tested: {why}; the tests that need it (a turn of "
+                     f"the field or of the axes, a lag between the sensors) are not available: {record}")
+
     if dec.acc is not None and not shape.planar:
         nom.acc = _AccCal(dec.acc, notes)
-        nom.dip = _Dip()
-        nom.dip.fit(shape.direction(dec.mag), nom.acc.directions(dec.acc))
         if not nom.acc.calibrated:
             # its bias and scale errors move the dip from pose to pose, which no test here can tell from physics:
             # a clean table plan stripped of its angles named a turn of the axes (0.9 deg, p 3e-57) and lab windows
-            nom.dip = None
-            notes.append("the dip (the field's angle to gravity) is not tested: the accelerometer's own calibration "
-                         "is not determined by these attitudes, and its bias and scale errors would move the dip from "
-                         "attitude to attitude; the tests that need the dip (a turn of the field or of the axes, a lag "
-                         "between the sensors) are not available: record the unit through more attitudes")
-        elif (separation := _dip_separation(nom, dec)) < DIP_MIN_SEPARATION:
-            nom.dip = None
-            notes.append(f"the dip (the field's angle to gravity) is not tested: these attitudes leave its nuisance (the "
-                         f"field ellipsoid's calibration and the triads' rotation) nearly collinear (weakest combination "
-                         f"{separation:.3f} of its RMS, at least {DIP_MIN_SEPARATION} needed), where its columns would fit "
-                         "the noise; the tests that need it (a turn of the field or of the axes, a lag between the "
-                         "sensors) are not available: record longer, turning the unit about every axis")
-        elif dec.gyro is not None:
-            lag_ok = True
+            dip_not_tested("the accelerometer's own calibration is not determined by these attitudes, and its bias "
+                           "and scale errors would move the dip from attitude to attitude",
+                           "record the unit through more attitudes")
+        else:
+            nom.dip = _Dip()
+            nom.dip.fit(shape.direction(dec.mag), nom.acc.directions(dec.acc))
+            if (separation := _dip_separation(nom, dec)) < DIP_MIN_SEPARATION:
+                nom.dip = None
+                dip_not_tested(f"these attitudes leave its nuisance (the field ellipsoid's calibration and the triads' "
+                               f"rotation) nearly collinear (weakest combination {separation:.3f} of its RMS, at least "
+                               f"{DIP_MIN_SEPARATION} needed), where its columns would fit the noise",
+                               "record longer, turning the unit about every axis")
+            elif dec.gyro is not None:
+                lag_ok = True
     if not lag_ok:
         needs = ["an accelerometer" if dec.acc is None else "3-D field readings (a dip)" if shape.planar else
                  "the dip, not tested here (see the notes)" if nom.dip is None else None,

@@ -79,14 +79,12 @@ def _plan(s: Session, run_id: int, body: AnalysisIn) -> tuple[Run, dict[int, int
         need = TABLE_MIN_SAMPLES if angled else FREE_MIN_SAMPLES
         return f"slot {slot}: {n} samples, the analysis needs at least {need}" if n < need else None
 
-    if body.slot is not None:
-        if short(body.slot):
-            raise invalid("body.slot", f"run {run_id} {short(body.slot)}")
-        slots = [body.slot]
-    elif all(short(x) for x in slots):
-        raise Conflict(f"run {run_id} has too few samples to analyse: {'; '.join(short(x) or '' for x in slots)}")
-    else:
-        slots = [x for x in slots if not short(x)]
+    why = {x: short(x) for x in ([body.slot] if body.slot is not None else slots)}
+    if body.slot is not None and why[body.slot]:
+        raise invalid("body.slot", f"run {run_id} {why[body.slot]}")
+    if all(why.values()):
+        raise Conflict(f"run {run_id} has too few samples to analyse: {'; '.join(map(str, why.values()))}")
+    slots = [x for x, w in why.items() if not w]
     if body.calibration_id is not None:
         cal = s.get(Calibration, body.calibration_id)
         if cal is None:
@@ -132,7 +130,8 @@ async def create_analysis(run_id: Id, request: Request, response: Response, body
         """The analyses answering the request, and those of them made now (to queue)."""
         with sessions() as s:
             run, plan = _plan(s, run_id, body)
-            ids, new = [], []
+            ids: list[int] = []
+            new: list[Analysis] = []
             for slot, cal_id in plan.items():
                 asked = {"null_sims": body.null_sims, "calibration_id": cal_id}
                 # the same analysis asked again while it waits or runs is that one (a script's retry queued
@@ -148,12 +147,12 @@ async def create_analysis(run_id: Id, request: Request, response: Response, body
                 s.add(row)
                 s.flush()
                 ids.append(row.id)
-                new.append(row.id)
+                new.append(row)
             if new:
                 audit(s, caller, "analysis.create", f"run {run_id}",
-                      {**body.model_dump(), "analyses": [{"id": i, "slot": s.get(Analysis, i).slot} for i in new]})
+                      {**body.model_dump(), "analyses": [{"id": r.id, "slot": r.slot} for r in new]})
             s.commit()
-            return ids, new
+            return ids, [r.id for r in new]
     ids, new = await asyncio.to_thread(create)
     for analysis_id in new:
         await request.app.state.jobs.defer("analysis", queue=ANALYSIS_QUEUE, analysis_id=analysis_id)

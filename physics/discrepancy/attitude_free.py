@@ -887,7 +887,7 @@ class _Regression:
         fitted = self.Z[:, cols] @ beta[0]
         resid_w = self.whiten((self.y - fitted)[:, None], rho)[:, 0]
         return {"cols": cols, "coef": coef, "beta_scaled": beta[0], "cov": cov, "rho": float(rho[0]),
-                "sigma": math.sqrt(sigma2), "resid": self.y - fitted, "resid_w": resid_w, "rss": float(rss[0]),
+                "sigma": math.sqrt(max(sigma2, 0.0)), "resid": self.y - fitted, "resid_w": resid_w, "rss": float(rss[0]),
                 "G": G, "b": b, "yy": yy}
 
 

@@ -135,6 +135,8 @@ class Case:
     span_s: tuple[float, float] | None = None  # the recording's [first sample, one period after the last)
     #: frames the recording cannot tell from the true one where the effect is present (equivalent_frames)
     frames: list[str] | None = None
+    #: the same recording without the effects, with the same noise: what a perfect model of them leaves
+    free: Recording | None = None
 
     def truth(self) -> dict[str, Any]:
         """The true unit, world and noise, JSON-safe."""
@@ -288,6 +290,7 @@ class _Concealed:
     rec: Recording
     clean: Recording
     effects: list[Effect]
+    free: Recording  # the same recording without the effects (the same noise)
 
 
 def _conceal(draws: dict[str, Callable[[], dict[str, Any]]], targets: dict[str, float], unit: Unit, world: World,
@@ -335,9 +338,9 @@ def _conceal(draws: dict[str, Callable[[], dict[str, Any]]], targets: dict[str, 
         nc_total = misfit(clean) if draws else 0.0
     effects = [conceal(e, kw) for e, kw in kws.items()]
     # the encoder rounding alone: the effect-free output fitted at the recorded (rounded) angles
-    _, clean0 = simulate_timeline(unit, plan, world, motion, (), noise, np.random.default_rng(noise_seed))
+    free, clean0 = simulate_timeline(unit, plan, world, motion, (), noise, np.random.default_rng(noise_seed))
     floor = nominal_misfit(rec, clean0.mag, noise, rate, v0)
-    return _Concealed(kws, achieved, float(nc_total), float(floor), rec, clean, effects)
+    return _Concealed(kws, achieved, float(nc_total), float(floor), rec, clean, effects, free)
 
 
 def make_case(kind: str, rng: np.random.Generator, plan: Sequence[Pose | Scan], target_nc: float | dict[str, float] | None = None,
@@ -550,4 +553,5 @@ def make_open_case(kind: str, rng: np.random.Generator, plan: Sequence[Pose | Sc
         frames = equivalent_frames(model["frame"], rows[1][present])
     return Case(kind=kind, effects=ids, params={kind: c.effects[0].params()} if ids else {}, target_nc=targets,
                 nc=c.nc, nc_total=c.nc_total, nc_floor=c.nc_floor, unit=unit, world=world, noise=noise,
-                rec=c.rec, clean=c.clean, seed=seed, generator="open", model=model, span_s=span, frames=frames)
+                rec=c.rec, clean=c.clean, seed=seed, generator="open", model=model, span_s=span, frames=frames,
+                free=c.free)

@@ -68,8 +68,11 @@ def make_task_case(task: Task, rng: np.random.Generator) -> Case:
 
 
 def run_task(task: Task) -> tuple[int, Case, Outcome]:
-    """Generate one case, hand its noisy recording (only) to the analyser, time it. Top level for spawn."""
-    from physics.discrepancy import analyze  # the analyser is imported here only, never by the generator
+    """Generate one case, hand its noisy recording (only) to the analyser, time it. Top level for spawn.
+
+    For an open-world case, also the level heading error of the nominal model fitted to the same recording
+    without the effect (``Outcome.heading_free``): what a perfect model of the effect could bring it down to."""
+    from physics.discrepancy import analyze, level_heading_error  # imported here only, never by the generator
 
     gen, ana = np.random.SeedSequence(task.seed).spawn(2)
     case = make_task_case(task, np.random.default_rng(gen))
@@ -84,7 +87,9 @@ def run_task(task: Task) -> tuple[int, Case, Outcome]:
         secs = time.perf_counter() - t0
         out = Outcome(a.result, heldout_ratio(case, a.series), secs, None,
                       heldout_ratio(case, a.series, "heldout_pred_before"))
-    return task.index, replace(case, rec=None, clean=None), out
+    if case.generator == "open" and case.effects and case.free is not None:
+        out = replace(out, heading_free=level_heading_error(case.free)[1])
+    return task.index, replace(case, rec=None, clean=None, free=None), out
 
 
 def _stratified(rng: np.random.Generator, n: int, nc_range: tuple[float, float] = NC_RANGE) -> list[float]:
@@ -217,7 +222,7 @@ def run_proof(n: int, seed: int, workers: int = 2, progress: Callable[[int, int,
                   "heldout_ratio": o.heldout_ratio, "heldout_before": o.heldout_before, "seconds": o.seconds,
                   "error": o.error, "heading_error_deg": r.get("heading_error_deg")})
         if c.kind in OPEN_KINDS:
-            d["judgement"] = judge_open(c, o.result)
+            d["judgement"] = judge_open(c, o.result, o.heading_free)
         per_case.append(d)
     config = {"n": n, "seed": seed, "nulls": sum(c.kind == "null" for c in cases),
               "pairs": sum("+" in c.kind for c in cases), "pair_nc": list(pair_nc), "workers": workers, "plan_items": len(plan),

@@ -48,6 +48,9 @@ class Outcome:
     seconds: float | None = None
     error: str | None = None
     heldout_before: float | None = None  # the same with heldout_pred_before (the nominal model)
+    #: open world: the level heading error (RMS) of the nominal model fitted to the same recording without
+    #: its effect (the same noise), what a perfect model of the effect could bring it down to
+    heading_free: float | None = None
 
 
 def clopper_pearson_upper(k: int, n: int, confidence: float = 0.95) -> float:
@@ -365,7 +368,20 @@ def complement_segments(segments: Sequence[Sequence[float]], span: Sequence[floa
     return out
 
 
-def judge_open(case: Case, result: dict[str, Any] | None) -> dict[str, Any]:
+#: The ceiling's test told where to look (:func:`ceiling_power`): every open-world kind has 3 parameters
+#: (an offset, a gain per axis, a small rotation), tested at the verdict's alpha.
+CEILING_DF = 3
+CEILING_ALPHA = 0.01
+
+
+def ceiling_power(nc: float, df: int = CEILING_DF, alpha: float = CEILING_ALPHA) -> float:
+    """Detection probability of a departure of non-centrality ``nc`` by one likelihood-ratio test that is
+    told its frame, form and window (``df`` parameters, level ``alpha``): no search, so an upper bound on
+    what any analysis that must also search can detect."""
+    return float(ncx2.sf(chi2.isf(alpha, df), df, nc))
+
+
+def judge_open(case: Case, result: dict[str, Any] | None, heading_free: float | None = None) -> dict[str, Any]:
     """Whether the analysis of one open-world case succeeded, and why not (issue 12, item 6).
 
     Success = a finding in the true frame ("sensor" and "platform" the same; so is any frame the
@@ -378,12 +394,16 @@ def judge_open(case: Case, result: dict[str, Any] | None) -> dict[str, Any]:
     reported but not required. For a departure in a frame whose constant the nominal model absorbs
     (the unit's own, or the lab field), the complement of the found windows counts as well: the data
     cannot tell "present in W" from "present outside W" (the bias or the field takes the constant).
+
+    ``heading_free`` (:attr:`Outcome.heading_free`) says whether any analysis could pass on the heading:
+    ``heading_reachable`` is whether a perfect model of the effect (the same recording without it) has its
+    level heading error lower than the nominal model's on the recording (None when either is unknown).
     """
-    return judge_model(case.model or {}, case.span_s or (0.0, 0.0), case.frames, result)
+    return judge_model(case.model or {}, case.span_s or (0.0, 0.0), case.frames, result, heading_free)
 
 
 def judge_model(truth: dict[str, Any], span: Sequence[float], frames: Sequence[str] | None,
-                result: dict[str, Any] | None) -> dict[str, Any]:
+                result: dict[str, Any] | None, heading_free: float | None = None) -> dict[str, Any]:
     """:func:`judge_open` on a truth in the finding["model"] schema, the recording's time span and the
     frames it cannot tell from the true one (None: the true frame alone), for any recording: the table
     proof's cases and the hand-held ones (proof/handheld.py, whose results have no heading figures)."""
@@ -422,7 +442,8 @@ def judge_model(truth: dict[str, Any], span: Sequence[float], frames: Sequence[s
             "frame_right": frame_right, "where_right": bool(where_right),
             "form_right": any(m.get("form") == truth.get("form") for m in same),
             "detected": result.get("verdict") == "discrepancy", "residual_ratio": ratio,
-            "heading_before": before, "heading_after": after,
+            "heading_before": before, "heading_after": after, "heading_free": heading_free,
+            "heading_reachable": None if before is None or heading_free is None else heading_free < before,
             "heading_max_better": None if max_before is None or max_after is None else max_after < max_before}
 
 
@@ -443,7 +464,7 @@ def score_open(cases: Sequence[Case], analyses: Sequence[Outcome | dict[str, Any
         o = _outcome(a)
         if o.error is not None or o.result is None:
             errors.append({"kind": case.kind, "seed": case.seed, "error": o.error})
-        j = judge_open(case, o.result)
+        j = judge_open(case, o.result, o.heading_free)
         if (case.target_nc or {}).get(case.kind, 0.0) > NC_RANGE[1]:
             large.setdefault(case.kind, []).append((j, o.seconds))
             continue
@@ -478,10 +499,17 @@ def score_open(cases: Sequence[Case], analyses: Sequence[Outcome | dict[str, Any
                          "large": [sum(j["success"] for j, _ in large.get(kind, [])), len(large.get(kind, []))]}
 
     def total(keep: Any) -> dict[str, Any]:
-        js = [j for r in rows.values() for nc, j, _ in r if keep(nc)]
+        kept = [(nc, j) for r in rows.values() for nc, j, _ in r if keep(nc)]
+        js = [j for _, j in kept]
         failed = {k: sum(k in j["failed"] for j in js) for k in OPEN_FAILURES}
         n, k = len(js), sum(j["success"] for j in js)
-        return {"cases": n, "success": k, "rate": k / n if n else None, "failed": failed}
+        known = [j for j in js if j["heading_reachable"] is not None]
+        # what no analysis can beat: the heading criterion where a perfect model of the effect passes it,
+        # times the power of a test told the frame, form and window (an unknown heading counts as passable)
+        bound = sum(ceiling_power(nc) * (j["heading_reachable"] is not False) for nc, j in kept)
+        return {"cases": n, "success": k, "rate": k / n if n else None, "failed": failed,
+                "ceiling": {"heading_known": len(known), "heading_reachable": sum(bool(j["heading_reachable"]) for j in known),
+                            "rate": bound / n if n else None}}
 
     secs = [s for r in rows.values() for _, _, s in r if s is not None]
     secs += [s for r in large.values() for _, s in r if s is not None]
@@ -667,6 +695,14 @@ def format_open_report(so: dict[str, Any]) -> str:
     ok = None if a["rate"] is None else a["rate"] >= T["open_success"]
     out.append(f"success at lambda >= {a['nc_min']:g}: {a['success']}/{a['cases']} = {_f(a['rate'])} "
                f"(target >= {T['open_success']:.0%}){_mark(ok)}; at any lambda {o['success']}/{o['cases']} = {_f(o['rate'])}")
+    c = a.get("ceiling") or {}
+    if a["cases"] and c.get("heading_known"):
+        out.append(f"  ceiling: a perfect model of each effect (the same recording without it) leaves the level heading "
+                   f"error lower than the nominal fit's in {c['heading_reachable']}/{c['heading_known']} cases (in the "
+                   f"rest the effect moved it by less than the readings' noise: an analysis passes there only by its own "
+                   f"fit's chance); with a test "
+                   f"told each effect's frame, form and window (alpha {CEILING_ALPHA:g}) as well, any analysis could "
+                   f"expect at most {_f(c['rate'])}")
     if a["cases"]:
         out.append(f"  failed at lambda >= {a['nc_min']:g} on: " + ", ".join(
             f"{k} {v}" for k, v in a["failed"].items()) + "  (frame: no finding in the true frame; where: windows or "

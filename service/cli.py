@@ -600,7 +600,9 @@ def print_analysis(result: dict[str, object]) -> None:
         console.print("level heading error: not available (no level holds with a heading reference)")
     else:
         console.print(f"level heading error: RMS {num(he.get('rms_before'), 3)} deg before, {num(he.get('rms_after'), 3)} "
-                      f"deg after the fitted effects; maximum {num(he.get('before'), 3)} before, {num(he.get('after'), 3)} after")
+                      f"deg after the fitted effects; maximum {num(he.get('before'), 3)} before, {num(he.get('after'), 3)} after"
+                      + (f"; the readings' noise alone makes about {num(he['noise_rms'], 2)} deg RMS"
+                         if he.get("noise_rms") is not None else ""))
     findings = r.get("findings") or []
     if not findings:
         console.print("findings: none beyond the noise")

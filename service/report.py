@@ -439,7 +439,8 @@ def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, t
         axes=("m_x", "m_y", "m_z"), summary=summary, heldout_scheme=text(held.get("scheme") or "not given"),
         improvement=num(held.get("improvement_pct"), 3), heading_before=num(he.get("before"), 3),
         heading_after=num(he.get("after"), 3), heading_rms_before=num(he.get("rms_before"), 3),
-        heading_rms_after=num(he.get("rms_after"), 3), findings=findings, tests=tests, test_extra=test_extra,
+        heading_rms_after=num(he.get("rms_after"), 3),
+        heading_noise=None if he.get("noise_rms") is None else num(he.get("noise_rms"), 2), findings=findings, tests=tests, test_extra=test_extra,
         untestable=[(str(u.get("effect")), text(u.get("reason"))) for u in result.get("untestable") or []
                     if isinstance(u, Mapping)],
         notes=[text(n) for n in result.get("notes") or []],

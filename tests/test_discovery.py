@@ -912,3 +912,15 @@ def test_a_summary_does_not_call_a_worse_fit_an_improvement() -> None:
     assert "improves the fit" not in said and "leaves the residual and the level heading error worse" in said, said
     good = {**base, "residual_rms_after_lsb": [3.1] * 3, "heading_error_deg": {"rms_before": 0.05, "rms_after": 0.01}}
     assert summary(good).startswith("The model with 2 effect(s) improves the fit: residual 9.11 -> 3.1"), summary(good)
+
+
+def test_a_summary_says_what_the_readings_noise_alone_makes_of_the_level_heading_error() -> None:
+    """A level heading error at its noise measures the hold means' noise, not the calibration: the summary
+    gives that scale beside the figures (0.0097 -> 0.0097 deg is no change one could show at 0.009)."""
+    r = {"verdict": "discrepancy", "findings": [{"effect": "discovered"}],
+         "heldout": {"rms_before_lsb": [10.0] * 3, "rms_after_lsb": [3.0] * 3},
+         "residual_rms_before_lsb": [9.0] * 3, "residual_rms_after_lsb": [3.0] * 3, "noise_floor_lsb": [3.0] * 3,
+         "heading_error_deg": {"rms_before": 0.0097, "rms_after": 0.0097, "noise_rms": 0.0091}}
+    assert "level heading error 0.0097 -> 0.0097 deg RMS (the readings' noise alone makes about 0.0091 deg)" in summary(r)
+    del r["heading_error_deg"]["noise_rms"]
+    assert "noise alone" not in summary(r)

@@ -410,3 +410,38 @@ def test_rows_written_twice_are_left_out_and_said():
     stamped = rec.select(slice(None))
     stamped.t[1] = stamped.t[0]  # one time stamp, two readings: both kept
     assert "a sample written twice" not in " ".join(analyze(stamped, null_sims=20).result["notes"])
+
+
+def test_the_level_heading_errors_noise_is_the_scatter_of_clean_recordings() -> None:
+    """``heading_error_deg.noise_rms`` is what the readings' noise alone makes of the level heading error:
+    the variance of a hold's mean under the AR(1)-plus-white model matches simulated noise, and over clean
+    recordings of one unit the nominal fit's level heading RMS scatters about it (in-sample a little
+    under it: the fit takes part of the noise in)."""
+    from physics.discrepancy.analysis import _heading_noise, _mean_variance
+    from physics.discrepancy.noise import NoiseModel, estimate_noise, simulate_noise
+    from physics.discrepancy.twin import context, fit_nominal
+    from physics.discrepancy import level_heading_error
+
+    model = NoiseModel(np.array([2.0, 2.5, 0.0]), np.array([0.8, 0.5, 0.0]), np.array([1.0, 0.5, 3.0]))
+    n = np.array([1, 10, 60])
+    sims = simulate_noise(60 * 3, model, np.repeat(np.arange(3), 60), np.random.default_rng(0), k=4000)
+    got = np.array([sims[60 * i:60 * i + k].mean(axis=0).var(axis=1) for i, k in enumerate(n)])
+    assert got == pytest.approx(_mean_variance(n, model), rel=0.08)
+
+    unit = _unit(8)
+    plan = [Pose("rotate_z", psi, 0.0, 0.0, 60) for psi in range(0, 360, 45)] + calibration_poses(CalibrateParams())
+    rms, noise_rms = [], []
+    for seed in range(12):
+        rec, _ = simulate_timeline(unit, plan, WORLD, noise=Noise(3.0), rng=np.random.default_rng(100 + seed))
+        rms.append(level_heading_error(rec)[1])
+        ctx = context(rec)
+        y = np.asarray(rec.mag, float)
+        nom = fit_nominal(ctx, y)
+        noise_rms.append(_heading_noise(ctx, y, nom, estimate_noise(y - nom.predict(ctx), ctx)))
+    ratio = np.sqrt(np.mean(np.square(rms)) / np.mean(np.square(noise_rms)))
+    assert 0.6 < ratio < 1.1, (ratio, rms, noise_rms)
+    # and twice the noise makes twice the heading noise
+    rec, _ = simulate_timeline(unit, plan, WORLD, noise=Noise(6.0), rng=np.random.default_rng(100))
+    ctx, y = context(rec), np.asarray(rec.mag, float)
+    nom = fit_nominal(ctx, y)
+    assert _heading_noise(ctx, y, nom, estimate_noise(y - nom.predict(ctx), ctx)) == pytest.approx(2 * noise_rms[0], rel=0.15)

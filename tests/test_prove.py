@@ -21,8 +21,9 @@ from proof.concealments import OPEN_KINDS, make_open
 from proof.generator import (EFFECTS, INTERMITTENT_GAP, WINDOW_FRAC, Case, draw_windows, equivalent_frames, field_base,
                              make_case, make_open_case, nominal_misfit, ordinary_plan, recording_span, sweeping_plan)
 from proof.runner import proof_tasks, run_proof
-from proof.score import (Outcome, clopper_pearson_upper, format_open_report, format_report, judge_open, logistic_fit,
-                         merge_segments, score, score_open)
+from proof.score import (Outcome, ceiling_power, clopper_pearson_upper, format_open_report, format_report, judge_open,
+                         logistic_fit, merge_segments, score, score_open)
+from scipy.stats import chi2, ncx2
 
 RATE = Motion().sample_rate_hz
 
@@ -637,6 +638,30 @@ def test_open_scorer_keeps_the_large_departures_apart() -> None:
     assert "large departures" in only and "2/3 = 67%" in only
 
 
+def test_open_scorer_states_the_ceiling_no_analysis_can_beat() -> None:
+    """Where a perfect model of the effect (the same recording without it) leaves the level heading error no
+    lower than the nominal fit's, no analysis can pass the heading criterion: the judgement says so, and the
+    score bounds the success rate by those cases and by a test told the frame, form and window."""
+    case = open_case("segment_offset_lab", 40.0, WIN)
+    good = open_result(found("lab", segments=WIN), heading=(0.5, 0.4, 0.30, 0.31))  # heading "not better"
+    assert judge_open(case, good, 0.32)["heading_reachable"] is False
+    assert judge_open(case, good, 0.29)["heading_reachable"] is True
+    assert judge_open(case, good)["heading_reachable"] is None  # not measured
+    assert judge_open(case, open_result(found("lab", segments=WIN), heading=None), 0.2)["heading_reachable"] is None
+
+    # a test told where to look: its power grows with lambda, ~94 % at 25 for 3 parameters at alpha 0.01
+    assert ceiling_power(25.0) == pytest.approx(float(ncx2.sf(chi2.isf(0.01, 3), 3, 25.0)))
+    assert 0.9 < ceiling_power(25.0) < ceiling_power(40.0) < 1.0 and ceiling_power(3.0) < 0.5
+
+    cases = [open_case("segment_offset_lab", nc, WIN) for nc in (30.0, 60.0, 200.0, 5.0)]
+    outs = [Outcome(good, None, 1.0, heading_free=h) for h in (0.32, 0.25, None, 0.1)]
+    at = score_open(cases, outs)["at_target"]  # lambda >= 25: the first three
+    assert at["ceiling"]["heading_known"] == 2 and at["ceiling"]["heading_reachable"] == 1
+    assert at["ceiling"]["rate"] == pytest.approx((ceiling_power(60.0) + ceiling_power(200.0)) / 3)
+    text = format_open_report(score_open(cases, outs))
+    assert "lower than the nominal fit's in 1/2 cases" in text and "at most 67%" in text
+
+
 def test_open_world_end_to_end_through_the_analyser() -> None:
     """Three open-world cases through the real analyser: every outcome has the structure the scorer
     reads (not success: the analyser's discovery is being built alongside)."""
@@ -651,6 +676,10 @@ def test_open_world_end_to_end_through_the_analyser() -> None:
         j = c["judgement"]
         assert set(j) >= {"success", "failed", "frame_right", "where_right", "residual_ratio"}
         assert j["residual_ratio"] is not None and j["residual_ratio"] > 0.5
+        # the perfect model's level heading error: the nominal fit of the same recording without the effect
+        assert j["heading_free"] is not None and 0.0 < j["heading_free"] < 1.0
+        assert j["heading_reachable"] == (j["heading_free"] < j["heading_before"])
+        assert 0.0 < c["heading_error_deg"]["noise_rms"] < 1.0  # the analysis says its heading figures' noise
     so = out["score"]["open"]
     assert set(so["by_kind"]) == set(kinds) and so["overall"]["cases"] == 3
     assert out["config"]["open_n"] == 1 and out["config"]["open_plan_items"] == len(OPEN_PLAN)

@@ -46,8 +46,8 @@ The method, in the order :func:`analyze` runs it:
 Pure numpy/scipy, no I/O.
 """
 
-from physics.discrepancy.analysis import analyze
+from physics.discrepancy.analysis import analyze, level_heading_error
 from physics.discrepancy.schema import Analysis
 from physics.discrepancy.twin import blocks, runs
 
-__all__ = ["Analysis", "analyze", "blocks", "runs"]
+__all__ = ["Analysis", "analyze", "blocks", "level_heading_error", "runs"]

@@ -431,7 +431,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
                     "rms_before_lsb": ho_before.tolist(), "rms_after_lsb": ho_after.tolist(),
                     "improvement_pct": float(100.0 * (1.0 - ho_after.mean() / max(ho_before.mean(), 1e-300)))},
         "heading_error_deg": {"before": heading_before, "after": heading_after,
-                              "rms_before": heading_rms_before, "rms_after": heading_rms_after},
+                              "rms_before": heading_rms_before, "rms_after": heading_rms_after,
+                              "noise_rms": _heading_noise(ctx, y_raw, nom0, noise)},
         "nominal": _nominal_json(nom),
         "findings": findings,
         "tests": all_tests,
@@ -852,6 +853,44 @@ def _heading_error(ctx: Context, y: np.ndarray, nom: Nominal) -> tuple[float | N
     if not np.isfinite(err).all():
         return None, None
     return float(np.max(np.abs(err))), float(np.sqrt(np.mean(err * err)))
+
+
+def _mean_variance(n: np.ndarray, noise: NoiseModel) -> np.ndarray:
+    """Variance of the mean of ``n`` consecutive samples (holds, (H,)) per axis under the AR(1)-plus-white
+    noise model: (H, 3). The AR part's sum over all pairs, sum_ij phi^|i-j|, in closed form."""
+    n = np.asarray(n, float)[:, None]
+    p = np.clip(noise.phi, 0.0, 0.999999)[None, :]
+    pairs = n * (1 + p) / (1 - p) - 2 * p * (1 - p ** n) / (1 - p) ** 2
+    return noise.sigma[None, :] ** 2 * pairs / n ** 2 + noise.white[None, :] ** 2 / n
+
+
+def _heading_noise(ctx: Context, y: np.ndarray, nom: Nominal, noise: NoiseModel) -> float | None:
+    """RMS over the level holds of the heading error that the readings' noise alone makes in each hold's
+    mean (deg): the scale below which a level heading error measures the noise, not the calibration, and
+    a change between two models is no improvement one could show. Each hold's heading is linearised in
+    its mean reading; the mean's variance is the noise model's for that many consecutive samples."""
+    lev = _level(ctx) & (ctx.hold >= 0)
+    if not lev.any():
+        return None
+    mean, first = _hold_means(ctx, y, lev)
+    n = np.bincount(ctx.hold[lev])
+    n = n[n > 0]
+    R = ctx.R[first]
+    step = 0.5
+    grad = np.stack([wrap180(_corrected_heading(mean + step * e, nom, R) - _corrected_heading(mean - step * e, nom, R))
+                     / (2 * step) for e in np.eye(3)], axis=1)  # deg per LSB, (H, 3)
+    var = np.sum(grad ** 2 * _mean_variance(n, noise), axis=1)
+    return float(np.sqrt(np.mean(var))) if np.all(np.isfinite(var)) else None
+
+
+def level_heading_error(rec: Recording) -> tuple[float | None, float | None]:
+    """The level heading error (maximum, RMS over the level holds, deg) of the nominal model fitted to
+    ``rec`` alone: what an analysis of ``rec`` reports as "before". The blind proof computes it on a
+    recording without its concealed effect (the same noise) to measure what a perfect model of the
+    effect could bring the level heading error down to."""
+    ctx = context(rec)
+    y = np.asarray(rec.mag, float)
+    return _heading_error(ctx, y, fit_nominal(ctx, y))
 
 
 def _folds(ctx: Context) -> np.ndarray:

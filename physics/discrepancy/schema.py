@@ -123,6 +123,9 @@ def _verdict_sentence(result: dict[str, Any], modelled: list[dict[str, Any]], be
         h = f"; level heading error {head['rms_before']:.3g} -> {head['rms_after']:.3g} deg RMS"
     elif head.get("before") is not None and head.get("after") is not None:
         h = f"; level heading error {head['before']:.3g} -> {head['after']:.3g} deg (maximum)"
+    if h and head.get("noise_rms") is not None:
+        # below its noise a level heading error measures the hold means' noise, not the calibration
+        h += f" (the readings' noise alone makes about {head['noise_rms']:.2g} deg)"
     rb = _mean(result.get("residual_rms_before_lsb"))
     ra = _mean(result.get("residual_rms_after_lsb"))
     floor = _mean(result.get("noise_floor_lsb"))

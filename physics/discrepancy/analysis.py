@@ -11,8 +11,8 @@ from threadpoolctl import threadpool_limits
 
 from physics import effects as fx
 from physics.calibration import Calibration, json_safe
-from physics.discrepancy.discovery import (MAX_BLOCKS, SAME_EVIDENCE, Dictionary, Found, discovered_finding, merge_windows,
-                                          rebuild, rows_of)
+from physics.discrepancy.discovery import (MAX_BLOCKS, SAME_EVIDENCE, Dictionary, Found, confirming_experiment, describe,
+                                          discovered_finding, merge_windows, rebuild, rows_of)
 from physics.discrepancy.lrt import Test, _complement, _extend, _null_residuals, _orth, _score, line_search
 from physics.discrepancy.noise import NoiseModel, estimate_noise, ljung_box, require_noise, whiten_all
 from physics.discrepancy.registry import LINE, REGISTRY, effect_columns, frame_of, parameters, where_extra
@@ -261,7 +261,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     for attempt in range(3):
         selected = list(always)
         found = []
-        rows = _forward(selected, found, candidates, eff, generic_w, dic, A0, Q0, z, zr, null, alpha, gated, say)
+        ties: dict[str, list[tuple[str, str]]] = {}  # catalogue effect -> blocks it won a near tie against
+        rows = _forward(selected, found, candidates, eff, generic_w, dic, A0, Q0, z, zr, null, alpha, gated, say, ties)
         all_tests += rows
         if attempt == 0:
             generic_first = {row["variant"]: row for row in rows if row["generic"]}
@@ -388,7 +389,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         if name == LINE:
             row["p_adjusted"] = float(p_twin)  # paying for the frequency search, as when it was confirmed
         confusable = _confusable(name, selected, candidates, A0, z, alpha) if name != LINE else []
-        findings.append(_finding(name, c, cv, eff, row, contrib, nom, ctx, y_raw, confusable, mains_hz))
+        tied = ties.get(name, [])
+        findings.append(_finding(name, c, cv, eff, row, contrib, nom, ctx, y_raw, confusable, mains_hz, tied))
     findings = merge_windows(findings)
     for row in unexplained:
         said = (f"unexplained structure against {row['variant']}: neither the catalogue nor the dictionary of generic "
@@ -524,9 +526,13 @@ def _linearise(ctx: Context, y: np.ndarray, nom: Nominal, eff: dict, noise: Nois
 def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.ndarray], eff: dict,
              generic_w: dict[str, np.ndarray], dic: Dictionary, A0: np.ndarray, Q0: np.ndarray, z: np.ndarray,
              zr: np.ndarray,
-             null: np.ndarray | None, alpha: float, gated: set[str], say: Progress) -> list[dict[str, Any]]:
+             null: np.ndarray | None, alpha: float, gated: set[str], say: Progress,
+             ties: dict[str, list[tuple[str, str]]] | None = None) -> list[dict[str, Any]]:
     """Forward selection (in place on ``selected`` catalogue effects and ``found`` discovered blocks);
-    returns the test rows of every round.
+    returns the test rows of every round. ``ties`` (in place): for a catalogue effect that won within
+    :data:`CATALOGUE_PRIOR` over a significant discovered block, that block and those it could not be told
+    from, each as its description and the experiment that would confirm it (the finding lists them as
+    confusable).
 
     Each round the catalogue's tests (Bonferroni at its share of alpha) and the dictionary's (Bonferroni
     at the rest, its window search corrected on the nulls) say whether anything is there; of the
@@ -572,6 +578,11 @@ def _forward(selected: list[str], found: list[Found], candidates: dict[str, np.n
             disc = dic.choose(cands, Q, resid, null, a_dic)
         # both significant: the data's preference decides (evidence), a named effect winning a near tie
         if disc is not None and best_name is not None and tests[best_name].evidence + CATALOGUE_PRIOR >= disc.test.evidence:
+            if ties is not None and tests[best_name].evidence < disc.test.evidence + CATALOGUE_PRIOR:
+                # a near tie, not a clear win: the generic block explains it as well, and the finding says so
+                # (a sensitivity following the temperature, 1.9 ahead, went unsaid behind a field drift)
+                ties[best_name] = [(describe(c.block), confirming_experiment(c.block, c.segments))
+                                   for c in [disc, *(c for c in cands if describe(c.block) in disc.alike)]]
             disc = None
         elif disc is not None:
             best_name = None
@@ -775,7 +786,10 @@ def _confusable(name: str, selected: list[str], candidates: dict[str, np.ndarray
 
 
 def _finding(name: str, c: np.ndarray, cv: np.ndarray, eff: dict, row: dict, contrib: np.ndarray, nom: Nominal,
-             ctx: Context, y: np.ndarray, confusable: list[str], mains_hz: float | None) -> dict[str, Any]:
+             ctx: Context, y: np.ndarray, confusable: list[str], mains_hz: float | None,
+             tied: Sequence[tuple[str, str]] = ()) -> dict[str, Any]:
+    """A catalogue effect's finding. ``tied``: discovered blocks it won a near tie against (:func:`_forward`),
+    each (description, the experiment that would confirm it), listed as confusable."""
     effect = name.partition(":")[0]
     entry = fx.CATALOGUE[effect]
     sd = np.sqrt(np.maximum(np.diag(cv), 0.0))  # inf: not determined by this recording (absorbed)
@@ -785,6 +799,8 @@ def _finding(name: str, c: np.ndarray, cv: np.ndarray, eff: dict, row: dict, con
     implausible = _beyond_plausible(name, params)
     where = _where(name, ctx, contrib)
     explanation = f"{entry.title}: {entry.description} Signature: {entry.signature}."
+    frame, form, against = entry.model
+    tied = [(d, e) for d, e in dict(tied).items() if d != f"{form} in the {frame} frame against {against}"]  # not itself
     if np.isinf(sd).any():
         labels = eff[name][1] if name in eff else []
         lost = [labels[i] for i in np.flatnonzero(np.isinf(sd))] if labels else []
@@ -794,8 +810,10 @@ def _finding(name: str, c: np.ndarray, cv: np.ndarray, eff: dict, row: dict, con
         explanation += f" The fitted {', '.join(implausible)} exceed what is plausible for this effect."
     return {"effect": effect, "statistic": row["statistic"], "df": row["df"], "p_value": row["p_value"],
             "p_adjusted": row["p_adjusted"], "parameters": params, "sigma": sigma, "heading_impact_deg": impact,
-            "where": where, "explanation": explanation, "confusable_with": confusable, "plausible": not implausible,
-            "separating_experiment": "; ".join(fx.separating_experiment(effect, o) for o in confusable)}
+            "where": where, "explanation": explanation,
+            "confusable_with": [*confusable, *(d for d, _ in tied if d not in confusable)], "plausible": not implausible,
+            "separating_experiment": "; ".join([fx.separating_experiment(effect, o) for o in confusable]
+                                               + ([f"to tell it from {tied[0][0]}: {tied[0][1]}"] if tied else []))}
 
 
 def _where(name: str, ctx: Context, contrib: np.ndarray) -> dict[str, Any]:

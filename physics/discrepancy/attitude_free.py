@@ -67,7 +67,7 @@ from scipy.special import eval_legendre
 
 from physics.calibration import json_safe
 from physics.discrepancy.discovery import (AGAINST_TEXT, FOUND_BY_SEARCH, FRAME_TEXT, IMPLAUSIBLE, INTERMITTENT, KEEP_SHARE,
-                                           N_BINS, SLOW_PREFERENCE, SLOW_SAME_EVIDENCE, Block, _cause, _experiment,
+                                           N_BINS, SLOW_PREFERENCE, SLOW_SAME_EVIDENCE, Block, _cause, confirming_experiment,
                                            _window_stats, search_bins, ut_per_count)
 from physics.discrepancy.lrt import _orth
 from physics.discrepancy.noise import ljung_box, require_noise
@@ -1282,7 +1282,7 @@ def _gain_finding(blk: str, tt: "_Test", coef: np.ndarray, se: np.ndarray, nom: 
             "where": {"response": "magnitude", "frame": "sensor"},
             "model": {"frame": "sensor", "form": "gain", "against": against, "segments": []},
             "plausible": plausible, "explanation": expl, "confusable_with": [],
-            "separating_experiment": _experiment(block, [])}
+            "separating_experiment": confirming_experiment(block, [])}
 
 
 def _rotation_finding(blk: str, tt: "_Test", nom: _Nominal, d: _Data, cos_dip: float | None) -> dict[str, Any]:
@@ -1317,7 +1317,7 @@ def _rotation_finding(blk: str, tt: "_Test", nom: _Nominal, d: _Data, cos_dip: f
             "where": {"response": "magnitude and dip", "frame": "sensor"},
             "model": {"frame": "sensor", "form": "rotation", "against": against, "segments": []},
             "plausible": plausible, "explanation": expl, "confusable_with": [],
-            "separating_experiment": _experiment(block, [])}
+            "separating_experiment": confirming_experiment(block, [])}
 
 
 def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, d: _Data, uc: float | None,
@@ -1360,7 +1360,7 @@ def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, 
                 "part across the field, which turns the heading, does not show without a heading reference.")
     expl += " " + FOUND_BY_SEARCH + ("" if plausible else " " + IMPLAUSIBLE)
     alike = list(tt.extra.get("alike", []))
-    experiment = _experiment(block, segs)
+    experiment = confirming_experiment(block, segs)
     if alike:
         expl += f" This recording cannot tell it from an offset {FRAME_TEXT[alike[0]]}; the one named fits better."
         experiment += ("; to tell them apart, turn the unit through several attitudes during that time (an offset on "

@@ -608,6 +608,7 @@ def _refit_windows(dic: Dictionary, found: list[Found], terms: dict[str, np.ndar
     replaces the term where its evidence is clearly larger (:data:`SAME_EVIDENCE`), and the backward
     check then drops the terms it made redundant. Whether anything changed."""
     changed = False
+    searched: list[tuple[list[np.ndarray], Found | None]] = []  # the others' columns, what the search chose
     for _ in range(sweeps):
         moved = False
         for i, f in enumerate(found):
@@ -616,7 +617,14 @@ def _refit_windows(dic: Dictionary, found: list[Found], terms: dict[str, np.ndar
             Qo, y = _given_others(Q0, z, terms, f.name)
             mine = Test(f.name, _complement(f.Xw, Qo))
             mine.statistic, mine.search = float(np.sum((mine.basis.T @ y) ** 2)), f.test.search
-            g = dic.choose(dic.round(Qo, y, null, alpha), Qo, y, null, alpha)
+            # given the same others the search finds the same block: a second sweep searches again only
+            # where an earlier replacement changed what the term is fitted with
+            others = [Xw for name, Xw in terms.items() if name != f.name]
+            g = next((g for cols, g in searched if len(cols) == len(others) and all(a is b for a, b in zip(cols, others))),
+                     False)
+            if g is False:
+                g = dic.choose(dic.round(Qo, y, null, alpha), Qo, y, null, alpha)
+                searched.append((others, g))
             if g is None or g.name in terms or g.test.evidence <= mine.evidence + SAME_EVIDENCE:
                 continue
             renamed = _replaced(terms, f.name, g)

@@ -68,7 +68,7 @@ from scipy.special import eval_legendre
 from physics.calibration import json_safe
 from physics.discrepancy.discovery import (AGAINST_TEXT, FOUND_BY_SEARCH, FRAME_TEXT, IMPLAUSIBLE, INTERMITTENT, KEEP_SHARE,
                                            N_BINS, SLOW_PREFERENCE, SLOW_SAME_EVIDENCE, Block, _cause, confirming_experiment,
-                                           _window_stats, search_bins, ut_per_count)
+                                           _inverse_roots, _window_stats, search_bins, ut_per_count)
 from physics.discrepancy.lrt import _orth
 from physics.discrepancy.noise import ljung_box, require_noise
 from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
@@ -1156,9 +1156,9 @@ class _Sums:
         part = lambda P: (P[hi] - P[lo]).sum(axis=1)  # noqa: E731
         B, Cq = part(self.PB), part(self.PQ)
         G = B - np.einsum("wkp,wkq->wpq", Cq, Cq)
-        w, V = np.linalg.eigh(0.5 * (G + np.transpose(G, (0, 2, 1))))
-        keep = w > KEEP_SHARE * np.maximum(np.trace(B, axis1=1, axis2=2) / self.p, 1e-300)[:, None]
-        return _window_stats(part(self.PA), w, V, keep), keep.sum(axis=1)
+        T, df = _inverse_roots(0.5 * (G + np.transpose(G, (0, 2, 1))),
+                               KEEP_SHARE * np.maximum(np.trace(B, axis1=1, axis2=2) / self.p, 1e-300))
+        return _window_stats(part(self.PA), T), df
 
     def bins(self, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The grid's sums for :func:`discovery.search_bins`: G (bins, p, bins, p), diag0, c."""

@@ -280,16 +280,56 @@ def _bins(ctx: Context, n_bins: int) -> np.ndarray:
     return np.minimum(((ctx.t - ctx.t[0]) / span * n_bins).astype(int), n_bins - 1)
 
 
-def _window_stats(c: np.ndarray, w: np.ndarray, V: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """Statistic c^T G^+ c for each window (last axis of c: p), using G's kept eigen-pairs."""
-    proj = np.einsum("wpk,...wp->...wk", V, c)
-    return np.sum(np.where(keep, proj ** 2 / np.where(keep, w, 1.0), 0.0), axis=-1)
+def _cholesky(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower Cholesky factors of a stack of small symmetric matrices (..., p, p), column by column over
+    the whole stack (LAPACK per matrix costs more in calls than in arithmetic at p = 3), and whether
+    each is positive definite (its factor is then valid)."""
+    p = G.shape[-1]
+    L = np.zeros_like(G)
+    ok = np.ones(G.shape[:-2], bool)
+    for j in range(p):
+        d = G[..., j, j] - np.sum(L[..., j, :j] ** 2, axis=-1)
+        ok &= d > 0.0
+        L[..., j, j] = np.sqrt(np.where(d > 0.0, d, 1.0))
+        for i in range(j + 1, p):
+            L[..., i, j] = (G[..., i, j] - np.sum(L[..., i, :j] * L[..., j, :j], axis=-1)) / L[..., j, j]
+    return L, ok
+
+
+def _inverse_roots(G: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each of a stack of Gram matrices G (K, p, p): T (K, p, p) with |T c|^2 = c^T G^+ c over G's
+    eigen-directions whose eigenvalue is above ``floor`` (K,), and their number. Where every direction
+    is kept (G - floor I positive definite: the usual case) T is the inverse of G's Cholesky factor,
+    the same statistic as the eigen-pairs give at a tenth of their cost; elsewhere the kept eigen-pairs,
+    scaled (a row of zeros for each dropped direction)."""
+    K, p, _ = G.shape
+    _, full = _cholesky(G - floor[:, None, None] * np.eye(p))
+    L, _ = _cholesky(np.where(full[:, None, None], G, np.eye(p)))
+    T = np.zeros_like(G)
+    for j in range(p):  # L^-1 by forward substitution, row by row
+        T[:, j, j] = 1.0 / L[:, j, j]
+        for k in range(j):
+            T[:, j, k] = -np.sum(L[:, j, k:j] * T[:, k:j, k], axis=-1) / L[:, j, j]
+    df = np.full(K, p)
+    rest = np.flatnonzero(~full)
+    if rest.size:
+        w, V = np.linalg.eigh(G[rest])
+        keep = w > floor[rest][:, None]
+        T[rest] = np.transpose(V * np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)[:, None, :], (0, 2, 1))
+        df[rest] = keep.sum(axis=1)
+    return T, df
+
+
+def _window_stats(c: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Statistic c^T G^+ c for each window (last axis of c: p), with G's :func:`_inverse_roots` T."""
+    return np.sum(np.einsum("wkp,...wp->...wk", T, c) ** 2, axis=-1)
 
 
 def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray,
-                   null: np.ndarray | None, n_bins: int = N_BINS) -> WindowSearch | None:
+                   null: np.ndarray | None, n_bins: int = N_BINS, null_Q: np.ndarray | None = None) -> WindowSearch | None:
     """The window [a, b) of the time grid whose indicator times ``X`` (N, 3, p) best explains ``y``
-    (whitened, orthogonal to span ``Q``), with a p-value corrected for the search.
+    (whitened, orthogonal to span ``Q``), with a p-value corrected for the search. ``null_Q``: ``null @ Q``
+    where the caller has it (the same for every block searched in a round).
 
     Every window's statistic is chi-square(rank) under the null, scaled by the noise estimate's
     inflation (Bartlett factor, the mean over the nulls and windows); the smallest single p over the
@@ -339,7 +379,7 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
     G = G.reshape(n_bins * p, n_bins * p) - A.T @ A
     c = c.ravel() - A.T @ (Q.T @ y)
     if cn is not None:
-        cn = (cn.reshape(len(n3), n_bins * p) - (null @ Q) @ A).reshape(len(n3), n_bins, p)
+        cn = (cn.reshape(len(n3), n_bins * p) - (null @ Q if null_Q is None else null_Q) @ A).reshape(len(n3), n_bins, p)
     return search_bins(G.reshape(n_bins, p, n_bins, p), diag0, c.reshape(n_bins, p), cn)
 
 
@@ -360,18 +400,16 @@ def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray 
     a_idx, b_idx = a_idx[~whole], b_idx[~whole]
     GW = (S[b_idx, :, b_idx, :] - S[a_idx, :, b_idx, :] - S[b_idx, :, a_idx, :] + S[a_idx, :, a_idx, :])
     GW = 0.5 * (GW + np.transpose(GW, (0, 2, 1)))
-    w, V = np.linalg.eigh(GW)
     scale = np.trace(D0[b_idx] - D0[a_idx], axis1=1, axis2=2) / p
-    keep = w > KEEP_SHARE * np.maximum(scale, 1e-300)[:, None]
-    df = keep.sum(axis=1)
+    T, df = _inverse_roots(GW, KEEP_SHARE * np.maximum(scale, 1e-300))
     ok = df > 0
     if not ok.any():
         return None
-    stat = _window_stats(C[b_idx] - C[a_idx], w, V, keep)
+    stat = _window_stats(C[b_idx] - C[a_idx], T)
     c_scale, m_eff, p_ref = 1.0, float(ok.sum()), 0.5
     if cn is not None:
         Cn = np.concatenate([np.zeros((len(cn), 1, p)), np.cumsum(cn, axis=1)], axis=1)
-        sn = _window_stats(Cn[:, b_idx] - Cn[:, a_idx], w, V, keep)[:, ok]  # (K, windows)
+        sn = _window_stats(Cn[:, b_idx] - Cn[:, a_idx], T)[:, ok]  # (K, windows)
         c_scale = max(float(np.mean(sn / df[ok])), 0.5)
         lp = chi2_logsf(sn / c_scale, df[ok][None, :])
         m_eff, p_ref = _m_eff(np.exp(np.min(lp, axis=1)), ok.sum())
@@ -490,9 +528,10 @@ class _Windows:
         ok = (first >= 0) & (second >= 0)
         return first[ok], second[ok]
 
-    def _union(self, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    def _union(self, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """Sets of windows (K, m) tied to one set of parameters, and the eigen-pairs of the Gram matrix of
-        each set's union (the windows' own blocks and their cross blocks): (sets, w, V, keep)."""
+        each set's union (the windows' own blocks and their cross blocks): (sets, T, df), T and df of
+        :func:`_inverse_roots`."""
         if not len(sets):
             return None
         m = sets.shape[1]
@@ -501,20 +540,19 @@ class _Windows:
             for n in range(k + 1, m):
                 x = self._cross(sets[:, k], sets[:, n])
                 G = G + x + np.transpose(x, (0, 2, 1))
-        w, V = np.linalg.eigh(0.5 * (G + np.transpose(G, (0, 2, 1))))
-        keep = w > KEEP_SHARE * np.maximum(sum(self.scale[sets[:, k]] for k in range(m)), 1e-300)[:, None]
-        return sets, w, V, keep
+        T, df = _inverse_roots(0.5 * (G + np.transpose(G, (0, 2, 1))),
+                               KEEP_SHARE * np.maximum(sum(self.scale[sets[:, k]] for k in range(m)), 1e-300))
+        return sets, T, df
 
     @staticmethod
-    def _best(union: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+    def _best(union: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
               cw: np.ndarray) -> tuple[tuple[int, ...], float, int] | None:
         """The set of :meth:`_union` that explains most of the data (window sums ``cw`` (windows, p)):
         its window indices, statistic and rank."""
         if union is None:
             return None
-        sets, w, V, keep = union
-        st = _window_stats(cw[sets].sum(axis=1), w, V, keep)
-        df = keep.sum(axis=1)
+        sets, T, df = union
+        st = _window_stats(cw[sets].sum(axis=1), T)
         if not np.any(df > 0):
             return None
         k = int(np.argmax(np.where(df > 0, st, -np.inf)))
@@ -916,14 +954,15 @@ class Dictionary:
         ctx, noise = self.ctx, self.noise
         cands: list[Found] = []
         tests = {blk: Test(blk.name, _complement(Xw, Q)) for blk, (X, Xw, lab) in self.fixed.items()}
+        _score(list(tests.values()), y, null, m=[self.cost(blk) for blk in tests])  # each block pays its own factor
         for blk, t in tests.items():
-            _score([t], y, null, extra=self.cost(blk) - 1.0)  # each block pays its own Bonferroni factor
             if t.df > 0:
                 X, Xw, lab = self.fixed[blk]
                 cands.append(Found(blk, X, Xw, lab, t))
         searched = []
+        null_Q = null @ Q if null is not None and self.windowed else None
         for blk in self.windowed:
-            ws = search_windows(self.base[(blk.frame, blk.form)][0], ctx, noise, Q, y, null)
+            ws = search_windows(self.base[(blk.frame, blk.form)][0], ctx, noise, Q, y, null, null_Q=null_Q)
             if ws is not None:
                 searched.append((blk, ws))
         searched.sort(key=lambda bw: bw[1].log_p)
@@ -975,10 +1014,10 @@ class Dictionary:
         if not f.block.windowed or not f.segments:
             return f
         cands = []
-        for blk in self.windowed:
-            Xs, Xw, t = self._in_windows(blk, f.segments, Q)
+        tried = {blk: self._in_windows(blk, f.segments, Q) for blk in self.windowed}
+        _score([t for _, _, t in tried.values()], y, null, m=[self.cost(blk) for blk in tried])
+        for blk, (Xs, Xw, t) in tried.items():
             lab = self.base[(blk.frame, blk.form)][1]
-            _score([t], y, null, extra=self.cost(blk) - 1.0)
             t.search = f.test.search  # the same windows, searched once
             t.log_p = float(min(0.0, t.log_p + t.search))
             if t.df > 0:

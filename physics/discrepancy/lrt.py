@@ -3,6 +3,7 @@ spectral line search."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -100,7 +101,8 @@ class Test:
         return self.statistic - 2.0 * self.df - 2.0 * self.search
 
 
-def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: float = 0) -> None:
+def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: float = 0,
+           m: Sequence[float] | None = None) -> None:
     """Statistic, null-calibrated chi-square p and Bonferroni p of every test on whitened residual y.
 
     ``null`` holds whitened null residuals (K, 3N) from simulations; the statistic's null distribution
@@ -109,15 +111,22 @@ def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: flo
     estimate gives. nu is never above the test's df: a variance estimated from a few hundred nulls is
     itself uncertain (+-10 %), and a low draw's lighter tail made p several times too small far out (at
     1e-4, where the tests decide), while a high draw's heavier tail only cost a little power.
-    ``extra`` counts other tests of the same round (the mains line search) in the correction."""
-    m = sum(1 for t in tests if t.df > 0) + extra
-    for t in tests:
+    ``extra`` counts other tests of the same round (the mains line search) in the correction; ``m``
+    gives each test its own count instead (the dictionary's blocks, each by its prior weight)."""
+    live = [t for t in tests if t.df > 0]
+    counts = [len(live) + extra] * len(tests) if m is None else list(m)
+    calibrated = null is not None and len(null) >= 20
+    # the nulls against every test's basis in one product: the nulls are the large operand, read once
+    sims_all = null @ np.column_stack([t.basis for t in live]) if calibrated and live else None
+    start = 0
+    for t, mt in zip(tests, counts):
         if t.df == 0:
             continue
         t.statistic = float(np.sum((t.basis.T @ y) ** 2))
         c, nu = 1.0, float(t.df)
-        if null is not None and len(null) >= 20:
-            sims = np.sum((null @ t.basis) ** 2, axis=1)
+        if sims_all is not None:
+            sims = np.sum(sims_all[:, start:start + t.df] ** 2, axis=1)
+            start += t.df
             mean = float(np.mean(sims))
             t.bartlett = mean / t.df
             c = max(t.bartlett, 0.5)
@@ -126,8 +135,8 @@ def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: flo
                 nu = float(np.clip(mean / c, 0.5, t.df))
                 c = mean / nu
         t.p_value = float(stats.chi2.sf(t.statistic / c, nu))
-        t.p_adjusted = float(min(1.0, t.p_value * m))
-        t.log_p = float(min(0.0, chi2_logsf(t.statistic / c, nu) + np.log(m)))
+        t.p_adjusted = float(min(1.0, t.p_value * mt))
+        t.log_p = float(min(0.0, chi2_logsf(t.statistic / c, nu) + np.log(mt)))
 
 
 def chi2_logsf(x: Any, df: Any) -> Any:

@@ -33,6 +33,7 @@ Pure numpy/scipy, no I/O.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
@@ -411,8 +412,9 @@ def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray 
         Cn = np.concatenate([np.zeros((len(cn), 1, p)), np.cumsum(cn, axis=1)], axis=1)
         sn = _window_stats(Cn[:, b_idx] - Cn[:, a_idx], T)[:, ok]  # (K, windows)
         c_scale = max(float(np.mean(sn / df[ok])), 0.5)
-        lp = chi2_logsf(sn / c_scale, df[ok][None, :])
-        m_eff, p_ref = _m_eff(np.exp(np.min(lp, axis=1)), ok.sum())
+        first, min_lp = _smallest_p(sn / c_scale, df[ok])
+        first = np.flatnonzero(ok)[first]
+        m_eff, p_ref = _m_eff(np.exp(min_lp), ok.sum())
     lps = np.full(len(stat), np.inf)
     lps[ok] = chi2_logsf(stat[ok] / c_scale, df[ok])
     # a window and its complement tie exactly where the model absorbs the block held constant: the
@@ -426,7 +428,7 @@ def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray 
     # gap inside it), on the data and on each null alike, and the best of the searches (one, two or
     # three windows) pays for all three (+log 3).
     windows = _Windows(a_idx, b_idx, S, GW, scale)
-    pair = windows.best_pair(i, C[b_idx] - C[a_idx])
+    pair = windows.best_pairs([i], [C[b_idx] - C[a_idx]])[0]
     if pair is None:
         return WindowSearch(**{**single.__dict__, "log_p": min(single.log_p + float(np.log(2.0)), 0.0)})
     (j1, j2), stat2, df2 = pair
@@ -434,12 +436,9 @@ def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray 
     m_eff2, p_ref2 = m_eff * m_eff, p_ref
     if cn is not None:
         CWn = Cn[:, b_idx] - Cn[:, a_idx]
-        lp_all = np.full((len(cn), len(stat)), np.inf)
-        lp_all[:, ok] = lp
-        first = np.argmin(lp_all, axis=1)
         min_p2 = np.ones(min(len(cn), PAIR_NULLS))
-        for k in range(len(min_p2)):  # the same search on each null (a subsample: it is per null)
-            got = windows.best_pair(int(first[k]), CWn[k])
+        # the same search on each null (a subsample: it is per null)
+        for k, got in enumerate(windows.best_pairs(first[:len(min_p2)], CWn[:len(min_p2)])):
             if got is not None:
                 min_p2[k] = float(special.chdtrc(max(got[2], 1), got[1] / c_scale))
         m_eff2, p_ref2 = _m_eff(min_p2, len(stat) ** 2)
@@ -465,6 +464,20 @@ def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray 
             best = WindowSearch(int(a_idx[ks[0]]), int(b_idx[ks[0]]), float(stat3), int(df3), lp3, m_eff2 * m_eff,
                                 log_p3, tuple((int(a_idx[k]), int(b_idx[k])) for k in ks[1:]), c_scale)
     return WindowSearch(**{**best.__dict__, "log_p": min(best.log_p + float(np.log(3.0)), 0.0)})
+
+
+def _smallest_p(stat: np.ndarray, df: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each row of statistics ``stat`` (K, windows) with ranks ``df`` (windows): the window of the
+    smallest chi-square p and its log p. The tail falls with the statistic at a given rank, so only each
+    rank's largest statistic is looked up (the p of every window had cost a sixth of the search)."""
+    best, best_lp = np.zeros(len(stat), int), np.full(len(stat), np.inf)
+    for d in np.unique(df):
+        cols = np.flatnonzero(df == d)
+        k = cols[np.argmax(stat[:, cols], axis=1)]
+        lp = chi2_logsf(stat[np.arange(len(stat)), k], d)
+        better = lp < best_lp
+        best[better], best_lp[better] = k[better], lp[better]
+    return best, best_lp
 
 
 def _search_log_p(lp1: float, m_eff: float, x: float, df: int, p_ref: float, dims: int) -> float:
@@ -558,29 +571,55 @@ class _Windows:
         k = int(np.argmax(np.where(df > 0, st, -np.inf)))
         return tuple(int(x) for x in sets[k]), float(st[k]), int(df[k])
 
-    def pair(self, i1: int, cw: np.ndarray) -> tuple[tuple[int, ...], float, int] | None:
-        """The best pair tied with ``i1``: it with every window apart from it, or ``i1`` split by a gap.
-        The pairs' eigen-pairs are cached (the searches on the nulls anchor on the same windows again
-        and again)."""
-        if i1 not in self.cache:
+    def _prepare(self, anchors: Iterable[int]) -> None:
+        """Cache the pairs tied with each of ``anchors`` (:meth:`pair`) not cached yet, their Gram matrices
+        decomposed together: many small stacks cost more in calls than in arithmetic."""
+        todo = [i for i in dict.fromkeys(int(a) for a in anchors) if i not in self.cache]
+        if not todo:
+            return
+        parts = []
+        for i1 in todo:
             other = np.flatnonzero(self._apart(i1))
             first, second = self._splits(i1)
-            self.cache[i1] = self._union(np.column_stack([np.concatenate([np.full(len(other), i1), first]),
-                                                          np.concatenate([other, second])]).astype(int))
+            parts.append(np.column_stack([np.concatenate([np.full(len(other), i1), first]),
+                                          np.concatenate([other, second])]).astype(int))
+        union = self._union(np.concatenate(parts))
+        ends = np.cumsum([len(x) for x in parts])
+        for i1, sets, e in zip(todo, parts, ends):
+            s0 = e - len(sets)
+            self.cache[i1] = (sets, union[1][s0:e], union[2][s0:e]) if len(sets) else None
+
+    def pair(self, i1: int, cw: np.ndarray) -> tuple[tuple[int, ...], float, int] | None:
+        """The best pair tied with ``i1``: it with every window apart from it, or ``i1`` split by a gap.
+        The pairs' decompositions are cached (the searches on the nulls anchor on the same windows again
+        and again)."""
+        self._prepare([i1])
         return self._best(self.cache[i1], cw)
 
-    def best_pair(self, i1: int, cw: np.ndarray, steps: int = ASCENT_STEPS) -> tuple[tuple[int, ...], float, int] | None:
-        """The best pair tied with ``i1``, then re-anchored on its other window while that explains more
-        (up to ``steps`` times): from the best single window the pair search reaches two visits whose
-        first or second it does not contain."""
-        got, prev = self.pair(i1, cw), i1
-        for _ in range(steps if got is not None else 0):
-            (j1, j2), st, _ = got
-            anchor = j2 if j1 == prev else j1
-            nxt = self.pair(anchor, cw)
-            if nxt is None or nxt[1] <= st + 1e-9:
+    def best_pairs(self, starts: Sequence[int], cws: Sequence[np.ndarray],
+                   steps: int = ASCENT_STEPS) -> list[tuple[tuple[int, ...], float, int] | None]:
+        """For each start window and window sums ``cws[k]`` (windows, p) (the data's, or a null's): the best
+        pair tied with it, then re-anchored on its other window while that explains more (up to ``steps``
+        times): from the best single window the pair search reaches two visits whose first or second it
+        does not contain. The searches go in step, each step's new anchors decomposed together."""
+        self._prepare(starts)
+        got = [self.pair(int(i), cw) for i, cw in zip(starts, cws)]
+        prev = [int(i) for i in starts]
+        active = [k for k, g in enumerate(got) if g is not None]
+        for _ in range(steps):
+            if not active:
                 break
-            got, prev = nxt, anchor
+            anchor = {}
+            for k in active:
+                (j1, j2), _, _ = got[k]
+                anchor[k] = j2 if j1 == prev[k] else j1
+            self._prepare(anchor.values())
+            active = []
+            for k, a in anchor.items():
+                nxt = self.pair(a, cws[k])
+                if nxt is not None and nxt[1] > got[k][1] + 1e-9:
+                    got[k], prev[k] = nxt, a
+                    active.append(k)
         return got
 
     def third(self, j1: int, j2: int, cw: np.ndarray) -> tuple[tuple[int, ...], float, int] | None:
@@ -634,8 +673,6 @@ def _posterior_edge(gaps: np.ndarray, bounds: np.ndarray, stat: np.ndarray) -> f
 
 #: A whitening filter's response to a change counts as died out below this share of its first value.
 TAIL = 1e-12
-#: Floats of whitened columns held at once by :func:`window_statistics` (the candidates go in batches).
-BATCH_FLOATS = 4_000_000
 
 
 def _tail_length(noise: NoiseModel) -> int:
@@ -664,19 +701,35 @@ def _stretch_sums(W: np.ndarray, Q3: np.ndarray, y3: np.ndarray) -> tuple[np.nda
             sum(y3[j] @ W[j] for j in range(3)))
 
 
+def transposed(ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Q (3N, q) and y (3N) through the whitening's transpose (:func:`whiten_adjoint`): (N, 3, q) and
+    (N, 3), and Q^T y, for :func:`adjoint_rows` of every block of a round."""
+    return whiten_adjoint(Q, noise, ctx.segment), whiten_adjoint(y, noise, ctx.segment), Q.T @ y
+
+
+def adjoint_rows(X: np.ndarray, fixed: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each sample's share of the projections of the whitened columns ``X`` (N, 3, p), masked to any
+    set of samples, on Q and on y: (N, q p) and (N, p), from their :func:`transposed` ``fixed``: a
+    mask's projections are the sums of its samples' shares. And Q^T y."""
+    UQ, Uy, Qy = fixed
+    return np.matmul(UQ.transpose(0, 2, 1), X).reshape(len(X), -1), np.einsum("nj,njp->np", Uy, X), Qy
+
+
 def window_statistics(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray,
-                      masks: np.ndarray) -> np.ndarray:
+                      masks: np.ndarray, adjoint: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """:func:`complement_statistic` of ``X`` present where each row of ``masks`` (K, N) is true, given
     span Q, for all K windows at once (the same numbers as :func:`window_statistic` one by one).
+    ``adjoint``: :func:`adjoint_rows` of these X, Q and y where the caller has it (one edge search asks
+    for many sets of windows).
 
     The windows differ only in a stretch of samples (one edge moving). The whitening is a first-order
     filter restarted at each run of samples, so the whitened columns are those of the common part plus
     those of each window's stretch, whose response dies out at the end of its run or after
-    :func:`_tail_length` samples: the Gram matrices, the projections on Q and on y are the common part's
-    plus each stretch's. The stretch is whitened once, unmasked; a window's own whitened columns are it
-    masked plus, where the mask switches, the filter's decaying carry-in, and their projections on the
-    fixed columns come from the raw samples through the whitening's transpose (:func:`whiten_adjoint`):
-    no window is filtered on its own.
+    :func:`_tail_length` samples: the Gram matrices are the common part's plus each stretch's. The
+    stretch is whitened once, unmasked; a window's own whitened columns are it masked plus, where the
+    mask switches, the filter's decaying carry-in. The projections on the fixed columns (Q, y, the
+    common part) come from the raw samples through the whitening's transpose (:func:`adjoint_rows`): no
+    window is filtered on its own.
     """
     K, N = masks.shape
     p = X.shape[2]
@@ -684,71 +737,79 @@ def window_statistics(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndar
     base = masks[0].copy()
     d0, d1 = (int(differ[0]), int(differ[-1]) + 1) if differ.size else (0, 0)
     base[d0:d1] = False
+    PQ, Py, Qy = adjoint_rows(X, transposed(ctx, noise, Q, y)) if adjoint is None else adjoint
+    q = Q.shape[1]
     # the common part, whitened over its own stretch of rows (zero elsewhere)
     Bw3 = np.zeros((3, N, p))
-    sums = (np.zeros((p, p)), np.zeros((Q.shape[1], p)), np.zeros(p))
+    G0 = np.zeros((p, p))
     on = np.flatnonzero(base)
     if on.size:
         b0, b1 = _stretch(ctx.segment, noise, int(on[0]), int(on[-1]) + 1)
         Bw3[:, b0:b1] = whiten_all(X[b0:b1] * base[b0:b1, None, None], noise, ctx.segment[b0:b1]).reshape(3, b1 - b0, p)
-        sums = _stretch_sums(Bw3[:, b0:b1], Q.reshape(3, N, -1)[:, b0:b1], y.reshape(3, N)[:, b0:b1])
+        G0 = sum(Bw3[j, b0:b1].T @ Bw3[j, b0:b1] for j in range(3))
     Bw = Bw3.reshape(3 * N, p)
-    G, A, c = (np.broadcast_to(v, (K,) + v.shape).copy() for v in sums)
+    G = np.broadcast_to(G0, (K, p, p)).copy()
+    A = np.broadcast_to((base @ PQ).reshape(q, p), (K, q, p)).copy()
+    c = np.broadcast_to(base @ Py, (K, p)).copy()
     if differ.size:
         seg = ctx.segment
         i0, i1 = _stretch(seg, noise, d0, d1)
         n = i1 - i0
         R = (np.arange(3)[:, None] * N + np.arange(i0, i1)[None, :]).ravel()
         inside = (np.arange(i0, i1) >= d0) & (np.arange(i0, i1) < d1)
-        BR, QR, yR = Bw[R], Q[R], y[R]
-        # projections of each window's whitened stretch on the fixed columns (Q, the common part, y) from
-        # the raw stretch: per sample, the fixed columns' adjoint-whitened rows times X (whiten_adjoint),
-        # summed over each window's samples
+        BR = Bw[R]
         XR, sg = X[i0:i1], seg[i0:i1]
-        per_row = np.concatenate([np.matmul(whiten_adjoint(cols, noise, sg).transpose(0, 2, 1), XR).reshape(n, -1)
-                                  for cols in (QR, BR, yR[:, None])], axis=1)  # (n, (q + p + 1) p)
-        q = QR.shape[1]
-        # each window's own whitened columns, for its Gram matrix, without filtering them: the stretch
-        # whitened unmasked (F), masked, plus at each sample b where the mask switches on (off) the
-        # decaying response to what the samples before b had carried into b (g_b c^i for the i-th sample
-        # after b, to the segment's end), taken away (given back)
         Kf, S = noise.kalman()
         cf = noise.phi * (1.0 - Kf)
         firsts = np.r_[True, sg[1:] != sg[:-1]]
         F = whiten_all(XR, noise, sg).reshape(3, n, p)
+        # and each sample's share of the Gram matrix of the stretch whitened unmasked (F): a window's
+        # whitened columns are F masked plus the corrections below, so its Gram matrix is its samples'
+        # shares plus the corrections' own terms
+        # (each window's projections on the common part: its stretch against the common part's
+        # adjoint-whitened rows there)
+        per_row = np.concatenate([PQ[i0:i1], np.matmul(whiten_adjoint(BR, noise, sg).transpose(0, 2, 1), XR).reshape(n, -1),
+                                  Py[i0:i1], np.einsum("jnp,jnq->npq", F, F).reshape(n, -1)], axis=1)  # (n, (q + p + 1 + p) p)
+        # the corrections: at each sample b where a window's mask switches on (off), the decaying response
+        # to what the samples before b had carried into b (g_b c^i for the i-th sample after b, to the
+        # segment's end), taken away (given back); a few samples per switch, so summed sparsely
         nu = F * np.where(firsts[None, :], noise.floor[:, None], S[:, None])[:, :, None]  # the innovations, unscaled
         g = np.zeros((n, 3, p))
         g[1:] = (-noise.phi[None, :, None] * XR[:-1] + cf[None, :, None] * nu[:, :-1].transpose(1, 0, 2))
         g[firsts] = 0.0
         starts = np.flatnonzero(firsts)
         end_of = np.r_[starts[1:], n][np.cumsum(firsts) - 1]  # each sample's segment end
-        longest = min(_tail_length(noise), n)
-        step = max(1, BATCH_FLOATS // max(n * 3 * p, 1))
-        for k0 in range(0, K, step):
-            m = masks[k0:k0 + step, i0:i1] & inside  # (k, n)
-            k = len(m)
-            W = F[None] * m[:, None, :, None]  # (k, 3, n, p)
-            switch = np.diff(m.astype(np.int8), axis=1, prepend=0)
-            kk, bb = np.nonzero(switch)
-            amp = -switch[kk, bb][:, None, None] * g[bb]  # (switches, 3, p)
-            for i in range(longest):
-                ok = bb + i < end_of[bb]
-                if not ok.any():
-                    break
-                W[kk[ok], :, bb[ok] + i, :] += amp[ok] * (cf ** i / S)[None, :, None]
-            Wk = W.reshape(k, 3 * n, p)
-            sums = m.astype(float) @ per_row
-            cross = sums[:, q * p:(q + p) * p].reshape(k, p, p)
-            G[k0:k0 + k] += np.matmul(Wk.transpose(0, 2, 1), Wk) + cross + cross.transpose(0, 2, 1)
-            A[k0:k0 + k] += sums[:, :q * p].reshape(k, q, p)
-            c[k0:k0 + k] += sums[:, (q + p) * p:]
+        m = masks[:, i0:i1] & inside  # (K, n)
+        sums = m.astype(float) @ per_row
+        A += sums[:, :q * p].reshape(K, q, p)
+        cross = sums[:, q * p:(q + p) * p].reshape(K, p, p)
+        G += cross + cross.transpose(0, 2, 1) + sums[:, (q + p + 1) * p:].reshape(K, p, p)
+        c += sums[:, (q + p) * p:(q + p + 1) * p]
+        switch = np.diff(m.astype(np.int8), axis=1, prepend=0)
+        kk, bb = np.nonzero(switch)
+        amp = -switch[kk, bb][:, None, None] * g[bb]  # (switches, 3, p)
+        keys, vals = [], []
+        for i in range(min(_tail_length(noise), n)):
+            ok = bb + i < end_of[bb]
+            if not ok.any():
+                break
+            keys.append(kk[ok] * n + bb[ok] + i)
+            vals.append(amp[ok] * (cf ** i / S)[None, :, None])
+        if keys:
+            at, where = np.unique(np.concatenate(keys), return_inverse=True)
+            D = np.zeros((len(at), 3, p))
+            np.add.at(D, where, np.concatenate(vals))
+            kw, rw = at // n, at % n
+            Fm = F[:, rw].transpose(1, 0, 2) * m[kw, rw][:, None, None]  # the masked columns at those rows
+            x = np.einsum("ejp,ejq->epq", Fm, D)
+            np.add.at(G, kw, x + x.transpose(0, 2, 1) + np.einsum("ejp,ejq->epq", D, D))
     # as complement_statistic: columns normalised, the directions Q leaves (eigenvalue above 1e-6)
     norm = np.sqrt(np.maximum(np.einsum("kpp->kp", G), 0.0))
     inv = np.where(norm > 0, 1.0 / np.where(norm > 0, norm, 1.0), 0.0)
     Gn = G * inv[:, :, None] * inv[:, None, :]
     An = A * inv[:, None, :]
     lam, V = np.linalg.eigh(Gn - np.einsum("kjp,kjq->kpq", An, An))
-    u = np.einsum("kpq,kp->kq", V, c * inv - np.einsum("kjp,j->kp", An, Q.T @ y))
+    u = np.matmul((c * inv - np.matmul(Qy, An))[:, None, :], V)[:, 0, :]
     keep = lam > 1e-6
     return np.sum(np.where(keep, u * u / np.where(keep, lam, 1.0), 0.0), axis=1)
 
@@ -836,12 +897,14 @@ def window_statistic(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarr
 
 
 def refine_window(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray, a: int, b: int,
-                  n_bins: int = N_BINS, other: np.ndarray | None = None) -> tuple[float, float]:
+                  n_bins: int = N_BINS, other: np.ndarray | None = None,
+                  fixed: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
     """Edges (s) of a window found on the grid, refined to the samples: each edge in turn (twice) moves to
     its posterior median (:func:`place_edge`) over the times within ``REFINE_BINS`` bins of it, keeping
     the window at least ``MIN_BINS`` long. An edge that falls in a move between holds, where nothing was
     recorded, lands inside that gap. A window the grid ran from the recording's start (or to its end) may
-    keep that edge or move it inside the recording's first (last) bins."""
+    keep that edge or move it inside the recording's first (last) bins. ``fixed``: :func:`transposed` of
+    Q and y where the caller has it."""
     span = max(np.ptp(ctx.t), 1e-9)
     t_of = lambda k: ctx.t[0] + span * k / n_bins  # noqa: E731
     shortest = MIN_BINS * span / n_bins * 0.999
@@ -850,11 +913,12 @@ def refine_window(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray,
     t1 = end if b == n_bins else t_of(b)
     t = ctx.t
     extra = other if other is not None else np.zeros(len(t), bool)
+    adjoint = adjoint_rows(X, transposed(ctx, noise, Q, y) if fixed is None else fixed)
 
     def windows(e0: np.ndarray, e1: np.ndarray) -> np.ndarray:  # statistics of [e0, e1) (one a scalar)
         e0, e1 = np.broadcast_arrays(np.atleast_1d(e0), np.atleast_1d(e1))
         masks = ((t[None, :] >= e0[:, None]) & (t[None, :] < e1[:, None])) | extra[None, :]
-        return window_statistics(X, ctx, noise, Q, y, masks)
+        return window_statistics(X, ctx, noise, Q, y, masks, adjoint)
 
     for _ in range(2):
         e = place_edge(ctx, t_of(max(a - REFINE_BINS, 0)), min(t_of(a + REFINE_BINS), t1 - shortest),
@@ -968,6 +1032,7 @@ class Dictionary:
         searched.sort(key=lambda bw: bw[1].log_p)
         span = np.ptp(ctx.t)
         best_refined = 0.0  # the largest statistic of a refined block so far
+        fixed = None  # Q and y through the whitening's transpose, for every block refined
         for i, (blk, ws) in enumerate(searched):
             X, lab = self.base[(blk.frame, blk.form)]
             grid = lambda a, b: (ctx.t[0] + span * a / N_BINS if a else ctx.t[0] - 1e-9,  # noqa: E731
@@ -980,7 +1045,9 @@ class Dictionary:
                 for k, (a, b) in enumerate(windows):  # each window in turn, the other held
                     others = [e for n, e in enumerate(edges) if n != k]
                     other = _mask(ctx, [list(e) for e in others]) if others else None
-                    edges[k] = refine_window(X, ctx, noise, Q, y, a, b, other=other)
+                    if fixed is None:
+                        fixed = transposed(ctx, noise, Q, y)
+                    edges[k] = refine_window(X, ctx, noise, Q, y, a, b, other=other, fixed=fixed)
             segs = sorted(seg for e in edges for seg in segments_of(ctx, e[0], e[1]))
             if self.absorbed[(blk.frame, blk.form)] and _disjoint(segs) and sum(e - s for s, e in segs) > 0.5 * span:
                 # where the nominal model takes the block held constant, windows and the times between them

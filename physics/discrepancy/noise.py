@@ -95,8 +95,9 @@ def noise_model(r: np.ndarray, segment: np.ndarray) -> NoiseModel:
     for k in range(NOISE_LAGS + 1):
         if k:
             ok = ok[1:] & same[:-k]
-        prod = d[k:] * d[:len(d) - k] if k else d * d
-        g.append(np.mean(prod[ok], axis=0) if ok.any() else np.zeros(d.shape[1:]))
+        # the mean of the products over the kept pairs, without the products' array (many nulls at once)
+        g.append(np.einsum("n,n...,n...->...", ok.astype(float), d[k:], d[:len(d) - k]) / ok.sum()
+                 if ok.any() else np.zeros(d.shape[1:]))
     g = np.array(g)  # (lags, 3, ...)
     shape = g.shape[1:]
     G = g.reshape(len(g), -1)

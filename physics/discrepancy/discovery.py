@@ -40,7 +40,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy import special
 
-from physics.discrepancy.lrt import Test, _complement, _extend, _orth, _score, chi2_logsf, complement_statistic
+from physics.discrepancy.lrt import Test, _complement, _complement_map, _extend, _score, chi2_logsf, complement_statistic
 from physics.discrepancy.noise import NoiseModel, whiten_adjoint, whiten_all
 from physics.discrepancy.twin import ATTITUDE_SOURCE_KEY, Context, Nominal, _stage_Q
 from physics.fit import consecutive_runs
@@ -326,11 +326,63 @@ def _window_stats(c: np.ndarray, T: np.ndarray) -> np.ndarray:
     return np.sum(np.einsum("wkp,...wp->...wk", T, c) ** 2, axis=-1)
 
 
+@dataclass
+class BinnedColumns:
+    """A windowed block's columns on the time grid, whitened bin by bin: what its window search needs
+    that does not change from round to round (the model Q and the residual y do). ``rows``: each bin's
+    stretch of rows (its samples and the filter's tail after them, :func:`_stretch`); ``blocks``: its
+    whitened columns there (3, rows, p); ``gram``: the bins' Gram matrix (bins p, bins p), non-zero where
+    their rows overlap (a bin and the next); ``diag0``: each bin's own block; ``nulls``: the simulated
+    nulls against each bin's columns (K, bins p), or None."""
+
+    rows: list[tuple[int, int]]
+    blocks: list[np.ndarray]
+    gram: np.ndarray
+    diag0: np.ndarray
+    nulls: np.ndarray | None
+
+
+def bin_columns(X: np.ndarray, ctx: Context, noise: NoiseModel, null: np.ndarray | None,
+                n_bins: int = N_BINS) -> BinnedColumns:
+    """:class:`BinnedColumns` of the indicator of each bin times ``X`` (N, 3, p)."""
+    n, _, p = X.shape
+    b_of = _bins(ctx, n_bins)
+    n3 = None if null is None or len(null) < 20 else null.reshape(len(null), 3, n)
+    rows, blocks = [], []
+    diag0 = np.zeros((n_bins, p, p))
+    cn = None if n3 is None else np.zeros((len(n3), n_bins, p))
+    for k in range(n_bins):
+        inside = np.flatnonzero(b_of == k)
+        if inside.size == 0:
+            rows.append((0, 0))
+            blocks.append(np.zeros((3, 0, p)))
+            continue
+        i0, i1 = _stretch(ctx.segment, noise, int(inside[0]), int(inside[-1]) + 1)
+        Wk = whiten_all(X[i0:i1] * (b_of[i0:i1] == k)[:, None, None], noise, ctx.segment[i0:i1]).reshape(3, i1 - i0, p)
+        rows.append((i0, i1))
+        blocks.append(Wk)
+        diag0[k] = sum(Wk[j].T @ Wk[j] for j in range(3))
+        if cn is not None:
+            cn[:, k] = sum(n3[:, j, i0:i1] @ Wk[j] for j in range(3))
+    G = np.zeros((n_bins, p, n_bins, p))
+    for k in range(n_bins):
+        G[k, :, k, :] = diag0[k]
+        for m in range(k + 1, n_bins):  # later bins whose rows overlap this one's tail
+            lo, hi = max(rows[k][0], rows[m][0]), min(rows[k][1], rows[m][1])
+            if hi > lo:
+                G[k, :, m, :] = sum(blocks[k][j, lo - rows[k][0]:hi - rows[k][0]].T
+                                    @ blocks[m][j, lo - rows[m][0]:hi - rows[m][0]] for j in range(3))
+                G[m, :, k, :] = G[k, :, m, :].T
+    return BinnedColumns(rows, blocks, G.reshape(n_bins * p, n_bins * p), diag0,
+                         None if cn is None else cn.reshape(len(n3), n_bins * p))
+
+
 def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray,
-                   null: np.ndarray | None, n_bins: int = N_BINS, null_Q: np.ndarray | None = None) -> WindowSearch | None:
+                   null: np.ndarray | None, n_bins: int = N_BINS, null_Q: np.ndarray | None = None,
+                   binned: BinnedColumns | None = None) -> WindowSearch | None:
     """The window [a, b) of the time grid whose indicator times ``X`` (N, 3, p) best explains ``y``
     (whitened, orthogonal to span ``Q``), with a p-value corrected for the search. ``null_Q``: ``null @ Q``
-    where the caller has it (the same for every block searched in a round).
+    and ``binned``: :func:`bin_columns` of X, where the caller has them (the dictionary's rounds).
 
     Every window's statistic is chi-square(rank) under the null, scaled by the noise estimate's
     inflation (Bartlett factor, the mean over the nulls and windows); the smallest single p over the
@@ -345,43 +397,22 @@ def search_windows(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndarray
     projected Gram matrix is W^T W - (Q^T W)^T (Q^T W)). On a long recording this is the bins' count
     times less work than whitening and multiplying the dense (3N, bins p) matrix."""
     n, _, p = X.shape
-    b_of = _bins(ctx, n_bins)
+    binned = bin_columns(X, ctx, noise, null, n_bins) if binned is None else binned
     Q3 = Q.reshape(3, n, -1)
     y3 = y.reshape(3, n)
-    n3 = None if null is None or len(null) < 20 else null.reshape(len(null), 3, n)
-    rows, blocks = [], []
-    diag0 = np.zeros((n_bins, p, p))
     A = np.zeros((Q.shape[1], n_bins, p))
     c = np.zeros((n_bins, p))
-    cn = None if n3 is None else np.zeros((len(n3), n_bins, p))
-    for k in range(n_bins):
-        inside = np.flatnonzero(b_of == k)
-        if inside.size == 0:
-            rows.append((0, 0))
-            blocks.append(np.zeros((3, 0, p)))
-            continue
-        i0, i1 = _stretch(ctx.segment, noise, int(inside[0]), int(inside[-1]) + 1)
-        Wk = whiten_all(X[i0:i1] * (b_of[i0:i1] == k)[:, None, None], noise, ctx.segment[i0:i1]).reshape(3, i1 - i0, p)
-        rows.append((i0, i1))
-        blocks.append(Wk)
-        diag0[k], A[:, k], c[k] = _stretch_sums(Wk, Q3[:, i0:i1], y3[:, i0:i1])
-        if cn is not None:
-            cn[:, k] = sum(n3[:, j, i0:i1] @ Wk[j] for j in range(3))
-    G = np.zeros((n_bins, p, n_bins, p))
-    for k in range(n_bins):
-        G[k, :, k, :] = diag0[k]
-        for m in range(k + 1, n_bins):  # later bins whose rows overlap this one's tail
-            lo, hi = max(rows[k][0], rows[m][0]), min(rows[k][1], rows[m][1])
-            if hi > lo:
-                G[k, :, m, :] = sum(blocks[k][j, lo - rows[k][0]:hi - rows[k][0]].T
-                                    @ blocks[m][j, lo - rows[m][0]:hi - rows[m][0]] for j in range(3))
-                G[m, :, k, :] = G[k, :, m, :].T
+    for k, ((i0, i1), Wk) in enumerate(zip(binned.rows, binned.blocks)):
+        if i1 > i0:
+            A[:, k] = sum(Q3[j, i0:i1].T @ Wk[j] for j in range(3))
+            c[k] = sum(y3[j, i0:i1] @ Wk[j] for j in range(3))
     A = A.reshape(Q.shape[1], n_bins * p)
-    G = G.reshape(n_bins * p, n_bins * p) - A.T @ A
+    G = binned.gram - A.T @ A
     c = c.ravel() - A.T @ (Q.T @ y)
-    if cn is not None:
-        cn = (cn.reshape(len(n3), n_bins * p) - (null @ Q if null_Q is None else null_Q) @ A).reshape(len(n3), n_bins, p)
-    return search_bins(G.reshape(n_bins, p, n_bins, p), diag0, c.reshape(n_bins, p), cn)
+    cn = None
+    if binned.nulls is not None:
+        cn = (binned.nulls - (null @ Q if null_Q is None else null_Q) @ A).reshape(len(binned.nulls), n_bins, p)
+    return search_bins(G.reshape(n_bins, p, n_bins, p), binned.diag0, c.reshape(n_bins, p), cn)
 
 
 def search_bins(G: np.ndarray, diag0: np.ndarray, c: np.ndarray, cn: np.ndarray | None) -> WindowSearch | None:
@@ -694,13 +725,6 @@ def _stretch(segment: np.ndarray, noise: NoiseModel, d0: int, d1: int) -> tuple[
     return i0, min(run_end, d1 + _tail_length(noise), n)
 
 
-def _stretch_sums(W: np.ndarray, Q3: np.ndarray, y3: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """W^T W, Q^T W and y^T W of whitened columns W (3, n, p) over a stretch of rows, Q3 (3, n, q) and
-    y3 (3, n) the same rows of Q and y (per axis: BLAS products, not einsum)."""
-    return (sum(W[j].T @ W[j] for j in range(3)), sum(Q3[j].T @ W[j] for j in range(3)),
-            sum(y3[j] @ W[j] for j in range(3)))
-
-
 def transposed(ctx: Context, noise: NoiseModel, Q: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Q (3N, q) and y (3N) through the whitening's transpose (:func:`whiten_adjoint`): (N, 3, q) and
     (N, 3), and Q^T y, for :func:`adjoint_rows` of every block of a round."""
@@ -997,8 +1021,25 @@ class Dictionary:
                 continue
             self.fixed[blk] = (cols[0], whiten_all(cols[0], noise, ctx.segment), cols[1])
         self._weight_total = sum(_weight(b) for b in [*self.fixed, *self.windowed])
+        self._nulls: tuple[np.ndarray, list[np.ndarray]] | None = None
+        self._bins: dict[tuple[str, str], tuple[np.ndarray | None, BinnedColumns]] = {}
         self.untestable = [{"effect": "discovered", "reason": f"blocks {'in the' if 'stage' in dep else 'against'} {dep}: {why}"}
                            for dep, why in untestable.items()]
+
+    def _null_columns(self, null: np.ndarray) -> list[np.ndarray]:
+        """``null @ Xw`` for each fixed block's whitened columns (in :attr:`fixed`'s order), kept for the
+        nulls last asked about (one set per analysis)."""
+        if self._nulls is None or self._nulls[0] is not null:
+            self._nulls = (null, [null @ Xw for _, Xw, _ in self.fixed.values()])
+        return self._nulls[1]
+
+    def _binned(self, blk: Block, null: np.ndarray | None) -> BinnedColumns:
+        """:func:`bin_columns` of windowed block ``blk``'s base columns, kept per frame and form for the
+        nulls last asked about."""
+        key = (blk.frame, blk.form)
+        if key not in self._bins or self._bins[key][0] is not null:
+            self._bins[key] = (null, bin_columns(self.base[key][0], self.ctx, self.noise, null))
+        return self._bins[key][1]
 
     @property
     def family(self) -> int:
@@ -1017,16 +1058,20 @@ class Dictionary:
         refined to the samples; the others keep their grid windows."""
         ctx, noise = self.ctx, self.noise
         cands: list[Found] = []
-        tests = {blk: Test(blk.name, _complement(Xw, Q)) for blk, (X, Xw, lab) in self.fixed.items()}
-        _score(list(tests.values()), y, null, m=[self.cost(blk) for blk in tests])  # each block pays its own factor
+        maps = {blk: _complement_map(Xw, Q) for blk, (X, Xw, lab) in self.fixed.items()}
+        tests = {blk: Test(blk.name, basis) for blk, (basis, _) in maps.items()}
+        null_Q = null @ Q if null is not None else None
+        # the nulls' projections on each block's columns are the same every round: only Q's part changes
+        proj = None if null_Q is None else [image(nX, null_Q) for (_, image), nX in zip(maps.values(), self._null_columns(null))]
+        _score(list(tests.values()), y, null, m=[self.cost(blk) for blk in tests], null_proj=proj)  # each block pays its own factor
         for blk, t in tests.items():
             if t.df > 0:
                 X, Xw, lab = self.fixed[blk]
                 cands.append(Found(blk, X, Xw, lab, t))
         searched = []
-        null_Q = null @ Q if null is not None and self.windowed else None
         for blk in self.windowed:
-            ws = search_windows(self.base[(blk.frame, blk.form)][0], ctx, noise, Q, y, null, null_Q=null_Q)
+            X = self.base[(blk.frame, blk.form)][0]
+            ws = search_windows(X, ctx, noise, Q, y, null, null_Q=null_Q, binned=self._binned(blk, null))
             if ws is not None:
                 searched.append((blk, ws))
         searched.sort(key=lambda bw: bw[1].log_p)

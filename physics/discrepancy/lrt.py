@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy import special, stats
@@ -44,16 +44,27 @@ def _extend(Q: np.ndarray, *blocks: np.ndarray, rcond: float = 1e-9) -> np.ndarr
 def _complement(X: np.ndarray, Q: np.ndarray, rcond: float = 1e-6) -> np.ndarray:
     """Orthonormal basis of what X adds beyond span(Q) (Q orthonormal). Directions that are mostly in
     span(Q) (kept fraction below sqrt(rcond)) count as absorbed."""
+    return _complement_map(X, Q, rcond)[0]
+
+
+def _complement_map(X: np.ndarray, Q: np.ndarray,
+                    rcond: float = 1e-6) -> tuple[np.ndarray, Callable[[np.ndarray, np.ndarray], np.ndarray]]:
+    """:func:`_complement` B of X beyond span(Q), and the map from any linear image of X and Q to that
+    of B: ``image(L @ X, L @ Q) == L @ B`` (B is X's columns less their part in Q, times a small matrix).
+    So the nulls' projections on B come from their projections on X, computed once, and on Q."""
     if X.shape[1] == 0:
-        return X
+        return X, lambda LX, LQ: LX
     norm = np.linalg.norm(X, axis=0)
-    Xn = X[:, norm > 0] / norm[norm > 0]
-    Xp = Xn - Q @ (Q.T @ Xn)
+    nz = norm > 0
+    Xn = X[:, nz] / norm[nz]
+    A = Q.T @ Xn
+    Xp = Xn - Q @ A
     # the basis from Xp's small Gram matrix, not a tall SVD: the same directions, since the kept ones
     # have s^2 = lam above rcond, far above the Gram matrix's rounding
     lam, V = np.linalg.eigh(Xp.T @ Xp)
     keep = lam > rcond
-    return Xp @ (V[:, keep] / np.sqrt(lam[keep]))
+    R = V[:, keep] / np.sqrt(lam[keep])
+    return Xp @ R, lambda LX, LQ: (LX[:, nz] / norm[nz] - LQ @ A) @ R
 
 
 def complement_statistic(X: np.ndarray, Q: np.ndarray, y: np.ndarray) -> float:
@@ -102,7 +113,7 @@ class Test:
 
 
 def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: float = 0,
-           m: Sequence[float] | None = None) -> None:
+           m: Sequence[float] | None = None, null_proj: Sequence[np.ndarray] | None = None) -> None:
     """Statistic, null-calibrated chi-square p and Bonferroni p of every test on whitened residual y.
 
     ``null`` holds whitened null residuals (K, 3N) from simulations; the statistic's null distribution
@@ -112,21 +123,24 @@ def _score(tests: list[Test], y: np.ndarray, null: np.ndarray | None, extra: flo
     itself uncertain (+-10 %), and a low draw's lighter tail made p several times too small far out (at
     1e-4, where the tests decide), while a high draw's heavier tail only cost a little power.
     ``extra`` counts other tests of the same round (the mains line search) in the correction; ``m``
-    gives each test its own count instead (the dictionary's blocks, each by its prior weight)."""
+    gives each test its own count instead (the dictionary's blocks, each by its prior weight).
+    ``null_proj``: each test's ``null @ basis`` where the caller has it (:func:`_complement_map`)."""
     live = [t for t in tests if t.df > 0]
     counts = [len(live) + extra] * len(tests) if m is None else list(m)
     calibrated = null is not None and len(null) >= 20
-    # the nulls against every test's basis in one product: the nulls are the large operand, read once
-    sims_all = null @ np.column_stack([t.basis for t in live]) if calibrated and live else None
-    start = 0
-    for t, mt in zip(tests, counts):
+    if calibrated and null_proj is None and live:
+        # the nulls against every test's basis in one product: the nulls are the large operand, read once
+        sims_all = null @ np.column_stack([t.basis for t in live])
+        ends = np.cumsum([t.df for t in live])
+        proj = iter(np.split(sims_all, ends[:-1], axis=1))
+        null_proj = [next(proj) if t.df > 0 else None for t in tests]
+    for k, (t, mt) in enumerate(zip(tests, counts)):
         if t.df == 0:
             continue
         t.statistic = float(np.sum((t.basis.T @ y) ** 2))
         c, nu = 1.0, float(t.df)
-        if sims_all is not None:
-            sims = np.sum(sims_all[:, start:start + t.df] ** 2, axis=1)
-            start += t.df
+        if calibrated and null_proj is not None:
+            sims = np.sum(null_proj[k] ** 2, axis=1)
             mean = float(np.mean(sims))
             t.bartlett = mean / t.df
             c = max(t.bartlett, 0.5)

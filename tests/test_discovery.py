@@ -978,3 +978,90 @@ def test_a_catalogue_effect_that_wins_a_near_tie_lists_the_generic_block_it_won_
     assert "gain in the sensor frame against time" in f["confusable_with"], f
     assert "offset in the lab frame against time" not in f["confusable_with"], f  # the field drift's own block
     assert "to tell it from gain in the sensor frame against time: repeat the first poses" in f["separating_experiment"], f
+
+
+def test_inverse_roots_give_the_statistic_over_the_kept_eigen_directions() -> None:
+    """_inverse_roots (a Cholesky factor where every direction is kept, scaled eigen-pairs elsewhere)
+    gives |T c|^2 = c^T G^+ c over the eigen-directions above the floor, and their number, for Gram
+    matrices of full rank, singular ones and ones with directions just below the floor."""
+    rng = np.random.default_rng(0)
+    for p in (1, 3, 6):
+        A = rng.normal(size=(300, p, p + 1))
+        G = A @ A.transpose(0, 2, 1)
+        G[:40, :, -1] = G[:40, -1, :] = 0.0  # singular
+        G[40:60] *= 1e-4  # every direction near the floor: some kept, some not
+        floor = np.full(300, 1e-3)
+        T, df = dv._inverse_roots(G, floor)
+        w, V = np.linalg.eigh(G)
+        keep = w > floor[:, None]
+        c = rng.normal(size=(300, p))
+        want = np.sum(np.where(keep, np.einsum("wpk,wp->wk", V, c) ** 2 / np.where(keep, w, 1.0), 0.0), axis=1)
+        assert np.array_equal(df, keep.sum(axis=1))
+        assert np.allclose(dv._window_stats(c, T), want, rtol=1e-9, atol=1e-12)
+        assert 0 < np.count_nonzero(df < p) < 300  # both branches were taken
+
+
+def _grid_windows(seed: int, n_bins: int = 16, p: int = 3):
+    """A _Windows of a random grid Gram matrix (as search_bins builds it) and window sums of random data."""
+    rng = np.random.default_rng(seed)
+    W = rng.normal(size=(60, n_bins * p))
+    G = (W.T @ W).reshape(n_bins, p, n_bins, p)
+    S = np.zeros((n_bins + 1, p, n_bins + 1, p))
+    S[1:, :, 1:, :] = np.cumsum(np.cumsum(G, axis=0), axis=2)
+    a, b = np.triu_indices(n_bins + 1, k=dv.MIN_BINS)
+    GW = S[b, :, b, :] - S[a, :, b, :] - S[b, :, a, :] + S[a, :, a, :]
+    scale = np.trace(GW, axis1=1, axis2=2) / p
+    c = rng.normal(size=(6, n_bins, p))
+    C = np.concatenate([np.zeros((6, 1, p)), np.cumsum(c, axis=1)], axis=1)
+    return (lambda: dv._Windows(a, b, S, 0.5 * (GW + GW.transpose(0, 2, 1)), scale)), C[:, b] - C[:, a], rng
+
+
+def test_the_pair_searches_run_in_step_find_what_each_finds_alone() -> None:
+    """best_pairs decomposes each step's new anchors together; every search must end where it ends when
+    run on its own (re-anchored one step at a time while the pair explains more)."""
+    new, cws, rng = _grid_windows(3)
+    starts = rng.integers(0, cws.shape[1], size=len(cws))
+    together = new().best_pairs(starts, cws)
+
+    def alone(i1: int, cw: np.ndarray):
+        w = new()
+        got, prev = w.pair(i1, cw), i1
+        for _ in range(dv.ASCENT_STEPS if got is not None else 0):
+            (j1, j2), st, _ = got
+            anchor = j2 if j1 == prev else j1
+            nxt = w.pair(anchor, cw)
+            if nxt is None or nxt[1] <= st + 1e-9:
+                break
+            got, prev = nxt, anchor
+        return got
+
+    for i, cw, got in zip(starts, cws, together):
+        want = alone(int(i), cw)
+        assert got is not None and want is not None
+        assert got[0] == want[0] and got[2] == want[2] and got[1] == pytest.approx(want[1], rel=1e-12)
+
+
+def test_the_smallest_p_of_each_null_is_found_among_each_ranks_largest_statistic() -> None:
+    """_smallest_p looks up only each rank's largest statistic: the same window and log p as the p of
+    every window gives."""
+    from physics.discrepancy.lrt import chi2_logsf
+    rng = np.random.default_rng(2)
+    df = rng.integers(1, 4, size=200)
+    stat = rng.chisquare(df[None, :], size=(50, 200)) * rng.uniform(0.5, 3.0, size=(50, 1))
+    first, lp = dv._smallest_p(stat, df)
+    every = chi2_logsf(stat, df[None, :])
+    assert np.array_equal(first, np.argmin(every, axis=1))
+    assert np.allclose(lp, np.min(every, axis=1), rtol=1e-12)
+
+
+def test_a_complements_map_gives_any_linear_image_of_its_basis() -> None:
+    """_complement_map's image(L X, L Q) is L B for the complement basis B of X beyond span(Q): the nulls'
+    projections on a block come from their projections on its columns and on the model."""
+    from physics.discrepancy.lrt import _complement, _complement_map
+    rng = np.random.default_rng(4)
+    Q = _orth(rng.normal(size=(400, 12)))
+    X = np.column_stack([rng.normal(size=(400, 3)), Q[:, :2] @ rng.normal(size=(2, 2)), np.zeros(400)])  # two absorbed, one empty
+    B, image = _complement_map(X, Q)
+    assert np.array_equal(B, _complement(X, Q)) and B.shape[1] == 3
+    L = rng.normal(size=(30, 400))
+    assert np.allclose(image(L @ X, L @ Q), L @ B, rtol=1e-9, atol=1e-9)

@@ -620,9 +620,10 @@ def _refit_windows(dic: Dictionary, found: list[Found], terms: dict[str, np.ndar
             # given the same others the search finds the same block: a second sweep searches again only
             # where an earlier replacement changed what the term is fitted with
             others = [Xw for name, Xw in terms.items() if name != f.name]
-            g = next((g for cols, g in searched if len(cols) == len(others) and all(a is b for a, b in zip(cols, others))),
-                     False)
-            if g is False:
+            seen = [g for cols, g in searched if len(cols) == len(others) and all(a is b for a, b in zip(cols, others))]
+            if seen:
+                g = seen[0]
+            else:
                 g = dic.choose(dic.round(Qo, y, null, alpha), Qo, y, null, alpha)
                 searched.append((others, g))
             if g is None or g.name in terms or g.test.evidence <= mine.evidence + SAME_EVIDENCE:

@@ -573,9 +573,8 @@ class _Windows:
         return first[ok], second[ok]
 
     def _union(self, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """Sets of windows (K, m) tied to one set of parameters, and the eigen-pairs of the Gram matrix of
-        each set's union (the windows' own blocks and their cross blocks): (sets, T, df), T and df of
-        :func:`_inverse_roots`."""
+        """Sets of windows (K, m) tied to one set of parameters, and the :func:`_inverse_roots` (T, df) of the
+        Gram matrix of each set's union (the windows' own blocks and their cross blocks): (sets, T, df)."""
         if not len(sets):
             return None
         m = sets.shape[1]
@@ -787,11 +786,10 @@ def window_statistics(X: np.ndarray, ctx: Context, noise: NoiseModel, Q: np.ndar
         cf = noise.phi * (1.0 - Kf)
         firsts = np.r_[True, sg[1:] != sg[:-1]]
         F = whiten_all(XR, noise, sg).reshape(3, n, p)
-        # and each sample's share of the Gram matrix of the stretch whitened unmasked (F): a window's
-        # whitened columns are F masked plus the corrections below, so its Gram matrix is its samples'
-        # shares plus the corrections' own terms
-        # (each window's projections on the common part: its stretch against the common part's
-        # adjoint-whitened rows there)
+        # each sample's shares, summed over each window's samples: of the projections on Q, on the common
+        # part (the stretch against that part's adjoint-whitened rows there) and on y, and of the Gram
+        # matrix of the stretch whitened unmasked (F). A window's whitened columns are F masked plus the
+        # corrections below, so its Gram matrix is its samples' shares plus the corrections' own terms
         per_row = np.concatenate([PQ[i0:i1], np.matmul(whiten_adjoint(BR, noise, sg).transpose(0, 2, 1), XR).reshape(n, -1),
                                   Py[i0:i1], np.einsum("jnp,jnq->npq", F, F).reshape(n, -1)], axis=1)  # (n, (q + p + 1 + p) p)
         # the corrections: at each sample b where a window's mask switches on (off), the decaying response
@@ -1021,25 +1019,33 @@ class Dictionary:
                 continue
             self.fixed[blk] = (cols[0], whiten_all(cols[0], noise, ctx.segment), cols[1])
         self._weight_total = sum(_weight(b) for b in [*self.fixed, *self.windowed])
-        self._nulls: tuple[np.ndarray, list[np.ndarray]] | None = None
-        self._bins: dict[tuple[str, str], tuple[np.ndarray | None, BinnedColumns]] = {}
+        # what depends only on the columns and the simulated nulls (one set per analysis), kept for the
+        # nulls last asked about: the fixed blocks' null @ Xw, the windowed blocks' BinnedColumns
+        self._null: np.ndarray | None = None
+        self._null_cols: list[np.ndarray] | None = None
+        self._bins: dict[tuple[str, str], BinnedColumns] = {}
         self.untestable = [{"effect": "discovered", "reason": f"blocks {'in the' if 'stage' in dep else 'against'} {dep}: {why}"}
                            for dep, why in untestable.items()]
 
+    def _for_nulls(self, null: np.ndarray | None) -> None:
+        """Forget what was kept for other nulls than ``null``."""
+        if self._null is not null:
+            self._null, self._null_cols, self._bins = null, None, {}
+
     def _null_columns(self, null: np.ndarray) -> list[np.ndarray]:
-        """``null @ Xw`` for each fixed block's whitened columns (in :attr:`fixed`'s order), kept for the
-        nulls last asked about (one set per analysis)."""
-        if self._nulls is None or self._nulls[0] is not null:
-            self._nulls = (null, [null @ Xw for _, Xw, _ in self.fixed.values()])
-        return self._nulls[1]
+        """``null @ Xw`` for each fixed block's whitened columns (in :attr:`fixed`'s order)."""
+        self._for_nulls(null)
+        if self._null_cols is None:
+            self._null_cols = [null @ Xw for _, Xw, _ in self.fixed.values()]
+        return self._null_cols
 
     def _binned(self, blk: Block, null: np.ndarray | None) -> BinnedColumns:
-        """:func:`bin_columns` of windowed block ``blk``'s base columns, kept per frame and form for the
-        nulls last asked about."""
+        """:func:`bin_columns` of windowed block ``blk``'s base columns (kept per frame and form)."""
+        self._for_nulls(null)
         key = (blk.frame, blk.form)
-        if key not in self._bins or self._bins[key][0] is not null:
-            self._bins[key] = (null, bin_columns(self.base[key][0], self.ctx, self.noise, null))
-        return self._bins[key][1]
+        if key not in self._bins:
+            self._bins[key] = bin_columns(self.base[key][0], self.ctx, self.noise, null)
+        return self._bins[key]
 
     @property
     def family(self) -> int:

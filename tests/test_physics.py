@@ -422,3 +422,20 @@ def test_the_staged_heading_error_is_kept_as_max_and_rms():
     q = fit(rec).quality
     for stage, worst in q["heading_error_deg"].items():
         assert 0.0 < q["heading_error_rms_deg"][stage] <= worst, (stage, q["heading_error_rms_deg"], worst)
+
+
+def test_a_long_recording_s_field_search_on_thinned_samples_finds_the_fit_of_all_of_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The joint fit chooses among its thirteen starting field directions on every few samples of a long
+    recording (physics.errorsep.START_SAMPLES) and refines on all of them: the calibration is that of the
+    search on every sample, to a small fraction of its own 1 sigma, and a short recording is searched whole."""
+    from physics import errorsep as es
+    unit = random_unit(np.random.default_rng(8), mag_noise_lsb=3.0)
+    rec = simulate_recording(unit, calibration_poses(CalibrateParams(samples=500)), World(62.0, 140.0),
+                             rng=np.random.default_rng(8))
+    assert len(rec) > 2 * es.START_SAMPLES
+    thinned = fit(rec, "joint", bootstrap=0)
+    monkeypatch.setattr(es, "START_SAMPLES", 10 ** 9)
+    whole = fit(rec, "joint", bootstrap=0)
+    sigma = np.asarray(whole.sigma["k"], dtype=float)
+    assert np.all(np.abs(thinned.mag.k - whole.mag.k) < 0.01 * sigma), (thinned.mag.k - whole.mag.k, sigma)
+    assert np.allclose(thinned.mag.bias, whole.mag.bias, rtol=0, atol=0.01 * np.max(np.asarray(whole.sigma["bias"])))

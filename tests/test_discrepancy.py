@@ -445,3 +445,20 @@ def test_the_level_heading_errors_noise_is_the_scatter_of_clean_recordings() -> 
     ctx, y = context(rec), np.asarray(rec.mag, float)
     nom = fit_nominal(ctx, y)
     assert _heading_noise(ctx, y, nom, estimate_noise(y - nom.predict(ctx), ctx)) == pytest.approx(2 * noise_rms[0], rel=0.15)
+
+
+def test_ljung_box_is_the_textbook_statistic_on_any_layout_and_chi_square_on_white_columns() -> None:
+    """noise.ljung_box on a transposed (non-contiguous) array, as the whiteness check passes it, equals
+    n (n + 2) sum_k rho_k^2 / (n - k) computed one column at a time; on white columns its mean is the lags'
+    count (chi-square), and an AR(1) column with phi 0.5 is far above it."""
+    from scipy.signal import lfilter
+    from physics.discrepancy.noise import ljung_box
+    rng = np.random.default_rng(3)
+    E = rng.normal(size=(400, 2000)).T
+    E[:, 0] = lfilter([1.0], [1.0, -0.5], E[:, 0])
+    q = ljung_box(E, 10)
+    for j in (0, 1, 399):
+        x = E[:, j] - E[:, j].mean()
+        rho = np.array([np.dot(x[k:], x[:-k]) for k in range(1, 11)]) / np.dot(x, x)
+        assert q[j] == pytest.approx(2000 * 2002 * np.sum(rho ** 2 / (2000 - np.arange(1, 11))), rel=1e-10)
+    assert abs(np.mean(q[1:]) - 10.0) < 1.0 and q[0] > 300.0

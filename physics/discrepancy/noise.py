@@ -118,11 +118,13 @@ def ljung_box(E: np.ndarray, lags: int) -> np.ndarray:
     """The Ljung-Box statistic of each column of the whitened residuals ``E`` (n, S), over ``lags`` lags:
     chi-square with ``lags`` degrees of freedom for each column that is white."""
     n = E.shape[0]
-    x = E - E.mean(axis=0)
-    den = np.maximum(np.sum(x * x, axis=0), 1e-300)
+    # contiguous, and the lag products summed without forming them: on 200 nulls of a 19 000-sample
+    # recording each product was a 90-MB temporary, and the test took 1.4 s instead of 0.2
+    x = np.ascontiguousarray(E - E.mean(axis=0))
+    den = np.maximum(np.einsum("ij,ij->j", x, x), 1e-300)
     q = np.zeros(E.shape[1])
     for k in range(1, lags + 1):
-        q += (np.sum(x[k:] * x[:-k], axis=0) / den) ** 2 / (n - k)
+        q += (np.einsum("ij,ij->j", x[k:], x[:-k]) / den) ** 2 / (n - k)
     return n * (n + 2) * q
 
 

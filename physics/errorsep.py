@@ -399,15 +399,15 @@ def fit_vector_sensor(R: np.ndarray, raw: np.ndarray, starts: list[np.ndarray]) 
     covariance reflects the noise actually present.
     """
     def objective(t: np.ndarray, ref: np.ndarray, basis: np.ndarray, w: np.ndarray,
-                  R: np.ndarray = R, raw: np.ndarray = raw) -> np.ndarray:
+                  R: np.ndarray, raw: np.ndarray) -> np.ndarray:
         v = ref + t @ basis
         _, r = _linear_solve(R, raw, v / np.linalg.norm(v))
         return (r * w).ravel()
 
     weights = np.ones(3)
     best_v, best_cost = None, np.inf
-    # the starts only pick the basin, which every START_SAMPLES-th sample shows as well as all of them; the
-    # refinement below is on every sample (a 19 000-sample recording's thirteen starts took a second)
+    # the starts only pick the basin, which about START_SAMPLES evenly spread samples show as well as all of
+    # them; the refinement below is on every sample (a 19 000-sample recording's thirteen starts took a second)
     step = -(-len(R) // START_SAMPLES)
     for v0 in starts:
         v0 = v0 / np.linalg.norm(v0)
@@ -422,7 +422,7 @@ def fit_vector_sensor(R: np.ndarray, raw: np.ndarray, starts: list[np.ndarray]) 
         noise = np.sqrt(np.sum(r * r, axis=0) / max(len(raw) - 5, 1))
         weights = 1.0 / np.maximum(noise, 1e-9 * np.abs(raw).max())
         basis = _tangent_basis(best_v)
-        sol = least_squares(objective, np.zeros(2), args=(best_v, basis, weights), method="lm")
+        sol = least_squares(objective, np.zeros(2), args=(best_v, basis, weights, R, raw), method="lm")
         v = best_v + sol.x @ basis
         best_v = v / np.linalg.norm(v)
     coef, r = _linear_solve(R, raw, best_v)

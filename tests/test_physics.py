@@ -432,10 +432,16 @@ def test_a_long_recording_s_field_search_on_thinned_samples_finds_the_fit_of_all
     unit = random_unit(np.random.default_rng(8), mag_noise_lsb=3.0)
     rec = simulate_recording(unit, calibration_poses(CalibrateParams(samples=500)), World(62.0, 140.0),
                              rng=np.random.default_rng(8))
-    assert len(rec) > 2 * es.START_SAMPLES
+    default = es.START_SAMPLES
+    assert len(rec) > 2 * default
     thinned = fit(rec, "joint", bootstrap=0)
     monkeypatch.setattr(es, "START_SAMPLES", 10 ** 9)
     whole = fit(rec, "joint", bootstrap=0)
     sigma = np.asarray(whole.sigma["k"], dtype=float)
     assert np.all(np.abs(thinned.mag.k - whole.mag.k) < 0.01 * sigma), (thinned.mag.k - whole.mag.k, sigma)
     assert np.allclose(thinned.mag.bias, whole.mag.bias, rtol=0, atol=0.01 * np.max(np.asarray(whole.sigma["bias"])))
+    short = simulate_recording(unit, calibration_poses(CalibrateParams()), World(62.0, 140.0), rng=np.random.default_rng(8))
+    assert len(short) <= default
+    alone = fit(short, "joint", bootstrap=0)
+    monkeypatch.setattr(es, "START_SAMPLES", default)
+    assert np.array_equal(fit(short, "joint", bootstrap=0).mag.M, alone.mag.M)

@@ -92,9 +92,11 @@ def test_calibrate_two_units_at_time_scale_20(tmp_path: Path):
         # unit's level error ranged 0.020-0.031 deg unloaded, its 99 % bound 0.031)
         bound = unit_precision(rec, cal).quantile(0.99)
         assert s["level_max"] < 1.5 * bound["level"] and s["tilted_max"] < 1.5 * bound["tilted"], (serial, s, bound)
-        # and those bounds are tight: the random unit's level bound was 0.030-0.033 in 12 idle runs; on a machine
-        # running other work beside the suite it once came to 0.0350 (the pose scatter the fit then measures
-        # widens it, as it should), so the check is against a vacuous bound, not against that
+        # and those bounds are tight: the random unit's level bound was 0.030-0.033 in 12 idle runs and 0.030-0.034
+        # in 18 runs beside 1-3 busy processes (2026-12-03: the residuals equal the holds' scatter either way, so
+        # load does not widen it; it once came to 0.0350 under CI). The check is against a vacuous bound, not that.
+        # (Idle runs repeat much of the simulator's seeded noise draws, so their errors are not independent: the
+        # random unit's level error was 0.009-0.036 idle, 0.010-0.018 beside three busy processes.)
         assert bound["level"] < 0.04 and bound["tilted"] < 0.065, (serial, bound)
     progress = [e.percent for e in events if isinstance(e, Progress)]
     assert progress == sorted(progress) and progress[-1] == 100.0

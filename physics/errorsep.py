@@ -395,7 +395,7 @@ START_SAMPLES = 4000
 def fit_vector_sensor(R: np.ndarray, raw: np.ndarray, starts: list[np.ndarray]) -> VectorFit:
     """Joint fit of ``raw = M R^T v + b`` over every sample; the best of several starting directions.
 
-    Each axis is weighted by its own residual noise (estimated, then refitted once), so the
+    Each axis is weighted by its own residual noise (estimated from the residuals, then the field refined, twice over), so the
     covariance reflects the noise actually present.
     """
     def objective(t: np.ndarray, ref: np.ndarray, basis: np.ndarray, w: np.ndarray,

@@ -159,6 +159,27 @@ def test_an_offset_that_appeared_during_a_move_is_placed_in_that_move() -> None:
     assert inside >= 6
 
 
+def test_a_departure_present_from_the_start_of_the_run_is_placed_there_not_a_few_samples_in() -> None:
+    """An offset present from the run's start to its middle (or from the middle to its end, which the
+    nominal bias makes the same departure): the window begins before the first sample, so that neither it
+    nor its complement has a sliver of a few samples at the start ("from 0.0 s to 0.1 s"). When the edge's
+    candidate before the run weighed as one sample interval, 23 of these 24 began 0.05-3 s into the run."""
+    at_start = 0
+    for seed in range(12):
+        rec, _ = _recording(seed=seed)
+        t = rec.t
+        for first_half in (True, False):
+            m = (t < t[0] + 0.45 * np.ptp(t)) if first_half else (t >= t[0] + 0.55 * np.ptp(t))
+            off = np.random.default_rng(seed).standard_normal(3)
+            ctx, nom, noise, Q0, z = _whitened(_with(rec, np.outer(m, 1.5 * off / np.linalg.norm(off))))
+            X, _ = dv.base_columns(ctx, nom, "sensor", "offset")
+            ws = dv.search_windows(X, ctx, noise, Q0, z, None)
+            assert ws is not None
+            t0, _ = dv.refine_window(X, ctx, noise, Q0, z, ws.a, ws.b)
+            at_start += t0 < t[0]
+    assert at_start >= 20, at_start
+
+
 def _visits(seed: int, visits: list[tuple[float, float]], offset: list[float]):
     """A recording with a sensor offset in each of ``visits`` (fractions of the run), and the window
     search's result on it: (recording, search, (X, ctx, noise, Q0, z), time of a grid bin)."""

@@ -853,10 +853,15 @@ def _cells(ctx: Context, lo_t: float, hi_t: float, limit: int, before: bool, aft
     cells = [(tuple(g), bounds[i], bounds[i + 1]) for i, g in enumerate(gaps)]
     before, after = before and lo_t <= t[0], after and hi_t >= t[-1]
     dt = float(np.median(np.diff(t))) if (before or after) and len(t) > 1 else 1.0  # only a pseudo-candidate needs it
+    # the time a pseudo-candidate stands for: a departure present when the run began may have begun at any
+    # time before it, so its cell weighs as one bin of the window search (the resolution the search has),
+    # not as one sample interval (then a flat statistic put the edge 0.05-3 s into the run in 23 of 24
+    # windows that ran from the start, and a window's complement began with a sliver "from 0.0 s to 0.1 s")
+    w = max(dt, float(np.ptp(t)) / N_BINS)
     if before:
-        cells.insert(0, ((t[0] - dt, t[0]), t[0] - dt, t[0]))
+        cells.insert(0, ((t[0] - dt, t[0]), t[0] - w, t[0]))
     if after:
-        cells.append(((t[-1], t[-1] + dt), t[-1], t[-1] + dt))
+        cells.append(((t[-1], t[-1] + dt), t[-1], t[-1] + w))
     return cells
 
 

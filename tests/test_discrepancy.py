@@ -197,6 +197,24 @@ def test_a_platform_magnet_shows_as_a_parameter_shift_against_the_units_calibrat
     assert r["summary"].startswith("The nominal parameters themselves depart from the unit's calibration") and "unexplained" not in r["summary"]
 
 
+def test_a_unit_whose_own_fit_is_unusual_is_flagged_but_not_called_a_discrepancy() -> None:
+    """Axis sensitivities 40 % apart and a bias of 4 fields (discrete sensors, a magnet in the housing): the
+    nominal model fits the readings to their noise, so the verdict is "consistent" and the unusual parameters
+    are a flag beside it (an outside probe's clean units drawn with each axis's k apart were all called
+    discrepancies by the parameters alone, where the attitude-free model already said "consistent")."""
+    u = _unit()
+    k = u.mag.k * np.array([1.0, 1.4, 0.9])
+    odd = replace(u, mag=replace(u.mag, k=k, bias=np.array([4.0 * k[0], 0.0, -50.0])))
+    r = analyze(_record([], unit=odd)[0], null_sims=0).result
+    [shift] = [f for f in r["findings"] if f["effect"] == fx.PARAMETER_SHIFT]
+    mismatch = np.ptp(k) / np.median(k)
+    assert shift["parameters"]["k_mismatch"] == pytest.approx(mismatch, abs=0.01)
+    assert max(shift["parameters"]["bias_in_fields"]) == pytest.approx(4.0, abs=0.05)
+    assert "Not a departure by itself" in shift["explanation"] and f"{100 * mismatch:.0f} % apart" in shift["explanation"]
+    assert r["verdict"] == "consistent" and "unusual for one unit" in r["summary"], r["summary"]
+    assert [f["effect"] for f in r["findings"]] == [fx.PARAMETER_SHIFT]
+
+
 def test_a_recording_that_cannot_determine_the_nominal_says_so() -> None:
     """A level turn alone (a run failed after it) leaves the z axis's part of M and the field free: its own fit
     (k of 333 where the unit has 1100) was called "consistent" with the unit's calibration, unjudged and

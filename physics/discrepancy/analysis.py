@@ -418,7 +418,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
     if not terms:
         heading_after, heading_rms_after = heading_before, heading_rms_before
     result: dict[str, Any] = {
-        "verdict": "discrepancy" if findings else "consistent",
+        "verdict": "discrepancy" if any(departs(f) for f in findings) else "consistent",
         "model": "table",
         "samples": int(len(rec)),
         "duration_s": float(np.ptp(ctx.t)),
@@ -998,13 +998,35 @@ def _parameter_findings(nom: Nominal, cal: Calibration | None, A0: np.ndarray, c
         what.append("a magnet on the platform or near the unit, or a temperature offset, moves the bias")
     if {"k_relative", "axis_change_deg", "k_mismatch", "misalignment_deg"} & (shifts.keys() | problems.keys()):
         what.append("soft iron on the platform, or a changed mounting, moves the matrix M")
+    unusual = [text for key, text in (
+        ("k_mismatch", f"axis sensitivities {100 * problems.get('k_mismatch', 0.0):.0f} % apart (beyond {100 * MAX_K_MISMATCH:.0f} %)"),
+        ("misalignment_deg", f"an axis {max(problems.get('misalignment_deg', [0.0])):.1f} deg off its body axis (beyond {MAX_MISALIGNMENT_DEG:g})"),
+        ("bias_in_fields", f"a bias of {max(problems.get('bias_in_fields', [0.0])):.1f} times the field (beyond {MAX_BIAS_FIELDS:g})"))
+        if key in problems]
+    said = ("The nominal model absorbs this completely, so it shows as parameters, not residuals: " + "; ".join(what) + ".")
+    if not shifts:
+        # no calibration to compare with: the model fits these readings, the parameters are only unusual for a unit
+        said = ("The recording's own fit is unusual for one unit (" + "; ".join(unusual) + "), though it fits the "
+                "readings to their noise: discrete sensors, or a unit assembled so, give it; or " + "; or ".join(what)
+                + ". Not a departure by itself: compare with the unit's calibration (--calibration) to see whether it changed.")
     return [{"effect": fx.PARAMETER_SHIFT, "statistic": None, "df": None, "p_value": None, "p_adjusted": None,
              "parameters": {**problems, **shifts}, "sigma": {}, "heading_impact_deg": None,
              "where": {"frame": "platform (absorbed by the nominal model)"},
-             "explanation": "The nominal model absorbs this completely, so it shows as parameters, not residuals: "
-                            + "; ".join(what) + ".",
+             "explanation": said,
              "confusable_with": [], "separating_experiment":
                  "calibrate again with the suspected part removed, or compare with the unit's calibration on another station"}]
+
+
+#: A parameter shift's parameters that compare the recording's fit with the unit's own calibration.
+SHIFT_KEYS = ("bias_lsb", "k_relative", "axis_change_deg")
+
+
+def departs(finding: dict[str, Any]) -> bool:
+    """Whether a finding is a departure from the model or the unit (what makes the verdict a discrepancy): every
+    finding but a parameter shift that only says the recording's own fit is unusual for a unit (its axes'
+    sensitivities far apart, say), which the nominal model fits to the noise. Discrete sensors differ by more
+    than one chip's axes do; a unit's departure from its own calibration is a departure."""
+    return finding["effect"] != fx.PARAMETER_SHIFT or any(k in finding["parameters"] for k in SHIFT_KEYS)
 
 
 def M_o_angle_change(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -109,7 +109,9 @@ def _verdict_sentence(result: dict[str, Any], modelled: list[dict[str, Any]], be
             parts = ([f"{len(missing)} catalogue effect(s) ({', '.join(missing)})"] if missing else []) + (
                 [f"{inputs} of the dictionary's inputs or frames"] if inputs else [])
             blind = f" It cannot show {' and '.join(parts)}: see untestable for what each needs."
-        return "The recording is consistent with the nominal model: nothing departs from it beyond the noise." + blind
+        unusual = "" if "parameter_shift" not in kinds else (
+            " Its fitted parameters are unusual for one unit, though they fit the readings: see the parameter shift.")
+        return "The recording is consistent with the nominal model: nothing departs from it beyond the noise." + unusual + blind
     shifted = ("The nominal parameters themselves depart from the unit's calibration or from a plausible unit: "
                "see the parameter shift, which the nominal model absorbs (nothing of it is left in the residual).")
     if kinds == {"parameter_shift"}:

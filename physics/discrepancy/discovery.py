@@ -115,6 +115,9 @@ class Found:
     segments: list[list[float]] = field(default_factory=list)
     m_eff: float = 1.0
     alike: list[str] = field(default_factory=list)  # blocks this recording cannot tell from this one
+    #: the times between the windows, where the nominal model takes in the block held constant (they are then
+    #: the same departure, of the opposite sign); empty otherwise
+    complement: list[list[float]] = field(default_factory=list)
 
     @property
     def name(self) -> str:
@@ -1104,11 +1107,7 @@ class Dictionary:
                     if fixed is None:
                         fixed = transposed(ctx, noise, Q, y)
                     edges[k] = refine_window(X, ctx, noise, Q, y, a, b, other=other, fixed=fixed)
-            segs = sorted(seg for e in edges for seg in segments_of(ctx, e[0], e[1]))
-            if self.absorbed[(blk.frame, blk.form)] and _disjoint(segs) and sum(e - s for s, e in segs) > 0.5 * span:
-                # where the nominal model takes the block held constant, windows and the times between them
-                # are the same departure: the shorter state is reported as the one something came in
-                segs = _gaps(ctx, segs)
+            segs, between = self._states(blk, sorted(seg for e in edges for seg in segments_of(ctx, e[0], e[1])))
             Xs, Xw, t = self._in_windows(blk, segs, Q)
             t.statistic = float(np.sum((t.basis.T @ y) ** 2))
             t.p_value = float(np.exp(ws.log_p))
@@ -1117,8 +1116,23 @@ class Dictionary:
             t.search = max(ws.log_p - ws.log_p_single, 0.0)
             if refined:
                 best_refined = max(best_refined, t.statistic)
-            cands.append(Found(blk, Xs, Xw, lab, t, segs, ws.m_eff))
+            cands.append(Found(blk, Xs, Xw, lab, t, segs, ws.m_eff, complement=between))
         return cands
+
+    def _states(self, blk: Block, segs: list[list[float]]) -> tuple[list[list[float]], list[list[float]]]:
+        """The windows to report of ``blk`` present in sorted ``segs``, and the times between them where those
+        are the same departure (the nominal model takes in the block held constant): of the two, the one with
+        fewer segments, then the shorter. One visit in the run's middle is one window, however long (it had
+        been reported as present at the start and again at the end, its complement, when over half the run)."""
+        if not (self.absorbed[(blk.frame, blk.form)] and _disjoint(segs)):
+            return segs, []
+        between = _gaps(self.ctx, segs)
+        if not between:
+            return segs, []
+        length = lambda ss: sum(e - s for s, e in ss)  # noqa: E731
+        if (len(between), length(between)) < (len(segs), length(segs)):
+            return between, segs
+        return segs, between
 
     def _in_windows(self, blk: Block, segments: list[list[float]], Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, Test]:
         """Windowed block ``blk``'s columns present only in ``segments`` (raw and whitened) and its test
@@ -1144,7 +1158,8 @@ class Dictionary:
             t.search = f.test.search  # the same windows, searched once
             t.log_p = float(min(0.0, t.log_p + t.search))
             if t.df > 0:
-                cands.append(Found(blk, Xs, Xw, lab, t, f.segments, f.m_eff))
+                cands.append(Found(blk, Xs, Xw, lab, t, f.segments, f.m_eff,
+                                   complement=self._states(blk, f.segments)[1]))
         mine = next((c for c in cands if c.block == f.block), None)
         if mine is None:
             return f
@@ -1457,12 +1472,13 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
         when = ", present " + " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
     dep = "" if blk.windowed else f", {AGAINST_TEXT.get(blk.dependence, blk.dependence)}"
     cause = (INTERMITTENT if len(segs) > 1 else _cause(blk))
-    edge = 0.02 * max(float(np.ptp(ctx.t)), 1e-9)
-    if len(segs) == 2 and segs[0][0] - ctx.t[0] <= edge and ctx.t[-1] - segs[1][1] <= edge:
-        # at the start and at the end: the nominal model takes in what is constant through the run, so this
-        # is as well one departure of the opposite sign in between (one magnet put down and taken away)
-        cause = (f"as well, one departure of the opposite sign from {segs[0][1]:.1f} s to {segs[1][0]:.1f} s alone (the "
-                 f"nominal model takes in what is constant through the run): {_cause(blk)}; or {INTERMITTENT}")
+    if f.complement and len(f.complement) != len(segs):
+        # the nominal model takes in what is constant through the run, so the times between are as well the
+        # same departure of the opposite sign: said where that is another story (present at the start, taken
+        # away and put back), not where both say "it changed at this time"
+        other = " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in f.complement)
+        cause = (f"{cause}; or, the same to these data, one of the opposite sign present {other} (the nominal model "
+                 "takes in what is constant through the run)")
     explanation = f"{FORM_TEXT[blk.form]} of {size} {FRAME_TEXT[blk.frame]}{dep}{when}: {cause}. " + FOUND_BY_SEARCH
     if not plausible:
         explanation += " " + IMPLAUSIBLE

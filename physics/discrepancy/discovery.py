@@ -1124,15 +1124,18 @@ class Dictionary:
         are the same departure (the nominal model takes in the block held constant): of the two, the one with
         fewer segments, then the shorter. One visit in the run's middle is one window, however long (it had
         been reported as present at the start and again at the end, its complement, when over half the run)."""
-        if not (self.absorbed[(blk.frame, blk.form)] and _disjoint(segs)):
-            return segs, []
-        between = _gaps(self.ctx, segs)
-        if not between:
-            return segs, []
+        between = self._between(blk, segs)
         length = lambda ss: sum(e - s for s, e in ss)  # noqa: E731
-        if (len(between), length(between)) < (len(segs), length(segs)):
+        if between and (len(between), length(between)) < (len(segs), length(segs)):
             return between, segs
         return segs, between
+
+    def _between(self, blk: Block, segs: list[list[float]]) -> list[list[float]]:
+        """The times between sorted ``segs`` where they are the same departure as ``blk`` in ``segs`` (the
+        nominal model takes in the block held constant); empty otherwise."""
+        if not (self.absorbed[(blk.frame, blk.form)] and _disjoint(segs)):
+            return []
+        return _gaps(self.ctx, segs)
 
     def _in_windows(self, blk: Block, segments: list[list[float]], Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, Test]:
         """Windowed block ``blk``'s columns present only in ``segments`` (raw and whitened) and its test
@@ -1158,8 +1161,7 @@ class Dictionary:
             t.search = f.test.search  # the same windows, searched once
             t.log_p = float(min(0.0, t.log_p + t.search))
             if t.df > 0:
-                cands.append(Found(blk, Xs, Xw, lab, t, f.segments, f.m_eff,
-                                   complement=self._states(blk, f.segments)[1]))
+                cands.append(Found(blk, Xs, Xw, lab, t, f.segments, f.m_eff, complement=self._between(blk, f.segments)))
         mine = next((c for c in cands if c.block == f.block), None)
         if mine is None:
             return f

@@ -925,6 +925,32 @@ def test_a_room_field_changing_size_and_one_gain_on_every_axis_are_said_to_look_
             f"{rec.t[-1]:.1f} s") in f["explanation"], f
 
 
+def test_a_window_that_reaches_the_run_s_end_is_said_as_one_change_at_one_time() -> None:
+    """A unit knocked in its fixture at 60 s (its axes turned by 0.5 deg about z from then on): the nominal
+    model takes in what is constant through the run, so the window found reaches the start or the end of
+    the run, and the explanation says the one change ("one change, at 60.0 s ... at that time"), not that
+    the unit moved "for that time" from the first sample to 60 s."""
+    rec, unit = _recording(seed=3)
+    after = rec.t >= 60.0
+    c, s_ = np.cos(np.radians(0.5)), np.sin(np.radians(0.5))
+    turn = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    extra = ((rec.mag - unit.mag.bias) @ (turn.T - np.eye(3))) * after[:, None]
+    a = analyze(_with(rec, extra), null_sims=100, seed=2).result
+    [f] = [f for f in a["findings"] if f["effect"] == "discovered"]
+    assert f["model"]["form"] == "rotation" and f["model"]["frame"] in ("sensor", "platform"), f
+    [(s0, e0)] = f["model"]["segments"]
+    change = e0 if s0 <= rec.t[0] + 0.05 else s0
+    assert abs(change - 60.0) < 0.05 * np.ptp(rec.t), f
+    assert f"(one change, at {change:.1f} s)" in f["explanation"] and "at that time" in f["explanation"], f
+    assert "for that time" not in f["explanation"], f
+    assert f"what changed at {change:.1f} s;" in f["separating_experiment"], f
+    # a window inside the run is still said as a visit
+    assert dv.step_time([[20.0, 40.0]], rec.t) is None
+    assert dv.window_text([[20.0, 40.0]], None) == ", present from 20.0 s to 40.0 s"
+    assert dv.step_time([[rec.t[0] - 1.0, 40.0]], rec.t) == 40.0
+    assert dv.step_time([[40.0, rec.t[-1]]], rec.t) == 40.0
+
+
 def test_a_summary_does_not_call_a_worse_fit_an_improvement() -> None:
     """Effects that predict held-out data better while the residual or the level heading error grows: the
     summary says which figure got worse (it said "improves the fit" over 9.11 -> 9.7 LSB, 0.05 -> 0.31 deg)."""

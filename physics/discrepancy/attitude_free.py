@@ -68,7 +68,7 @@ from scipy.special import eval_legendre
 from physics.calibration import json_safe
 from physics.discrepancy.discovery import (AGAINST_TEXT, FOUND_BY_SEARCH, FRAME_TEXT, IMPLAUSIBLE, INTERMITTENT, KEEP_SHARE,
                                            N_BINS, SLOW_PREFERENCE, SLOW_SAME_EVIDENCE, Block, _cause, confirming_experiment,
-                                           _inverse_roots, _window_stats, search_bins, ut_per_count)
+                                           _inverse_roots, _window_stats, search_bins, step_time, ut_per_count, window_text)
 from physics.discrepancy.lrt import _orth
 from physics.discrepancy.noise import ljung_box, require_noise
 from physics.discrepancy.registry import (FreeRows, dip_columns, free_blocks, free_generic, magnitude_columns,
@@ -1328,8 +1328,11 @@ def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, 
     frame, segs = tt.extra["frame"], tt.extra["segments"]
     mask = _inside(d.t, segs)
     block = Block(frame, "offset", "segments")
-    cause = INTERMITTENT if len(segs) > 1 else _cause(block)
-    when = " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
+    # the bias (an offset on the unit) and the field's size (one in the room) take in what is constant
+    # through the run: a window that reaches its start or end is one change at one time
+    step = step_time(segs, d.t)
+    cause = INTERMITTENT if len(segs) > 1 else _cause(block, step is not None)
+    when = window_text(segs, step)
     impact: float | None
     if frame == "sensor":
         lsb, lsb_sd = np.where(sh.resolved, coef, np.nan), np.where(sh.resolved, se, np.nan)  # an axis in-plane data leave unseen: n/a
@@ -1344,7 +1347,7 @@ def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, 
             size += f" ({100 * float(np.linalg.norm(np.nan_to_num(lsb / sh.k))):.2g} % of the field)"
         impact = _perp_impact(sh, d.mag, mask[:, None] * np.nan_to_num(lsb)[None, :], cos_dip)
         plausible = bool(np.linalg.norm(np.nan_to_num(lsb / sh.k)) < 2.0)
-        expl = f"An offset of {size} {FRAME_TEXT['sensor']}, present {when}: {cause}."
+        expl = f"An offset of {size} {FRAME_TEXT['sensor']}{when}: {cause}."
     else:
         along, along_sd = float(coef[0]), float(se[0])
         params = {"labels": ["along_field"], "values": [along], "along_field_pct": 100 * along,
@@ -1356,11 +1359,11 @@ def _window_finding(tt: _Test, coef: np.ndarray, se: np.ndarray, nom: _Nominal, 
             part += f" and a turn of {math.degrees(dip[0]):.2g} +- {math.degrees(dip[1]):.1g} deg of its dip"
         impact = None  # the horizontal part across the field turns the heading, but needs a heading reference
         plausible = bool(abs(along) < 1.0)
-        expl = (f"A change of the field {FRAME_TEXT['lab']}, present {when}: {part}; {cause}. Its horizontal "
+        expl = (f"A change of the field {FRAME_TEXT['lab']}{when}: {part}; {cause}. Its horizontal "
                 "part across the field, which turns the heading, does not show without a heading reference.")
     expl += " " + FOUND_BY_SEARCH + ("" if plausible else " " + IMPLAUSIBLE)
     alike = list(tt.extra.get("alike", []))
-    experiment = confirming_experiment(block, segs)
+    experiment = confirming_experiment(block, segs, step)
     if alike:
         expl += f" This recording cannot tell it from an offset {FRAME_TEXT[alike[0]]}; the one named fits better."
         experiment += ("; to tell them apart, turn the unit through several attitudes during that time (an offset on "

@@ -1353,21 +1353,25 @@ INTERMITTENT = ("with the same size each time: something switched on and off (a 
                 "or put back more than once")
 
 
-def _cause(block: Block) -> str:
-    """The likeliest physical cause of a block, in a technician's words."""
+def _cause(block: Block, step: bool = False) -> str:
+    """The likeliest physical cause of a block, in a technician's words. ``step``: a window that reaches the
+    run's start or end, which says one change at one time (its explanation then says "at that time")."""
     f, form, dep = block.frame, block.form, block.dependence
     if dep == "segments":
+        when = "at that time" if step else "for that time"
+        put = " or taken off it" if step else ""
         if form == "offset":
-            return {"sensor": "a magnetised object attached to the unit (or a current in its cable) for that time",
-                    "platform": "a magnetised object attached to the unit for that time",
-                    "lab": "a steel or magnetised object set down near the table (or the room's field changed) for that time",
-                    }.get(f, f"something magnetised placed on the {f} stage of the table for that time")
+            return {"sensor": f"a magnetised object attached to the unit{put} (or a current in its cable) {when}",
+                    "platform": f"a magnetised object attached to the unit{put} {when}",
+                    "lab": f"a steel or magnetised object set down near the table{' or taken away' if step else ''} "
+                           f"(or the room's field changed) {when}",
+                    }.get(f, f"something magnetised placed on the {f} stage of the table{put} {when}")
         if f in ("sensor", "platform"):
-            return ("the sensor's sensitivity changed for that time (supply voltage, range, a set/reset of the sensing "
-                    "element)" if form == "gain" else "the unit moved in its fixture for that time (knocked or re-seated)")
+            return (f"the sensor's sensitivity changed {when} (supply voltage, range, a set/reset of the sensing "
+                    f"element)" if form == "gain" else f"the unit moved in its fixture {when} (knocked or re-seated)")
         if f == "lab":
-            return "the room's field changed for that time"
-        return f"magnetisable material on the {f} stage for that time"
+            return f"the room's field changed {when}"
+        return f"magnetisable material on the {f} stage{put} {when}"
     if dep == "temp_c":
         return ("the sensitivity follows the temperature: the sensing element's scale factor has a temperature "
                 "coefficient" if form == "gain" else "the unit's response follows its temperature")
@@ -1384,9 +1388,38 @@ def _cause(block: Block) -> str:
     return f"a field that depends on {dep} (a cable or slip ring dragged by that axis, or a part whose position depends on it)"
 
 
-def confirming_experiment(block: Block, segments: list[list[float]]) -> str:
-    """The experiment that would confirm a discovered block."""
+def step_time(segments: list[list[float]], t: np.ndarray) -> float | None:
+    """The time of the one change a single window describes when it reaches the run's first or last sample
+    (within half a sample interval), else None."""
+    if len(segments) != 1 or len(t) < 2:
+        return None
+    a, b = segments[0]
+    tol = 0.5 * float(np.median(np.diff(t)))
+    if a <= float(t[0]) + tol and b < float(t[-1]) - tol:
+        return float(b)
+    if b >= float(t[-1]) - tol and a > float(t[0]) + tol:
+        return float(a)
+    return None
+
+
+def window_text(segments: list[list[float]], step: float | None) -> str:
+    """When a windowed departure is present, as its explanation says it (empty when not time-localised)."""
+    if not segments:
+        return ""
+    if step is not None:
+        side = f"before {step:.1f} s against after it" if segments[0][0] < step else f"from {step:.1f} s on against before it"
+        return f", {side} (one change, at {step:.1f} s)"
+    return ", present " + " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segments)
+
+
+
+def confirming_experiment(block: Block, segments: list[list[float]], step: float | None = None) -> str:
+    """The experiment that would confirm a discovered block (``step``: the one change a window that reaches
+    the run's start or end describes, see :func:`step_time`)."""
     dep = block.dependence
+    if dep == "segments" and step is not None:
+        return (f"check the station log for what changed at {step:.1f} s; repeat poses from before and after that "
+                "time with the suspected object removed and compare")
     if dep == "segments":
         when = ", ".join(f"{a:.1f} s and {b:.1f} s" for a, b in segments)
         return (f"check the station log for what changed at {when}; repeat poses from inside and outside that time "
@@ -1469,11 +1502,12 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
             else:
                 size = f"{_fmt(slope, slope_sd)} {unit} per {per_what} ({_fmt(span)} LSB over the run)"
     segs = f.segments
-    when = ""
-    if segs:
-        when = ", present " + " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segs)
+    # the nominal model takes in what is constant through the run: a window that reaches its start or end
+    # is then one change at one time (a unit knocked in its fixture at 48 s was "present from 0.3 s to 47.6 s")
+    step = step_time(segs, ctx.t) if f.complement else None
+    when = window_text(segs, step)
     dep = "" if blk.windowed else f", {AGAINST_TEXT.get(blk.dependence, blk.dependence)}"
-    cause = (INTERMITTENT if len(segs) > 1 else _cause(blk))
+    cause = (INTERMITTENT if len(segs) > 1 else _cause(blk, step is not None))
     if f.complement and len(f.complement) != len(segs):
         # the nominal model takes in what is constant through the run, so the times between are as well the
         # same departure of the opposite sign: said where that is another story (present at the start, taken
@@ -1484,7 +1518,7 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
     explanation = f"{FORM_TEXT[blk.form]} of {size} {FRAME_TEXT[blk.frame]}{dep}{when}: {cause}. " + FOUND_BY_SEARCH
     if not plausible:
         explanation += " " + IMPLAUSIBLE
-    experiment = confirming_experiment(blk, segs)
+    experiment = confirming_experiment(blk, segs, step)
     alike = list(f.alike)
     if blk.windowed and blk.form == "gain" and blk.frame in ("sensor", "platform") and \
             np.ptp(c[:3]) <= 3.0 * np.sqrt(2.0) * float(np.max(sd[:3])) + 0.1 * abs(float(np.mean(c[:3]))):

@@ -115,6 +115,7 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
     check_magnetometer(rec)
     rejected = screen_rows(rec)
     _require_good(rec, rejected)
+    _require_clustered(rec, rejected)
     work = _kept(rec, rejected)
     if rejected:
         check_magnetometer(work)
@@ -385,7 +386,11 @@ def screen_rows(rec: Recording) -> dict[int, str]:
         # nor below the noise from one held sample to the next: poses of a few repeats of one reading (an
         # optical reference's sample-and-hold) have a MAD of nothing, and ordinary readings of a hand-held
         # recording were dropped as 3810 sigma off (0.03 LSB against 24 of sample-to-sample noise)
-        idx = np.flatnonzero(multi)
+        # (between rows within GROSS_FRACTION of the amplitude of their pose's median: a step is bad when
+        # either of its rows is, so over all rows this floor broke down at 30 % garbage, not 50 %, and 40 %
+        # random accelerometer rows were all kept for a 26-deg calibration)
+        near = multi & ~np.any((np.abs(dev) > GROSS_FRACTION * amplitude) & (amplitude > 0), axis=1)
+        idx = np.flatnonzero(near)
         steps = np.diff(x[idx], axis=0)[np.diff(idx) == 1]
         step_sigma = _robust_sigma(steps, np.zeros(3)) / np.sqrt(2.0) if len(steps) >= 10 else np.zeros(3)
         sigma = _robust_sigma(dev[multi], np.maximum.reduce([np.full(3, 2e-4) * amplitude,
@@ -402,6 +407,44 @@ def screen_rows(rec: Recording) -> dict[int, str]:
             out.setdefault(int(i), f"{prefix + 'xyz'[a]} = {x[i, a]:g} is {abs(dev[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) "
                                    f"from the median of its pose's samples ({med[group[i], a]:g})")
     return out
+
+
+#: Rows of a hold tried as the centre of its densest cluster (:func:`scattered_rows`), at most about this many.
+CLUSTER_CENTRES = 200
+
+
+def scattered_rows(rec: Recording) -> np.ndarray:
+    """Rows of a hold (3 samples or more) outside the densest cluster of its readings (a mask): within
+    GROSS_FRACTION of the sensor's scale (its largest amplitude, or its readings' typical size) of the hold's
+    row that has the most others that close, on all three axes of both sensors. Where more than half of a hold's rows are garbage its median is one of
+    them and :func:`screen_rows` cannot tell (at 70 % random rows it dropped none of them, and the
+    comparison methods calibrated the garbage to 180 deg of error); a handful of good readings still lie
+    together, while random ones scatter over the sensor's whole range. Only counted, to refuse for the
+    right reason: a hold split between two real fields (a magnet brought near) would lose its smaller part."""
+    out = np.zeros(len(rec), bool)
+    if len(rec) == 0:
+        return out
+    group = pose_groups(rec)
+    n = np.bincount(group)
+    if not np.any(n >= 3):
+        return out
+    sensors = [rec.mag] + ([rec.acc] if rec.acc is not None and np.all(np.isfinite(rec.acc)) else [])
+    tol = []
+    for x in sensors:
+        # one scale for every axis, the sensor's: an axis that hardly turns (no sweep about y) has a span
+        # of a few counts, under its noise
+        med = np.array([np.median(x[group == g], axis=0) for g in np.flatnonzero(n >= 3)])
+        scale = max(0.5 * float(np.ptp(med, axis=0).max()), float(np.median(np.linalg.norm(x, axis=1))))
+        tol.append(GROSS_FRACTION * scale)
+    for g in np.flatnonzero(n >= 3):
+        rows = np.flatnonzero(group == g)
+        centres = rows[::max(1, len(rows) // CLUSTER_CENTRES)]  # a long hold: its cluster from a sample of rows
+        close = np.ones((len(centres), len(rows)), bool)
+        for x, tl in zip(sensors, tol):
+            close &= np.all(np.abs(x[centres][:, None, :] - x[rows][None, :, :]) <= max(tl, 1.0), axis=2)
+        out[rows] = ~close[int(np.argmax(close.sum(axis=1)))]
+    return out
+
 
 
 #: Samples taken on the move (a scan, or a recording without table angles) are compared with the median
@@ -632,6 +675,20 @@ def _require_good(rec: Recording, rejected: dict[int, str]) -> None:
                              f"({_reason_counts(rejected)}; first at sample indices {index_list(sorted(rejected))}), "
                              f"leaving {good}; the fit needs at least {100 * MIN_GOOD_FRACTION:.0f} % good rows. "
                              "Check the magnetometer's connection and supply, then record again")
+
+
+def _require_clustered(rec: Recording, rejected: dict[int, str]) -> None:
+    """Refuse, naming too few good samples as the reason, when more than MIN_GOOD_FRACTION of the rows are bad
+    counting the ones only :func:`scattered_rows` sees (holds mostly of garbage, whose medians are garbage too)."""
+    bad = scattered_rows(rec)
+    bad[list(rejected)] = True
+    if bad.sum() > (1.0 - MIN_GOOD_FRACTION) * len(rec):
+        holds = np.unique(pose_groups(rec)[bad])
+        raise RecordingError(f"too few good samples remain: {int(bad.sum())} of {len(rec)} rows lie apart from the other "
+                             f"readings of their hold (in {len(holds)} holds: more than half of many holds' samples are "
+                             f"garbage, so their medians are too), leaving {len(rec) - int(bad.sum())}; the fit needs at "
+                             f"least {100 * MIN_GOOD_FRACTION:.0f} % good rows. Check the compass's connection and "
+                             "supply, then record again")
 
 
 def _same_refusal(run: Callable[[Recording], Calibration], rec: Recording, e: Exception) -> bool:

@@ -394,3 +394,24 @@ def test_a_recording_of_many_poses_is_checked_for_its_angle_convention_on_a_samp
                                     rec.temp_c, dict(rec.meta))
     with pytest.raises(RecordingError, match="psi_t negated"):
         fit(flipped, "joint", bootstrap=0)
+
+
+@pytest.mark.parametrize("sensor", ["mag", "acc"])
+def test_forty_percent_random_rows_are_all_dropped_and_the_fit_stays_accurate(sensor: str, clean: dict[str, float]) -> None:
+    """40 % of one sensor's rows random int16 values: the screen's floor from one sample to the next broke
+    down at 30 % (a step is bad when either of its rows is), so 40 % random accelerometer rows were all kept
+    and the unit calibrated to 26 deg of error without a word; they are all dropped now, and nothing else."""
+    rec, bad = corrupt(_recording(), 0.4, "int16", sensor=sensor)
+    cal = fit(rec, "joint", bootstrap=0)
+    assert {r["index"] for r in cal.quality["rejected_rows"]} == bad
+    assert truth_summary(cal, UNIT, WORLD)["level_max"] <= 3.0 * clean["joint"]
+
+
+@pytest.mark.parametrize("method", ["joint", "deviation5", "ellipsoid"])
+def test_holds_mostly_of_garbage_are_refused_as_too_few_good_samples(method: str) -> None:
+    """70 % random magnetometer rows: each hold's median is garbage too, so the screen dropped nothing,
+    the joint fit blamed the units and angles, and deviation5 calibrated the garbage (180 deg, exit 0).
+    The good readings of each hold still lie together: every method refuses, for the right reason."""
+    rec, bad = corrupt(_recording(), 0.7, "int16")
+    with pytest.raises(RecordingError, match=f"too few good samples remain: {len(bad)} of {len(rec)} rows lie apart"):
+        fit(rec, method, bootstrap=0)

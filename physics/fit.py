@@ -366,6 +366,7 @@ def screen_rows(rec: Recording) -> dict[int, str]:
                                "(a field beyond the sensor's range: a strong magnet near the unit?)")
     if len(rec) == 0:
         return out
+    _screen_frozen(rec, out)
     group = pose_groups(rec)
     usable = np.ones(len(rec), bool)
     usable[list(out)] = False
@@ -407,6 +408,31 @@ def screen_rows(rec: Recording) -> dict[int, str]:
             out.setdefault(int(i), f"{prefix + 'xyz'[a]} = {x[i, a]:g} is {abs(dev[i, a]):.1f} LSB ({z[i, a]:.0f} sigma) "
                                    f"from the median of its pose's samples ({med[group[i], a]:g})")
     return out
+
+
+#: Readings whose noise from one sample to the next is above this (counts, every magnetometer axis) do not
+#: repeat on all six axes by chance (under 1 in 10^4 pairs): such a repeat is a frozen sensor.
+FROZEN_NOISE = 1.5
+
+
+def _screen_frozen(rec: Recording, out: dict[int, str]) -> None:
+    """Rows that repeat the previous row exactly on every magnetometer and accelerometer axis (a frozen
+    sensor, or a logger repeating its last frame) go, the first of each run kept, where the readings'
+    noise makes an exact repeat improbable (:data:`FROZEN_NOISE`; a quiet quantised sensor repeats
+    honestly). A stretch of them across a move put the old attitude's reading at the new one: 40 % of
+    such rows made the heading error 3-4 times the clean fit's."""
+    if rec.acc is None or not np.all(np.isfinite(rec.acc)) or len(rec) < 12:
+        return
+    same = np.r_[False, np.all(rec.mag[1:] == rec.mag[:-1], axis=1) & np.all(rec.acc[1:] == rec.acc[:-1], axis=1)]
+    if not same.any():
+        return
+    steps = np.diff(rec.mag, axis=0)
+    moved = steps[np.any(steps != 0.0, axis=1)]  # the repeats themselves say nothing of the noise
+    if len(moved) < 10 or not np.all(_robust_sigma(moved, np.zeros(3)) / np.sqrt(2.0) > FROZEN_NOISE):
+        return
+    for i in np.flatnonzero(same):
+        out.setdefault(int(i), "repeats the previous row exactly on all six axes (mx..az), which this noise does not "
+                               "do by chance: a frozen sensor or a repeated frame")
 
 
 #: Rows of a hold tried as the centre of its densest cluster (:func:`scattered_rows`), at most about this many.
@@ -711,10 +737,12 @@ def _too_few(rec: Recording, rejected: dict[int, str], e: Exception) -> Exceptio
 
 
 def reason_kind(reason: str) -> str:
-    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, bad table
-    angles, off its pose, off the model."""
+    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, frozen, bad
+    table angles, off its pose, off the model."""
     if reason.startswith("all three"):
         return "all zeros"
+    if reason.startswith("repeats the previous row"):
+        return "frozen"
     if reason.startswith("saturated"):
         return "saturated"
     if reason.startswith("table angle"):

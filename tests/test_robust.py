@@ -415,3 +415,26 @@ def test_holds_mostly_of_garbage_are_refused_as_too_few_good_samples(method: str
     rec, bad = corrupt(_recording(), 0.7, "int16")
     with pytest.raises(RecordingError, match=f"too few good samples remain: {len(bad)} of {len(rec)} rows lie apart"):
         fit(rec, method, bootstrap=0)
+
+
+def test_a_frozen_sensor_s_repeated_rows_are_dropped_but_a_quiet_sensor_s_are_not() -> None:
+    """Runs of 15 rows that repeat the previous row exactly on all six axes (a frozen compass, or a logger
+    repeating its last frame), 20 % of the rows: they are dropped, the first of each run kept, and named;
+    where the readings' noise is under a count, exact repeats are honest and stay."""
+    rec = _recording()
+    frozen: set[int] = set()
+    for start in np.random.default_rng(4).choice(np.arange(1, len(rec) - 16, 16), 7, replace=False):
+        rec.mag[start + 1:start + 16] = rec.mag[start]
+        rec.acc[start + 1:start + 16] = rec.acc[start]
+        frozen |= set(range(start + 1, start + 16))
+    cal = fit(rec, "joint", bootstrap=0)
+    rows = {r["index"]: r["reason"] for r in cal.quality["rejected_rows"]}
+    assert set(rows) == frozen
+    assert all(why.startswith("repeats the previous row exactly") for why in rows.values())
+    assert any("frozen" in n for n in cal.notes), cal.notes
+    quiet = simulate_recording(reference_unit(0.2, 0.2), calibration_poses(CalibrateParams(samples=30)), WORLD,
+                               rng=np.random.default_rng(3))
+    quiet.mag, quiet.acc = np.round(quiet.mag), np.round(quiet.acc)  # whole counts, as a compass reports them
+    repeats = np.all(quiet.mag[1:] == quiet.mag[:-1], axis=1) & np.all(quiet.acc[1:] == quiet.acc[:-1], axis=1)
+    assert repeats.sum() > 10  # whole counts at 0.2 LSB of noise repeat all the time
+    assert not any(why.startswith("repeats") for why in screen_rows(quiet).values())

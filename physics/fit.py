@@ -339,6 +339,11 @@ def _robust_sigma(x: np.ndarray, floor: np.ndarray) -> np.ndarray:
     return np.maximum(1.4826 * np.median(np.abs(x), axis=0), floor)
 
 
+#: A "pose" of fewer samples than this is a reference's sample-and-hold (a few repeats of one reading while
+#: the unit moves), whose scatter about its median is not the readings' noise.
+SAMPLE_HOLD_MAX = 10
+
+
 def screen_rows(rec: Recording) -> dict[int, str]:
     """Model-free screen of the magnetometer and accelerometer rows: {sample index: reason} of the
     ones to drop (a row goes as a whole: its attitude and its field were read together).
@@ -387,11 +392,10 @@ def screen_rows(rec: Recording) -> dict[int, str]:
         # nor below the noise from one held sample to the next: poses of a few repeats of one reading (an
         # optical reference's sample-and-hold) have a MAD of nothing, and ordinary readings of a hand-held
         # recording were dropped as 3810 sigma off (0.03 LSB against 24 of sample-to-sample noise)
-        # (between rows within GROSS_FRACTION of the amplitude of their pose's median: a step is bad when
-        # either of its rows is, so over all rows this floor broke down at 30 % garbage, not 50 %, and 40 %
-        # random accelerometer rows were all kept for a 26-deg calibration)
-        near = multi & ~np.any((np.abs(dev) > GROSS_FRACTION * amplitude) & (amplitude > 0), axis=1)
-        idx = np.flatnonzero(near)
+        # (from the short "poses" only, a reference's few repeats: a step is bad when either of its rows is,
+        # so over a table recording's holds this floor broke down at 30 % garbage, not 50 %, and 40 % random
+        # accelerometer rows were all kept for a 26-deg calibration; a hold of many samples has its own MAD)
+        idx = np.flatnonzero(multi & (n[group] < SAMPLE_HOLD_MAX))
         steps = np.diff(x[idx], axis=0)[np.diff(idx) == 1]
         step_sigma = _robust_sigma(steps, np.zeros(3)) / np.sqrt(2.0) if len(steps) >= 10 else np.zeros(3)
         sigma = _robust_sigma(dev[multi], np.maximum.reduce([np.full(3, 2e-4) * amplitude,
@@ -410,27 +414,32 @@ def screen_rows(rec: Recording) -> dict[int, str]:
     return out
 
 
-#: Readings whose noise from one sample to the next is above this (counts, every magnetometer axis) do not
-#: repeat on all six axes by chance (under 1 in 10^4 pairs): such a repeat is a frozen sensor.
+#: Readings whose noise from one sample to the next (within a hold) is above this (counts, every
+#: magnetometer axis) do not repeat on all six axes by chance (under 1 in 10^4 pairs) ...
 FROZEN_NOISE = 1.5
+#: ... and a run of at least this many repeats is a frozen sensor, not a reference's sample-and-hold
+#: (a reading held over two or three of the reference's samples is honest).
+FROZEN_RUN = 4
 
 
 def _screen_frozen(rec: Recording, out: dict[int, str]) -> None:
-    """Rows that repeat the previous row exactly on every magnetometer and accelerometer axis (a frozen
-    sensor, or a logger repeating its last frame) go, the first of each run kept, where the readings'
-    noise makes an exact repeat improbable (:data:`FROZEN_NOISE`; a quiet quantised sensor repeats
-    honestly). A stretch of them across a move put the old attitude's reading at the new one: 40 % of
-    such rows made the heading error 3-4 times the clean fit's."""
+    """Rows that repeat the previous row exactly on every magnetometer and accelerometer axis, in runs of
+    :data:`FROZEN_RUN` or more (a frozen sensor, or a logger repeating its last frame), go, the first of each
+    run kept, where the readings' noise makes an exact repeat improbable (:data:`FROZEN_NOISE`; a quiet
+    quantised sensor, or noise-free readings, repeat honestly). A stretch of them across a move put the old
+    attitude's reading at the new one: 40 % of such rows made the heading error 3-4 times the clean fit's."""
     if rec.acc is None or not np.all(np.isfinite(rec.acc)) or len(rec) < 12:
         return
     same = np.r_[False, np.all(rec.mag[1:] == rec.mag[:-1], axis=1) & np.all(rec.acc[1:] == rec.acc[:-1], axis=1)]
-    if not same.any():
+    runs = [r for r in consecutive_runs(same) if len(r) >= FROZEN_RUN]
+    if not runs:
         return
-    steps = np.diff(rec.mag, axis=0)
+    group = pose_groups(rec)
+    steps = np.diff(rec.mag, axis=0)[group[1:] == group[:-1]]
     moved = steps[np.any(steps != 0.0, axis=1)]  # the repeats themselves say nothing of the noise
     if len(moved) < 10 or not np.all(_robust_sigma(moved, np.zeros(3)) / np.sqrt(2.0) > FROZEN_NOISE):
         return
-    for i in np.flatnonzero(same):
+    for i in np.concatenate(runs):
         out.setdefault(int(i), "repeats the previous row exactly on all six axes (mx..az), which this noise does not "
                                "do by chance: a frozen sensor or a repeated frame")
 

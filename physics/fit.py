@@ -43,7 +43,7 @@ from physics import methods as comparison
 from physics.calibration import STAGES, Calibration
 from physics.frames import field_direction
 from physics.heading import circular_mean_deg, error_summary, heading_error, levelled_field, reference_heading, wrap180
-from physics.recording import SKIPPED_KEY, Recording, RecordingError, file_row
+from physics.recording import SKIPPED_AT_KEY, SKIPPED_KEY, Recording, RecordingError, file_row
 from physics.sensor import LinearSensor
 from physics.table import TableGeometry, base_rotation, platform_attitude
 
@@ -149,10 +149,12 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
     cal.serial = rec.serial
     cal.method = method
     cal.quality = quality(work, cal)
+    skipped_at = [int(x) for x in str(rec.meta.get(SKIPPED_AT_KEY, "")).split(",") if x.strip()]
     cal.quality.update(rejected_rows=rejected_rows(rec, rejected), rejected=len(rejected), samples_total=len(rec),
-                       skipped_malformed=skipped)
+                       skipped_malformed=skipped, skipped_malformed_rows=skipped_at)
     if skipped:
-        cal.notes.append(f"{skipped} malformed row(s) of the file were skipped before the fit (--skip-bad-rows); "
+        where = f" (data rows {index_list(skipped_at)}, 0-based)" if skipped_at else ""
+        cal.notes.append(f"{skipped} malformed row(s) of the file were skipped before the fit (--skip-bad-rows){where}; "
                          f"{len(rec)} were read")
     if np.isfinite(cal.inclination_deg) and abs(cal.inclination_deg) > NEAR_POLE_DEG:
         horizontal = np.cos(np.radians(cal.inclination_deg))

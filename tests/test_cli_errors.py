@@ -318,6 +318,7 @@ def test_fit_says_how_many_rows_it_skipped(tmp_path: Path):
     cal = json.loads((tmp_path / "cal.json").read_text())
     assert cal["quality"]["skipped_malformed"] == 2 and any("2 malformed row(s) of the file were skipped" in n
                                                             for n in cal["notes"]), cal["notes"]
+    assert cal["quality"]["skipped_malformed_rows"] == [5, 6]  # which, as well as how many
     # most of the file skipped (rows out of time order: a shuffled file) is no calibration of it
     head = [ln for ln in lines if ln.startswith("#") or ln.startswith("t,")]
     body = [lines[i] for i in data]

@@ -430,6 +430,26 @@ def test_rows_written_twice_are_left_out_and_said():
     assert "a sample written twice" not in " ".join(analyze(stamped, null_sims=20).result["notes"])
 
 
+def test_a_frozen_sensor_is_left_out_not_modelled_as_physics():
+    """A compass that froze four times for 15 rows (its last reading repeated on all six axes, new time
+    stamps): the repeats were "discovered" offsets following phi_t with a heading impact of 2.3 deg. They
+    are left out as bad samples, saying so, and the recording is consistent."""
+    from physics.sensor import reference_unit
+
+    rec = simulate_recording(reference_unit(3.0, 4.0), calibration_poses(CalibrateParams(samples=30)), World(),
+                             rng=np.random.default_rng(2))
+    rec.mag, rec.acc = np.round(rec.mag), np.round(rec.acc)  # whole counts, as the compass reports them
+    frozen = []
+    for start in (50, 200, 330, 470):  # two of them across a move to the next pose
+        rec.mag[start + 1:start + 16] = rec.mag[start]
+        rec.acc[start + 1:start + 16] = rec.acc[start]
+        frozen += list(range(start + 1, start + 16))
+    r = analyze(rec, null_sims=50).result
+    assert r["verdict"] == "consistent" and not r["findings"], [(f["effect"], f.get("model")) for f in r["findings"]]
+    assert "60 repeating the row before on all six axes in runs (a frozen sensor)" in r["notes"][0], r["notes"][0]
+    assert [row["index"] for row in r["rejected_rows"]] == frozen
+
+
 def test_the_level_heading_errors_noise_is_the_scatter_of_clean_recordings() -> None:
     """``heading_error_deg.noise_rms`` is what the readings' noise alone makes of the level heading error:
     the variance of a hold's mean under the AR(1)-plus-white model matches simulated noise, and over clean
@@ -480,3 +500,25 @@ def test_ljung_box_is_the_textbook_statistic_on_any_layout_and_chi_square_on_whi
         rho = np.array([np.dot(x[k:], x[:-k]) for k in range(1, 11)]) / np.dot(x, x)
         assert q[j] == pytest.approx(2000 * 2002 * np.sum(rho ** 2 / (2000 - np.arange(1, 11))), rel=1e-10)
     assert abs(np.mean(q[1:]) - 10.0) < 1.0 and q[0] > 300.0
+
+
+def test_garbled_temperatures_are_interpolated_for_the_temperature_tests_and_said():
+    """A temp_c of 9999 or -273.15 deg C in 3 % of the rows (a garbled field) made the temperature tests tests
+    of those rows. Such values, and values far from their neighbours', are interpolated from the rows around
+    them, saying which; the readings are kept, and a real step of the temperature stays."""
+    from physics.discrepancy.analysis import _plausible_temperature
+
+    rec, _ = _record([], seed=3)
+    clean = analyze(rec, null_sims=50, seed=1).result
+    odd = np.random.default_rng(1).choice(len(rec), round(0.03 * len(rec)), replace=False)
+    garbled = rec.select(slice(None))
+    garbled.temp_c[odd] = np.where(np.arange(len(odd)) % 2, 9999.0, -273.15)
+    r = analyze(garbled, null_sims=50, seed=1).result
+    assert r["verdict"] == clean["verdict"] and len(r["findings"]) == len(clean["findings"]), r["findings"]
+    assert r["samples"] == clean["samples"]  # the readings kept
+    assert any(n.startswith(f"temp_c of {len(odd)} row(s) is implausible") for n in r["notes"]), r["notes"]
+    fixed, _ = _plausible_temperature(garbled)
+    assert np.abs(fixed.temp_c - rec.temp_c).max() < 0.5
+    stepped = rec.select(slice(None))
+    stepped.temp_c = np.where(np.arange(len(rec)) < len(rec) // 2, 20.0, 35.0)  # a real step: kept
+    assert _plausible_temperature(stepped)[1] is None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from typing import Any, Callable, NamedTuple
 
@@ -71,6 +72,7 @@ def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: fl
     seed = rec.fingerprint() if seed is None else seed
     rng = np.random.default_rng(seed)
     rec, bad = _without_bad_samples(rec)
+    rec, warm = _plausible_temperature(rec)
     # many small matrix products: several BLAS threads fight over the cores and run 5-10x slower
     with threadpool_limits(1):
         if not rec.has_angles:
@@ -78,6 +80,8 @@ def analyze(rec: Recording, calibration: Calibration | None = None, *, alpha: fl
             a = analyze_attitude_free(rec, alpha=alpha, null_sims=null_sims, rng=rng, progress=progress)
         else:
             a = _analyze_table(rec, calibration, alpha, null_sims, rng, progress)
+    if warm:
+        a.result["notes"] = [warm, *a.result.get("notes", [])]
     if bad:
         a.result["notes"] = [bad[0], *a.result.get("notes", [])]
         a.result["rejected_rows"] = bad[1]
@@ -145,16 +149,57 @@ def _ends_at_its_edge(rec: Recording, edge: np.ndarray, group: np.ndarray, bad: 
     return out
 
 
+#: A temperature outside this range (deg C) is no compass's working temperature: a garbled field.
+TEMP_RANGE_C = (-60.0, 150.0)
+#: ... nor one this far (deg C) from the median of its neighbours (TEMP_NEIGHBOURS a side): a unit's
+#: temperature follows its heat capacity, degrees per minute at most.
+TEMP_JUMP_C = 5.0
+TEMP_NEIGHBOURS = 4
+
+
+def _plausible_temperature(rec: Recording) -> tuple[Recording, str | None]:
+    """``rec`` with implausible ``temp_c`` values (outside :data:`TEMP_RANGE_C`, or :data:`TEMP_JUMP_C` off
+    the median of their neighbours) interpolated in time from the others, and the note saying which rows
+    (None when every value is plausible). The readings are kept: a garbled temperature field says nothing
+    of the magnetometer, but as an input it made the temperature tests tests of those few rows (9999 deg C)."""
+    temp = rec.temp_c
+    if temp is None or len(temp) < 2 * TEMP_NEIGHBOURS + 1:
+        return rec, None
+    given = np.isfinite(temp)
+    odd = given & ((temp < TEMP_RANGE_C[0]) | (temp > TEMP_RANGE_C[1]))
+    sane = np.where(given & ~odd, temp, np.nan)
+    k = TEMP_NEIGHBOURS
+    padded = np.pad(sane, k, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * k + 1)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a window of nothing but odd values: no median
+        local = np.nanmedian(windows, axis=1)
+    odd |= given & np.isfinite(local) & (np.abs(temp - local) > TEMP_JUMP_C)
+    good = given & ~odd
+    if not odd.any() or good.sum() < 2:
+        return rec, None
+    out = rec.select(slice(None))
+    out.temp_c = np.where(odd, np.interp(rec.t, rec.t[good], temp[good]), temp)
+    rows = sorted(file_row(rec, int(i)) for i in np.flatnonzero(odd))
+    worst = float(temp[odd][np.argmax(np.abs(temp[odd] - np.interp(rec.t[odd], rec.t[good], temp[good])))])
+    return out, (f"temp_c of {int(odd.sum())} row(s) is implausible (e.g. {worst:g} deg C: outside {TEMP_RANGE_C[0]:g} to "
+                 f"{TEMP_RANGE_C[1]:g} deg C, or over {TEMP_JUMP_C:g} deg C from its neighbours'): interpolated from the "
+                 f"rows around them for the temperature tests, the readings kept; data rows {index_list(rows)} (0-based)")
+
+
 def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dict[str, Any]]] | None]:
     """``rec`` without its bad samples, and the note and rows to report (None when there are none): rows
     whose three axes of a sensor read exactly 0 (a brown-out, a dropped frame), rows with a magnetometer
-    axis at the int16 limit (saturated), rows that repeat the one before exactly (a sample written twice), and,
+    axis at the int16 limit (saturated), rows that repeat the one before exactly (a sample written twice, or a
+    frozen sensor's run of repeats), and,
     on a turntable, lone rows or short runs far off their hold (garbage that passed the checksum). Left in,
     each would be "structure" that no physics explains."""
     screened = screen_rows(rec)
     zero = {i for i, why in screened.items() if reason_kind(why) == "all zeros"}
     clipped = {i for i, why in screened.items() if reason_kind(why) == "saturated"}
-    off = np.array(sorted(set(screened) - zero - clipped), dtype=int)
+    # a frozen sensor's repeats (physics.fit._screen_frozen): its last reading, not the field at these times
+    frozen = {i for i, why in screened.items() if reason_kind(why) == "frozen"}
+    off = np.array(sorted(set(screened) - zero - clipped - frozen), dtype=int)
     short: set[int] = set()
     # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
     # (a stale reference), which says nothing of the magnetometer's rows
@@ -183,7 +228,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
         same[1:] &= np.all(acc[1:] == acc[:-1], axis=1)
     repeated = {int(i): "repeats the row before exactly (same time stamp and readings): a sample written twice"
                 for i in np.flatnonzero(same)}
-    bad = {**{i: screened[i] for i in sorted(zero | short | clipped)}, **repeated}
+    bad = {**{i: screened[i] for i in sorted(zero | short | clipped | frozen)}, **repeated}
     bad = dict(sorted(bad.items()))
     if not bad:
         return rec, None
@@ -191,6 +236,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     keep[list(bad)] = False
     kinds = [f"{len(repeated)} repeating the row before exactly (a sample written twice)" if repeated else "",
              f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
+             f"{len(frozen)} repeating the row before on all six axes in runs (a frozen sensor)" if frozen else "",
              f"{len(short)} far off their hold's median, alone or in runs of at most {BAD_RUN}" if short else "",
              (f"{len(clipped)} saturated, at t {rec.t[min(clipped)]:.1f}-{rec.t[max(clipped)]:.1f} s (a field beyond the "
               "sensor's range: a strong magnet near the unit?)") if clipped else ""]

@@ -373,8 +373,8 @@ def screen_rows(rec: Recording) -> dict[int, str]:
                                "(a field beyond the sensor's range: a strong magnet near the unit?)")
     if len(rec) == 0:
         return out
-    _screen_frozen(rec, out)
     group = pose_groups(rec)
+    _screen_frozen(rec, group, out)
     usable = np.ones(len(rec), bool)
     usable[list(out)] = False
     n = np.bincount(group[usable], minlength=group.max() + 1)
@@ -424,9 +424,9 @@ FROZEN_NOISE = 1.5
 FROZEN_RUN = 4
 
 
-def _screen_frozen(rec: Recording, out: dict[int, str]) -> None:
+def _screen_frozen(rec: Recording, group: np.ndarray, out: dict[int, str]) -> None:
     """Rows that repeat the previous row exactly on every magnetometer and accelerometer axis, in runs of
-    :data:`FROZEN_RUN` or more (a frozen sensor, or a logger repeating its last frame), go, the first of each
+    :data:`FROZEN_RUN` or more (``group``: :func:`pose_groups`) (a frozen sensor, or a logger repeating its last frame), go, the first of each
     run kept, where the readings' noise makes an exact repeat improbable (:data:`FROZEN_NOISE`; a quiet
     quantised sensor, or noise-free readings, repeat honestly). A stretch of them across a move put the old
     attitude's reading at the new one: 40 % of such rows made the heading error 3-4 times the clean fit's."""
@@ -436,7 +436,6 @@ def _screen_frozen(rec: Recording, out: dict[int, str]) -> None:
     runs = [r for r in consecutive_runs(same) if len(r) >= FROZEN_RUN]
     if not runs:
         return
-    group = pose_groups(rec)
     steps = np.diff(rec.mag, axis=0)[group[1:] == group[:-1]]
     moved = steps[np.any(steps != 0.0, axis=1)]  # the repeats themselves say nothing of the noise
     if len(moved) < 10 or not np.all(_robust_sigma(moved, np.zeros(3)) / np.sqrt(2.0) > FROZEN_NOISE):
@@ -453,35 +452,34 @@ CLUSTER_CENTRES = 200
 def scattered_rows(rec: Recording) -> np.ndarray:
     """Rows of a hold (3 samples or more) outside the densest cluster of its readings (a mask): within
     GROSS_FRACTION of the sensor's scale (its largest amplitude, or its readings' typical size) of the hold's
-    row that has the most others that close, on all three axes of both sensors. Where more than half of a hold's rows are garbage its median is one of
-    them and :func:`screen_rows` cannot tell (at 70 % random rows it dropped none of them, and the
-    comparison methods calibrated the garbage to 180 deg of error); a handful of good readings still lie
-    together, while random ones scatter over the sensor's whole range. Only counted, to refuse for the
-    right reason: a hold split between two real fields (a magnet brought near) would lose its smaller part."""
+    row that has the most others that close, on all three axes of both sensors. Where more than half of a
+    hold's rows are garbage its median is one of them and :func:`screen_rows` cannot tell (at 70 % random
+    rows it dropped none of them, and the comparison methods calibrated the garbage to 180 deg of error); a
+    handful of good readings still lie together, while random ones scatter over the sensor's whole range.
+    Only counted, to refuse for the right reason: a hold split between two real fields (a magnet brought
+    near) would lose its smaller part."""
     out = np.zeros(len(rec), bool)
     if len(rec) == 0:
         return out
-    group = pose_groups(rec)
-    n = np.bincount(group)
-    if not np.any(n >= 3):
+    group = pose_groups(rec)  # a pose is a run of consecutive rows
+    holds = [r for r in np.split(np.arange(len(rec)), np.flatnonzero(np.diff(group)) + 1) if len(r) >= 3]
+    if not holds:
         return out
     sensors = [rec.mag] + ([rec.acc] if rec.acc is not None and np.all(np.isfinite(rec.acc)) else [])
     tol = []
     for x in sensors:
         # one scale for every axis, the sensor's: an axis that hardly turns (no sweep about y) has a span
         # of a few counts, under its noise
-        med = np.array([np.median(x[group == g], axis=0) for g in np.flatnonzero(n >= 3)])
+        med = np.array([np.median(x[rows], axis=0) for rows in holds])
         scale = max(0.5 * float(np.ptp(med, axis=0).max()), float(np.median(np.linalg.norm(x, axis=1))))
-        tol.append(GROSS_FRACTION * scale)
-    for g in np.flatnonzero(n >= 3):
-        rows = np.flatnonzero(group == g)
+        tol.append(max(GROSS_FRACTION * scale, 1.0))
+    for rows in holds:
         centres = rows[::max(1, len(rows) // CLUSTER_CENTRES)]  # a long hold: its cluster from a sample of rows
         close = np.ones((len(centres), len(rows)), bool)
         for x, tl in zip(sensors, tol):
-            close &= np.all(np.abs(x[centres][:, None, :] - x[rows][None, :, :]) <= max(tl, 1.0), axis=2)
+            close &= np.all(np.abs(x[centres][:, None, :] - x[rows][None, :, :]) <= tl, axis=2)
         out[rows] = ~close[int(np.argmax(close.sum(axis=1)))]
     return out
-
 
 
 #: Samples taken on the move (a scan, or a recording without table angles) are compared with the median
@@ -708,10 +706,15 @@ def _require_good(rec: Recording, rejected: dict[int, str]) -> None:
     """Refuse when fewer than MIN_GOOD_FRACTION of the rows are good, naming that as the reason."""
     good = len(rec) - len(rejected)
     if rejected and good < MIN_GOOD_FRACTION * len(rec):
-        raise RecordingError(f"too few good samples remain: {len(rejected)} of {len(rec)} rows are bad "
-                             f"({_reason_counts(rejected)}; first at sample indices {index_list(sorted(rejected))}), "
-                             f"leaving {good}; the fit needs at least {100 * MIN_GOOD_FRACTION:.0f} % good rows. "
-                             "Check the magnetometer's connection and supply, then record again")
+        raise _too_few_good(f"{len(rejected)} of {len(rec)} rows are bad ({_reason_counts(rejected)}; first at sample "
+                            f"indices {index_list(sorted(rejected))})", good)
+
+
+def _too_few_good(bad: str, good: int) -> RecordingError:
+    """The refusal of a recording with fewer than MIN_GOOD_FRACTION good rows (``bad`` says which are bad)."""
+    return RecordingError(f"too few good samples remain: {bad}, leaving {good}; the fit needs at least "
+                          f"{100 * MIN_GOOD_FRACTION:.0f} % good rows. Check the compass's connection and supply, "
+                          "then record again")
 
 
 def _require_clustered(rec: Recording, rejected: dict[int, str]) -> None:
@@ -721,11 +724,9 @@ def _require_clustered(rec: Recording, rejected: dict[int, str]) -> None:
     bad[list(rejected)] = True
     if bad.sum() > (1.0 - MIN_GOOD_FRACTION) * len(rec):
         holds = np.unique(pose_groups(rec)[bad])
-        raise RecordingError(f"too few good samples remain: {int(bad.sum())} of {len(rec)} rows lie apart from the other "
-                             f"readings of their hold (in {len(holds)} holds: more than half of many holds' samples are "
-                             f"garbage, so their medians are too), leaving {len(rec) - int(bad.sum())}; the fit needs at "
-                             f"least {100 * MIN_GOOD_FRACTION:.0f} % good rows. Check the compass's connection and "
-                             "supply, then record again")
+        raise _too_few_good(f"{int(bad.sum())} of {len(rec)} rows lie apart from the other readings of their hold (in "
+                            f"{len(holds)} holds: more than half of many holds' samples are garbage, so their medians "
+                            "are too)", len(rec) - int(bad.sum()))
 
 
 def _same_refusal(run: Callable[[Recording], Calibration], rec: Recording, e: Exception) -> bool:

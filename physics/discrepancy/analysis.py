@@ -171,17 +171,18 @@ def _plausible_temperature(rec: Recording) -> tuple[Recording, str | None]:
     k = TEMP_NEIGHBOURS
     padded = np.pad(sane, k, mode="edge")
     windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * k + 1)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
+    with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a window of nothing but odd values: no median
         local = np.nanmedian(windows, axis=1)
     odd |= given & np.isfinite(local) & (np.abs(temp - local) > TEMP_JUMP_C)
     good = given & ~odd
     if not odd.any() or good.sum() < 2:
         return rec, None
+    filled = np.interp(rec.t, rec.t[good], temp[good])
     out = rec.select(slice(None))
-    out.temp_c = np.where(odd, np.interp(rec.t, rec.t[good], temp[good]), temp)
+    out.temp_c = np.where(odd, filled, temp)
     rows = sorted(file_row(rec, int(i)) for i in np.flatnonzero(odd))
-    worst = float(temp[odd][np.argmax(np.abs(temp[odd] - np.interp(rec.t[odd], rec.t[good], temp[good])))])
+    worst = float(temp[odd][np.argmax(np.abs(temp - filled)[odd])])
     return out, (f"temp_c of {int(odd.sum())} row(s) is implausible (e.g. {worst:g} deg C: outside {TEMP_RANGE_C[0]:g} to "
                  f"{TEMP_RANGE_C[1]:g} deg C, or over {TEMP_JUMP_C:g} deg C from its neighbours'): interpolated from the "
                  f"rows around them for the temperature tests, the readings kept; data rows {index_list(rows)} (0-based)")

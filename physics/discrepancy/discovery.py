@@ -1412,7 +1412,6 @@ def window_text(segments: list[list[float]], step: float | None) -> str:
     return ", present " + " and ".join(f"from {a:.1f} s to {b:.1f} s" for a, b in segments)
 
 
-
 def confirming_experiment(block: Block, segments: list[list[float]], step: float | None = None) -> str:
     """The experiment that would confirm a discovered block (``step``: the one change a window that reaches
     the run's start or end describes, see :func:`step_time`)."""

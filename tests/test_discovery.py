@@ -325,6 +325,34 @@ def test_sensor_offset_in_a_window_is_discovered_with_frame_and_time() -> None:
     _ok_fit(r)
 
 
+def test_an_offset_following_the_accelerometer_is_sized_by_what_the_recording_determines() -> None:
+    """8 LSB on m_z per g of the accelerometer's x (a current that follows the tilt): four of the block's
+    nine combinations are the unit's own calibration to these data. Fitted as well, they had come out at
+    hundreds of LSB +- as much (an outside tester's case: an offset of 1800 LSB over the run, 9.3 deg of
+    heading impact, called plausible); they are left out, the rest is sized with finite sigmas, and the
+    finding says how many were taken in."""
+    from physics.frames import SPECIFIC_FORCE_L
+    rec, _ = _recording(4)
+    # an ideal accelerometer (no bias, no misalignment: the tester's), 1 g = 16384 counts, rounded
+    g = np.einsum("nji,j->ni", platform_attitude(rec.psi_t, rec.theta_t, rec.phi_t), SPECIFIC_FORCE_L)
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    extra = np.zeros((len(rec), 3))
+    extra[:, 2] = 8.0 * g[:, 0]
+    rec = _with(rec, extra)
+    rec = Recording.from_arrays(rec.t, rec.step, rec.psi_t, rec.theta_t, rec.phi_t, rec.mag, np.round(16384.0 * g),
+                                rec.temp_c, rec.meta)
+    r = analyze(rec, null_sims=60).result
+    _check_schema(r)
+    first = r["findings"][0]
+    assert first["effect"] == "discovered" and first["model"]["against"] == "acc", first["model"]
+    assert first["plausible"]
+    assert first["parameters"]["absorbed_combinations"] > 0 and "taken in by the nominal model" in first["explanation"]
+    assert all(s is not None and np.isfinite(s) for s in first["sigma"]["values"])
+    assert np.max(first["parameters"]["span_lsb"]) < 60.0  # the truth spans 16 LSB on m_z
+    assert first["heading_impact_deg"] < 1.0
+    _ok_fit(r)
+
+
 def test_a_discovered_window_reports_a_p_that_pays_for_its_search() -> None:
     """A window found by searching every window of every block: its reported p is corrected for the
     dictionary's size and the window's edges (here ~5e5), not only for the round's catalogue tests
@@ -528,6 +556,34 @@ def test_the_holds_likelihood_measures_the_slow_noise_better_than_the_difference
     assert np.mean(np.array(ratios) > 1.3) <= 0.04 and np.median(ratios) < 1.05
     # too few samples in holds: no estimate (the caller falls back to the differences)
     assert reml_noise(*_hold_noise(rng, 0.5, holds=3, n=20)) is None
+
+
+def test_short_settling_holds_between_the_holds_do_not_hand_the_slow_noise_to_the_differences() -> None:
+    """A recording sampled on the move has a few samples at a hold's angles before each move (its
+    settling): holds of 4 samples between the holds of 60. They used to set the likelihood's chunk length
+    (the tenth percentile of all holds), too short for it, and the differences' fit took over: on an
+    outside tester's nulls (AR(1) phi 0.8, 70 % of 3 LSB) an axis read as 2.1 LSB of white noise and 4 of
+    11 nulls gave discoveries. The chunks now come from the long holds alone."""
+    from types import SimpleNamespace
+    rng = np.random.default_rng(21)
+    hold, noise = [], []
+    for h in range(28):  # the ordinary plan's 28 holds, each followed by 4 samples of settling
+        for n in (60, 4):
+            hold.extend([len(noise)] * n)
+            noise.append(_ar(rng, n, 0.8, 3.0, 0.7) + rng.normal(scale=40.0, size=3))  # each at its level
+    hold = np.array(hold)
+    ctx = SimpleNamespace(hold=hold, segment=hold)
+    nm = estimate_noise(np.vstack(noise), ctx)
+    assert np.all(nm.phi > 0.6) and np.all(np.abs(nm.floor - 3.0) < 0.5), nm
+
+
+def _ar(rng: np.random.Generator, n: int, phi: float, sigma: float, share: float) -> np.ndarray:
+    """``n`` samples of AR(1)-plus-white noise (3 axes): ``share`` of the variance ``sigma**2`` in the AR part."""
+    a = np.empty((n, 3))
+    a[0] = rng.normal(size=3)
+    for i in range(1, n):
+        a[i] = phi * a[i - 1] + np.sqrt(1 - phi ** 2) * rng.normal(size=3)
+    return sigma * (np.sqrt(share) * a + np.sqrt(1 - share) * rng.normal(size=(n, 3)))
 
 
 def test_a_step_inside_a_hold_is_not_taken_for_slow_noise() -> None:

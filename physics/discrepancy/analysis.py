@@ -321,7 +321,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
             final = _backward(terms, Q0, z, null, alpha, n_round1, all_tests, _search_penalty(dic, found))
             found = [f for f in found if f.name in terms]
         found, terms = _reconsider(dic, found, terms, Q0, z, null, alpha)
-        coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
+        coef, _, offsets, _ = _fit_identified(A0, terms, found, zr)
         refused = [s for i, s in enumerate(terms) if s in selected and s != LINE
                    and _implausible(s, coef[offsets[i + 1]:offsets[i + 2]], eff)]
         if not refused:
@@ -343,8 +343,9 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         ``selected`` and ``found`` keep only what is in ``terms``."""
         nonlocal nom, eff, r0, J0, A0, Q0, zr, z, raw_of, candidates, found, terms, selected
         selected = [s for s in selected if s in terms]
-        coef, _, offsets = _fit_terms(A0, list(terms.values()), zr)
-        contrib = sum(np.einsum("nip,p->ni", raw_of[s], coef[offsets[i + 1]:offsets[i + 2]]) for i, s in enumerate(terms))
+        coef, _, offsets, ident = _fit_identified(A0, terms, found, zr)
+        contrib = sum(np.einsum("nip,p->ni", raw_of[s] if s not in ident else raw_of[s] @ ident[s],
+                                coef[offsets[i + 1]:offsets[i + 2]]) for i, s in enumerate(terms))
         nom = fit_nominal(ctx, y_raw - contrib)
         # a fitted time lag's column is rebuilt as the exact shift by it (its derivative alone is first order)
         lag = float(coef[offsets[list(terms).index(TIME_LAG) + 1]]) if TIME_LAG in terms else 0.0
@@ -389,8 +390,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         notes.append(f"{worst} left out: with it the model predicted held-out data worse than without")
         del terms[worst]
         relinearise()  # with no term left: the nominal model alone, as before
-    coef, cov, offsets = _fit_terms(A0, list(terms.values()), zr)
-    raw_cols = [J0] + [raw_of[s] for s in terms]
+    coef, cov, offsets, ident = _fit_identified(A0, terms, found, zr)
+    raw_cols = [J0] + [raw_of[s] if s not in ident else raw_of[s] @ ident[s] for s in terms]
     Xraw = np.concatenate(raw_cols, axis=2)
     fitted = np.einsum("nip,p->ni", Xraw, coef)
     r_after = r0 - fitted
@@ -430,8 +431,12 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
             # found by a search: its p pays for the dictionary's size and for the window's fitted edges,
             # as when it was chosen (the backward test alone counts only the round's catalogue tests)
             row["p_adjusted"] = float(min(1.0, t.p_value * np.exp(penalty[name])))
+            absorbed = 0
+            if name in ident:  # back to the block's own coefficients, none along what is taken in
+                T = ident[name]
+                c, cv, absorbed = T @ c, T @ cv @ T.T, T.shape[0] - T.shape[1]
             findings.append(discovered_finding(by_name[name], c, cv, contrib, row, nom, ctx,
-                                               _heading_impact(ctx, y_raw, nom, contrib)))
+                                               _heading_impact(ctx, y_raw, nom, contrib), absorbed))
             continue
         if name == LINE:
             row["p_adjusted"] = float(p_twin)  # paying for the frequency search, as when it was confirmed
@@ -751,6 +756,44 @@ def _backward(terms: dict[str, np.ndarray], Q0: np.ndarray, z: np.ndarray, null:
         del terms[weakest]
         rows.append(_row(final[weakest], "backward", dropped=True))
     return final
+
+
+#: A block's coefficient combination whose whitened column keeps less than this share of its squared norm
+#: beyond the other columns is taken in by them (the tests' :func:`_complement` threshold).
+ABSORBED_RCOND = 1e-6
+
+
+def _identifiable(terms: dict[str, np.ndarray], name: str, A0: np.ndarray) -> np.ndarray:
+    """The map T (p, q) from the q coefficient combinations of term ``name`` that the data determine beyond
+    the nominal columns ``A0`` and the other terms to its p coefficients (``c = T @ c_q``): the
+    combinations its test counted as degrees of freedom. q == p when nothing of it is taken in."""
+    X = terms[name]
+    norm = np.linalg.norm(X, axis=0)
+    nz = norm > 0
+    Q = _orth(np.column_stack([A0] + [Xw for other, Xw in terms.items() if other != name]))
+    Xn = X[:, nz] / norm[nz]
+    Xp = Xn - Q @ (Q.T @ Xn)
+    lam, V = np.linalg.eigh(Xp.T @ Xp)
+    keep = lam > ABSORBED_RCOND
+    T = np.zeros((X.shape[1], int(keep.sum())))
+    T[nz] = V[:, keep] / norm[nz][:, None]
+    return T
+
+
+def _fit_identified(A0: np.ndarray, terms: dict[str, np.ndarray], found: list[Found], zr: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """:func:`_fit_terms` with each discovered block reduced to the combinations the data determine
+    (:func:`_identifiable`), and the maps T of the blocks reduced (their coefficients are ``T @ c``).
+
+    The combinations the other columns take in (its test counted none of them) are left out: fitted, they
+    came out at hundreds of LSB +- as much (an offset following the accelerometer of 8 LSB per g was
+    reported as 1800 LSB with 9.3 deg of heading impact), and the nominal model refitted without them was
+    pulled as far the other way (its heading 15 deg off), so the twin linearised there made the level
+    heading after worse."""
+    ident = {f.name: _identifiable(terms, f.name, A0) for f in found if f.name in terms}
+    ident = {name: T for name, T in ident.items() if T.shape[1] < T.shape[0]}
+    coef, cov, offsets = _fit_terms(A0, [Xw if name not in ident else Xw @ ident[name] for name, Xw in terms.items()], zr)
+    return coef, cov, offsets, ident
 
 
 def _fit_terms(A0: np.ndarray, parts: list[np.ndarray], zr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1451,8 +1451,10 @@ def ut_per_count(meta: dict[str, str]) -> float | None:
 
 
 def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndarray, row: dict[str, Any],
-                       nom: Nominal, ctx: Context, impact: float | None) -> dict[str, Any]:
-    """A discovered block as a finding of the one schema (effect "discovered")."""
+                       nom: Nominal, ctx: Context, impact: float | None, absorbed: int = 0) -> dict[str, Any]:
+    """A discovered block as a finding of the one schema (effect "discovered"). ``absorbed``: how many
+    combinations of its coefficients the nominal model (and the other effects) take in; ``c`` has none
+    along them."""
     blk = f.block
     sd = np.sqrt(np.maximum(np.diag(cv), 0.0))
     k = float(np.mean(np.linalg.norm(nom.M, axis=1)))  # LSB per lab-field unit
@@ -1515,6 +1517,12 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
         cause = (f"{cause}; or, the same to these data, one of the opposite sign present {other} (the nominal model "
                  "takes in what is constant through the run)")
     explanation = f"{FORM_TEXT[blk.form]} of {size} {FRAME_TEXT[blk.frame]}{dep}{when}: {cause}. " + FOUND_BY_SEARCH
+    if absorbed:
+        params["absorbed_combinations"] = absorbed
+        explanation += (f" {absorbed} of its {len(c)} coefficient combinations {'is' if absorbed == 1 else 'are'} taken "
+                        "in by the nominal model "
+                        "(the recording cannot tell them from the unit's own calibration): the values given are "
+                        "the rest, none along those.")
     if not plausible:
         explanation += " " + IMPLAUSIBLE
     experiment = confirming_experiment(blk, segs, step)

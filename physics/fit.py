@@ -375,6 +375,8 @@ def screen_rows(rec: Recording) -> dict[int, str]:
         return out
     group = pose_groups(rec)
     _screen_frozen(rec, group, out)
+    _screen_stuck(rec, group, out)
+    _screen_angle_glitches(rec, out)
     usable = np.ones(len(rec), bool)
     usable[list(out)] = False
     n = np.bincount(group[usable], minlength=group.max() + 1)
@@ -443,6 +445,63 @@ def _screen_frozen(rec: Recording, group: np.ndarray, out: dict[int, str]) -> No
     for i in np.concatenate(runs):
         out.setdefault(int(i), "repeats the previous row exactly on all six axes (mx..az), which this noise does not "
                                "do by chance: a frozen sensor or a repeated frame")
+
+
+def _screen_angle_glitches(rec: Recording, out: dict[int, str]) -> None:
+    """Rows inside a hold whose table angles differ from both neighbours' (which agree) while the reading
+    matches theirs (:func:`_bad_angles`): a bad encoder reading, model-free, so that every method drops it.
+    The joint and error-separation fits found them off the model; the twelve-position method, which has no
+    such step, took 1 % of rows with psi_t 180 deg off for positions of their own (1 deg of level error)."""
+    if not rec.has_angles or len(rec) < 3:
+        return
+    ang = np.column_stack([rec.psi_t, rec.theta_t, rec.phi_t])
+    agree = np.all(np.abs(wrap180(ang[2:] - ang[:-2])) <= 1e-3, axis=1)
+    own = np.any(np.abs(wrap180(ang[1:-1] - ang[:-2])) > 1e-3, axis=1)
+    rows = np.flatnonzero(agree & own) + 1
+    if not len(rows):
+        return
+    noise = pose_noise(rec)
+    for i in rows:
+        reason = _bad_angles(rec, int(i), noise)
+        if reason:
+            out.setdefault(int(i), reason)
+
+
+#: One axis repeating one reading for this many rows in a row or more, where its noise makes a repeat
+#: improbable (:data:`FROZEN_NOISE`: each repeat then has a chance of 0.19 at most, twelve rows 1e-8), is stuck.
+STUCK_RUN = 12
+
+
+def _screen_stuck(rec: Recording, group: np.ndarray, out: dict[int, str]) -> None:
+    """Rows where one axis of either sensor repeats one reading :data:`STUCK_RUN` times or more in a row
+    while the others go on (``group``: :func:`pose_groups`) go, the first of each run kept, where that axis's
+    noise (its steps within poses outside such runs) makes the repeats improbable. A magnetometer axis stuck
+    for 200 rows across several poses moved the tilted heading by 0.5 deg with nothing dropped, and the
+    twelve-position method kept the stuck rows of a pose and dropped its good ones. An axis whose readings
+    repeat in most rows is the logger's rate above the sensor's, not a fault, and is left alone."""
+    cols = [(f"m{'xyz'[j]}", rec.mag[:, j]) for j in range(3)]
+    if rec.acc is not None and np.all(np.isfinite(rec.acc)):
+        cols += [(f"a{'xyz'[j]}", rec.acc[:, j]) for j in range(3)]
+    # the whole magnetometer still while the table turns is a dead sensor, which the sweeps' own check
+    # names ("sweep about z ...: mx, my and mz do not change"), not three stuck axes to fit around
+    dead = np.r_[False, np.all(rec.mag[1:] == rec.mag[:-1], axis=1)]
+    for name, x in cols:
+        same = np.r_[False, x[1:] == x[:-1]] & (~dead if name[0] == "m" else True)
+        runs = [r for r in consecutive_runs(same) if len(r) >= STUCK_RUN - 1]
+        if not runs:
+            continue
+        in_run = np.zeros(len(x), bool)
+        in_run[np.concatenate(runs)] = True
+        if in_run.mean() > 0.5:
+            continue
+        steps = np.diff(x)[(group[1:] == group[:-1]) & ~in_run[1:]]
+        sigma = float(_robust_sigma(steps, 0.0)) / np.sqrt(2.0) if len(steps) >= 10 else 0.0
+        if sigma <= FROZEN_NOISE:
+            continue
+        for r in runs:
+            for i in r:
+                out.setdefault(int(i), f"{name} repeats one reading ({x[i]:g}) for {len(r) + 1} rows in a row, which its "
+                                       f"noise ({sigma:.2g} LSB per sample) does not do by chance: a stuck axis")
 
 
 #: Rows of a hold tried as the centre of its densest cluster (:func:`scattered_rows`), at most about this many.
@@ -749,12 +808,14 @@ def _too_few(rec: Recording, rejected: dict[int, str], e: Exception) -> Exceptio
 
 
 def reason_kind(reason: str) -> str:
-    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, frozen, bad
-    table angles, off its pose, off the model."""
+    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, frozen, stuck
+    axis, bad table angles, off its pose, off the model."""
     if reason.startswith("all three"):
         return "all zeros"
     if reason.startswith("repeats the previous row"):
         return "frozen"
+    if reason.endswith("a stuck axis"):
+        return "stuck axis"
     if reason.startswith("saturated"):
         return "saturated"
     if reason.startswith("table angle"):
@@ -861,7 +922,8 @@ def check_angles(rec: Recording) -> None:
 
 def check_magnetometer(rec: Recording) -> None:
     """Refuse a magnetometer axis whose reading never changes: no method can calibrate it (its
-    sensitivity would be 0 and every heading 0/0)."""
+    sensitivity would be 0 and every heading 0/0); and an accelerometer axis that never changes while
+    the table tilts."""
     if len(rec) < 2:  # (one row "never changes" either: say what is wrong with the file)
         raise RecordingError(f"the recording has {len(rec)} data row(s): a calibration needs readings at many "
                              "attitudes (the calibrate plan records 18 poses of 60 samples)")
@@ -869,6 +931,16 @@ def check_magnetometer(rec: Recording) -> None:
     if dead:
         raise RecordingError(f"column{'s' if len(dead) > 1 else ''} {', '.join(dead)}: the reading never changes over "
                              "the recording: a dead or disconnected magnetometer axis?")
+    if rec.acc is None or not rec.has_angles or np.ptp(rec.theta_t) + np.ptp(rec.phi_t) == 0:
+        return  # (a level turn leaves an accelerometer axis nearly still: nothing to judge it by)
+    # an accelerometer axis that never changes while the table tilts was calibrated as a sensitivity of
+    # 6.5e-14 counts per g, every tilted heading 180 deg off, and no word of it
+    fin = [col[np.isfinite(col)] for col in rec.acc.T]
+    dead = [f"{name} (always {col[0]:g})" for name, col in zip(("ax", "ay", "az"), fin) if len(col) > 1 and np.ptp(col) == 0]
+    if dead:
+        raise RecordingError(f"column{'s' if len(dead) > 1 else ''} {', '.join(dead)}: the reading never changes while "
+                             "the table tilts: a dead or disconnected accelerometer axis? (to calibrate the magnetometer "
+                             "alone, leave the accelerometer's columns empty)")
 
 
 def _level(rec: Recording) -> np.ndarray:

@@ -438,3 +438,73 @@ def test_a_frozen_sensor_s_repeated_rows_are_dropped_but_a_quiet_sensor_s_are_no
     repeats = np.all(quiet.mag[1:] == quiet.mag[:-1], axis=1) & np.all(quiet.acc[1:] == quiet.acc[:-1], axis=1)
     assert repeats.sum() > 10  # whole counts at 0.2 LSB of noise repeat all the time
     assert not any(why.startswith("repeats") for why in screen_rows(quiet).values())
+
+
+def test_one_axis_stuck_across_poses_is_dropped_but_a_quiet_or_oversampled_axis_is_not() -> None:
+    """m_z stuck on one reading for 200 rows across several poses while the other axes go on (an outside
+    prober's case): nothing was dropped and the tilted heading moved by 0.5 deg, and the twelve-position
+    method dropped a pose's good rows against the stuck median. They are dropped as a stuck axis, the first
+    of the run kept; a quiet sensor's honest repeats and a logger sampling faster than its sensor stay."""
+    rec = _recording()
+    rec.mag[200:400, 2] = rec.mag[200, 2]
+    cal = fit(rec, "joint", bootstrap=0)
+    rows = {r["index"]: r["reason"] for r in cal.quality["rejected_rows"]}
+    assert set(rows) == set(range(201, 400)), sorted(set(rows) ^ set(range(201, 400)))[:10]
+    assert all(why.startswith("mz repeats one reading") and why.endswith("a stuck axis") for why in rows.values())
+    assert any("199 stuck axis" in n for n in cal.notes), cal.notes
+    assert truth_summary(cal, UNIT, WORLD)["tilted_max"] <= 3.0 * truth_summary(fit(_recording(), "joint", bootstrap=0),
+                                                                                  UNIT, WORLD)["tilted_max"]
+    # every reading held for 20 rows (a logger at 20 times the sensor's rate): the rate, not a fault
+    over = _recording()
+    over.mag = np.repeat(over.mag[::20], 20, axis=0)[:len(over)]
+    assert not any(why.endswith("a stuck axis") for why in screen_rows(over).values())
+    quiet = simulate_recording(reference_unit(0.2, 0.2), calibration_poses(CalibrateParams(samples=30)), WORLD,
+                               rng=np.random.default_rng(3))
+    quiet.mag = np.round(quiet.mag)
+    assert not any(why.endswith("a stuck axis") for why in screen_rows(quiet).values())
+
+
+@pytest.mark.parametrize("method", ["twelve-position", "joint"])
+def test_lone_bad_encoder_angles_are_dropped_by_every_method(method: str) -> None:
+    """1 % of rows with psi_t 180 deg off inside their hold, the reading their neighbours': the joint fit
+    found them off its model, the twelve-position method (no model-based step) took them for positions of
+    their own, 1.0 deg of level error. The screen drops them model-free, named for their angle."""
+    from procedures.calibrate import twelve_position_poses
+
+    params = CalibrateParams(samples=30)
+    poses = twelve_position_poses(params) if method == "twelve-position" else calibration_poses(params)
+    rec = simulate_recording(UNIT, poses, WORLD, rng=np.random.default_rng(5))
+    clean_err = truth_summary(fit(rec, method, bootstrap=0), UNIT, WORLD)["level_max"]
+    inside = [i for i in range(1, len(rec) - 1) if rec.step[i - 1] == rec.step[i] == rec.step[i + 1]
+              and rec.psi_t[i - 1] == rec.psi_t[i] == rec.psi_t[i + 1] and rec.theta_t[i - 1] == rec.theta_t[i + 1]
+              and rec.phi_t[i - 1] == rec.phi_t[i + 1]]
+    bad = set(np.random.default_rng(6).choice(inside[1::3], max(3, len(rec) // 100), replace=False).tolist())
+    for i in bad:
+        rec.psi_t[i] = (rec.psi_t[i] + 180.0) % 360.0
+    cal = fit(rec, method, bootstrap=0)
+    rows = {r["index"]: r["reason"] for r in cal.quality["rejected_rows"]}
+    assert set(rows) == bad and all(why.startswith("table angle(s) psi_t") for why in rows.values()), rows
+    assert truth_summary(cal, UNIT, WORLD)["level_max"] <= 1.5 * clean_err + 0.002
+
+
+def test_a_dead_accelerometer_axis_is_refused_by_name() -> None:
+    """ax constant through a recording whose table tilts: every method calibrated it (a sensitivity of 6.5e-14
+    counts per g, tilted headings 180 deg off) with no word; it is refused as the magnetometer's is."""
+    rec = _recording()
+    rec.acc[:, 0] = -53.0
+    with pytest.raises(RecordingError, match=r"column ax \(always -53\): the reading never changes while the table tilts"):
+        fit(rec, "joint", bootstrap=0)
+
+
+def test_an_accelerometer_the_attitudes_cannot_determine_is_not_calibrated() -> None:
+    """A recording with no roll (no sweep about x, no six-position poses): the accelerometer's y column was
+    "determined" by the 0.01 g a tilted guess gave it (31812 counts per g +- 0.0006 against 16700, tilted
+    headings 178 deg off, exit 0). It is judged at a level base now: not calibrated, said, the heading levelled
+    by the table's angles, and the magnetometer's calibration stands."""
+    poses = [p for p in calibration_poses(CalibrateParams(samples=30)) if p.step != "sweep_x"]
+    rec = simulate_recording(UNIT, poses, WORLD, rng=np.random.default_rng(3))
+    cal = fit(rec, "joint", bootstrap=0)
+    assert cal.acc is None
+    assert any(n.startswith("accelerometer not calibrated") and "M[xm,yb]" in n for n in cal.notes), cal.notes
+    truth = truth_summary(cal, UNIT, WORLD)
+    assert truth["level_max"] < 0.1 and truth["tilted_max"] < 0.5, truth

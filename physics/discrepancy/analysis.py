@@ -200,7 +200,9 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     clipped = {i for i, why in screened.items() if reason_kind(why) == "saturated"}
     # a frozen sensor's repeats (physics.fit._screen_frozen): its last reading, not the field at these times
     frozen = {i for i, why in screened.items() if reason_kind(why) == "frozen"}
-    off = np.array(sorted(set(screened) - zero - clipped - frozen), dtype=int)
+    # and an axis stuck on one reading while the others go on (physics.fit._screen_stuck): not the field either
+    stuck = {i for i, why in screened.items() if reason_kind(why) == "stuck axis"}
+    off = np.array(sorted(set(screened) - zero - clipped - frozen - stuck), dtype=int)
     short: set[int] = set()
     # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
     # (a stale reference), which says nothing of the magnetometer's rows
@@ -229,7 +231,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
         same[1:] &= np.all(acc[1:] == acc[:-1], axis=1)
     repeated = {int(i): "repeats the row before exactly (same time stamp and readings): a sample written twice"
                 for i in np.flatnonzero(same)}
-    bad = {**{i: screened[i] for i in sorted(zero | short | clipped | frozen)}, **repeated}
+    bad = {**{i: screened[i] for i in sorted(zero | short | clipped | frozen | stuck)}, **repeated}
     bad = dict(sorted(bad.items()))
     if not bad:
         return rec, None
@@ -238,6 +240,7 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     kinds = [f"{len(repeated)} repeating the row before exactly (a sample written twice)" if repeated else "",
              f"{len(zero)} with a sensor's three axes exactly 0" if zero else "",
              f"{len(frozen)} repeating the row before on all six axes in runs (a frozen sensor)" if frozen else "",
+             f"{len(stuck)} with one axis stuck on one reading while the others go on" if stuck else "",
              f"{len(short)} far off their hold's median, alone or in runs of at most {BAD_RUN}" if short else "",
              (f"{len(clipped)} saturated, at t {rec.t[min(clipped)]:.1f}-{rec.t[max(clipped)]:.1f} s (a field beyond the "
               "sensor's range: a strong magnet near the unit?)") if clipped else ""]

@@ -7,12 +7,15 @@ right away; a batch's unit after its mount prompt, which the table awaits at its
   serial number (:func:`check_serial`, the rule every serial number here follows): ``not identified``;
   the typed serial is used as before, and the result and the certificate say so; with none typed the
   slot is not calibrated (nothing to store it under), which a run of one unit says before the table moves;
+  typed as a serial whose unit reports its own (calibrated before as itself), the policy settles it as
+  for a differing serial (``prompt``: 'typed' or 'skip');
 - it reports the typed one, or none was typed: ``identified``;
 - it reports another one: ``differs``, settled by the serial policy (the request's, else the
   station's): ``prompt`` asks the operator (answers ``typed``, ``identified`` or ``skip``), ``refuse``
   leaves the slot uncalibrated with the reason, ``trust-typed`` certifies the typed serial and records
-  what the unit reported (refused when the typed serial is a unit known to report its own: this unit,
-  reporting another, is not that one); a serial typed in another letter case is the one it reports;
+  what the unit reported; neither ``trust-typed`` nor the operator's 'typed' certifies it when the typed
+  serial is another unit's (one known to report its own, or the one another slot of the run reports): this
+  unit, reporting another, is not that one; a serial typed in another letter case is the one it reports;
 - it reports a serial already certified earlier in the same batch (or in another slot of the run):
   ``duplicate``, the same physical unit mounted again; not certified, whatever the policy;
 - it would be certified under a serial another unit of the batch (or of the run) is already
@@ -25,6 +28,7 @@ No I/O here: :class:`UnitCheck` wraps a procedure's generator with the steps tha
 
 from __future__ import annotations
 
+import re
 import string
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
@@ -100,11 +104,15 @@ class Identity:
                 "serial_decision": self.decision, "serial_policy": self.policy, "serial_note": self.note}
 
 
-def serial_prompt_text(slot: int, typed: str, identified: str, typed_taken_by: str | None = None) -> str:
-    """The operator prompt of a differing serial: both serial numbers and the three answers (and, when
-    the typed serial is already another unit's, ``typed_taken_by``, that 'typed' will not certify it)."""
-    taken = (f" {typed} is already certified for {typed_taken_by}: 'typed' would leave this unit uncalibrated."
-             if typed_taken_by else "")
+def serial_prompt_text(slot: int, typed: str, identified: str | None, not_typed: str | None = None) -> str:
+    """The operator prompt of a differing serial (or of a unit that reports none, typed as a serial whose
+    unit reports its own): both serial numbers and the answers; ``not_typed``, why 'typed' will not
+    certify it (the typed serial is another unit's), said before the answers."""
+    taken = f" {not_typed[0].upper() + not_typed[1:]}: 'typed' would leave this unit uncalibrated." if not_typed else ""
+    if identified is None:
+        return (f"slot {slot}: the unit does not report a serial number, but unit {typed}, typed, reports its own "
+                f"(calibrated before as {typed}).{taken} Answer 'typed' to certify it as {typed} (its calibration "
+                f"becomes {typed}'s current one), or 'skip' to leave it uncalibrated")
     return (f"slot {slot}: the serial number typed is {typed} but the unit reports {identified}.{taken} "
             f"Answer 'typed' to certify it as {typed}, 'identified' to certify it as {identified}, "
             "or 'skip' to leave it uncalibrated")
@@ -199,10 +207,12 @@ class UnitCheck:
         if not out.certify:
             return out
         if out.serial in self.certified:  # e.g. typed for one slot, and what another slot's unit reports
+            # the facts of the note, without its "certified as" (it said "certified as SN-A2 ...; not certified")
+            facts = re.split(r"[;:] certified as ", out.note)[0]
             return Identity(slot, out.typed, out.identified, "duplicate", out.serial,
-                            f"{out.note}; but {self.certified[out.serial]} is already certified as {out.serial}: two units "
-                            "would be certified under one serial number; not certified", out.decision, out.policy,
-                            certify=False)
+                            f"{facts}; it would be certified as {out.serial}, but {self.certified[out.serial]} is "
+                            "already certified as that: two units would be certified under one serial number; not "
+                            "certified", out.decision, out.policy, certify=False)
         where = f"{out.serial} in slot {slot} of this run"
         self.certified[out.serial] = f"the unit in slot {slot} of this run"
         if out.identified:  # the physical unit, whatever it is certified as
@@ -229,9 +239,11 @@ class UnitCheck:
                             "the unit did not report a serial number and none was typed: not calibrated; start the "
                             f'run again with its serial number, e.g. "serials": {{"{slot}": "SN-..."}}', certify=False)
         if identified is None:
-            note = "the unit did not report a serial number (not identified)"
-            return Identity(slot, typed, None, "not identified", typed or "",
-                            note + (f"; certified as the typed {typed}" if typed else ""))
+            assert typed is not None
+            if self.reports_itself is not None and self.reports_itself(typed):
+                return (yield from self._unidentified_known(slot, typed))
+            return Identity(slot, typed, None, "not identified", typed,
+                            f"the unit did not report a serial number (not identified); certified as the typed {typed}")
         if identified in self.seen:
             return Identity(slot, typed, identified, "duplicate", typed or identified,
                             f"the unit reports {identified}, already certified as {self.seen[identified]}: "
@@ -247,19 +259,66 @@ class UnitCheck:
             out = yield from self._differs(slot, typed, identified)
         return out
 
+    def _not_this_unit(self, slot: int, typed: str) -> str | None:
+        """Why the unit in ``slot`` cannot be the typed serial's, or None: another slot's unit of this run
+        reports it, or that unit reports its own (calibrated before as itself). Trusting the typed serial
+        is for units whose own is wrong or unset (a shared factory default); filing this one under another
+        unit's serial superseded that unit's current calibration without a word, and in a fixture of two
+        swapped units certified the wrong one and left the real one uncalibrated."""
+        other = next((s for s, ident in sorted((self.idents or {}).items())
+                      if s != slot and ident and ident[1] and ident[1].strip() == typed), None)
+        if other is not None:
+            return f"unit {typed} is the one in slot {other} (it reports {typed})"
+        if self.reports_itself is not None and self.reports_itself(typed):
+            return (f"unit {typed} reports its own serial number (calibrated before as {typed}), so the unit on the "
+                    f"fixture is not {typed}")
+        return None
+
+    def _ask(self, slot: int, typed: str, identified: str | None, status: str, facts: str,
+             not_typed: str | None) -> Generator[Prompt, Reply, str]:
+        """Ask the operator about the slot's serial (kept as "asked" meanwhile: a run aborted, or lost, at the
+        prompt still says which unit was on the table); the answer, normalised."""
+        self.identities[slot] = Identity(slot, typed, identified, status, typed, f"{facts}; the operator was asked",
+                                         "asked", self.policy, certify=False)
+        if self.on_settled is not None:
+            self.on_settled(dict(self.identities))
+        return normalise(str((yield Prompt(serial_prompt_text(slot, typed, identified, not_typed),
+                                           id=f"{PROMPT_PREFIX}{slot}")) or ""))
+
+    def _unidentified_known(self, slot: int, typed: str) -> Generator[Prompt, Reply, Identity]:
+        """A unit that reports no serial number, typed as one whose unit reports its own: settled by the
+        policy as a differing serial is (refuse: not calibrated; trust-typed: certified, said; prompt: the
+        operator answers 'typed' or 'skip')."""
+        facts = (f"the unit did not report a serial number (not identified), but unit {typed}, typed, reports its "
+                 f"own (calibrated before as {typed})")
+        policy = self.policy
+        if policy == "trust-typed":
+            return Identity(slot, typed, None, "not identified", typed,
+                            f"{facts}; certified as {typed} (serial policy trust-typed)", "trust-typed", policy)
+        if policy == "refuse":
+            return Identity(slot, typed, None, "not identified", typed,
+                            f"{facts}; refused (serial policy refuse): mount unit {typed} and check that it answers "
+                            "the ID command, or start the run with this unit's own serial number", "refused", policy,
+                            certify=False)
+        taken = self.certified.get(typed)
+        answer = yield from self._ask(slot, typed, None, "not identified", facts,
+                                      f"{typed} is already certified for {taken}" if taken else None)
+        if answer == "typed":
+            return Identity(slot, typed, None, "not identified", typed,
+                            f"{facts}; certified as {typed} on the operator's answer", "typed", policy)
+        why = "skipped by the operator" if answer == "skip" else f"answer {answer!r} not understood"
+        return Identity(slot, typed, None, "not identified", typed, f"{facts}; {why}: not certified", "skip", policy,
+                        certify=False)
+
     def _differs(self, slot: int, typed: str, identified: str) -> Generator[Prompt, Reply, Identity]:
         both = f"the serial number typed is {typed} but the unit reports {identified}"
         policy = self.policy
+        not_typed = self._not_this_unit(slot, typed)
         if policy == "trust-typed":
-            # trusting the typed serial is for units whose own is wrong or unset (a shared factory default); a
-            # typed serial whose unit reports it itself (calibrated before as itself) is not this unit, and filing
-            # this one under it superseded that unit's current calibration without a word
-            if self.reports_itself is not None and self.reports_itself(typed):
+            if not_typed:
                 return Identity(slot, typed, identified, "differs", typed,
-                                f"{both}; refused although the serial policy is trust-typed: unit {typed} reports its own "
-                                f"serial number (calibrated before as {typed}), so the unit on the fixture is not {typed}; "
-                                f"mount unit {typed}, or start the run with serial {identified}", "refused", policy,
-                                certify=False)
+                                f"{both}; refused although the serial policy is trust-typed: {not_typed}; mount unit "
+                                f"{typed}, or start the run with serial {identified}", "refused", policy, certify=False)
             return Identity(slot, typed, identified, "differs", typed,
                             f"{both}; certified as {typed} (serial policy trust-typed)", "trust-typed", policy)
         if policy == "refuse":
@@ -267,14 +326,14 @@ class UnitCheck:
                             f"{both}; refused (serial policy refuse): mount unit {typed}, or start the run with "
                             f"serial {identified}", "refused", policy, certify=False)
         taken = self.certified.get(typed)
-        # kept while the operator is asked: a run aborted (or lost) at the prompt still says which unit was on
-        # the table (its result had no identity, and the unit's serial found no run)
-        self.identities[slot] = Identity(slot, typed, identified, "differs", typed, f"{both}; the operator was asked",
-                                         "asked", policy, certify=False)
-        if self.on_settled is not None:
-            self.on_settled(dict(self.identities))
-        answer = normalise(str((yield Prompt(serial_prompt_text(slot, typed, identified, taken), id=f"{PROMPT_PREFIX}{slot}"))
-                               or ""))
+        if taken:  # certified earlier in the run or its batch: a 'typed' answer is found a duplicate (`_decide`)
+            not_typed = None
+        answer = yield from self._ask(slot, typed, identified, "differs", both,
+                                      f"{typed} is already certified for {taken}" if taken else not_typed)
+        if answer == "typed" and not_typed:
+            return Identity(slot, typed, identified, "differs", typed,
+                            f"{both}; the operator answered 'typed', but {not_typed}: not certified", "typed", policy,
+                            certify=False)
         if answer == "typed":
             return Identity(slot, typed, identified, "differs", typed,
                             f"{both}; certified as {typed} on the operator's answer", "typed", policy)

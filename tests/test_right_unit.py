@@ -310,9 +310,10 @@ def test_a_unit_reporting_what_is_no_serial_number_is_treated_as_not_identified(
 
 
 def test_one_serial_is_never_certified_twice_in_a_run(api: Api):
-    """Slot 0 typed (and trusted) as the serial the unit in slot 1 reports: the first certificate goes to
-    slot 0, and slot 1's unit is not certified under the same serial a second time (before, both were,
-    the second superseding the first while the run's result called both current)."""
+    """Slot 0 typed (and trusted) as the serial the unit in slot 1 reports: once both were certified under it,
+    the second superseding the first while the run's result called both current; then slot 0 was certified
+    under it and slot 1's unit, the real one, left out as a duplicate. Slot 0 is refused now, naming the slot
+    whose unit that serial is, and slot 1's unit is certified as itself, once."""
     from test_engine import two_units
 
     with sim_station(two_units()) as info:
@@ -320,8 +321,9 @@ def test_one_serial_is_never_certified_twice_in_a_run(api: Api):
         done = wait_run(api, start(api, serials={"0": "SN-RANDOM"}, serial_policy="trust-typed"), timeout=120)
         assert done["status"] == "completed", done
         units = done["result"]["units"]
-        assert units["0"]["serial"] == "SN-RANDOM" and units["0"]["identified_serial"] == UNIT
-        assert units["1"]["identification"] == "duplicate" and "two units would be certified under one serial" in units["1"]["serial_note"], units["1"]
+        assert units["0"]["identified_serial"] == UNIT and units["0"]["serial_decision"] == "refused", units["0"]
+        assert "unit SN-RANDOM is the one in slot 1 (it reports SN-RANDOM)" in units["0"]["serial_note"], units["0"]
+        assert units["1"]["identification"] == "identified" and units["1"]["serial"] == "SN-RANDOM", units["1"]
         assert [(c["serial"], c["status"]) for c in done["calibrations"]] == [("SN-RANDOM", "current")]
 
 

@@ -25,7 +25,7 @@ from physics.recording import Recording, RecordingError, concat
 from physics.simulate import Pose, plan_cost, plan_timeline
 from physics.table import DRIVE_SETTLE_S, PROCEDURE_SETTLE_S, Motion
 from procedures.steps import (Acquire, Checkpoint, Compute, Move, Outcome, Park, Procedure, ProcedureGen, Prompt, Scan, Settle,
-                              request_number, step_seconds)
+                              Where, request_number, step_seconds)
 
 NAME = "calibrate"
 VERSION = "2"
@@ -268,9 +268,13 @@ def calibrate(p: CalibrateParams) -> ProcedureGen:
         yield from maxmin_visit(p, data)
     else:
         poses = calibration_poses(p)
+        # the budget counts the plan from where the table stands (a run after another starts where that one
+        # ended: its first move back from psi 315 took 11 s that a plan counted from home left out, and a
+        # 150-s budget ran to 168 s)
+        start = (yield Where()) if p.adaptive else None
         yield from visit(poses, p.settle_s, data)
         if p.adaptive:
-            spent = _plan_seconds(poses, p)
+            spent = _plan_seconds(poses, p, tuple(start) if start else (0.0, 0.0, 0.0))
             here = (poses[-1].psi_t, poses[-1].theta_t, poses[-1].phi_t)
             precision, fitted = yield from extend_to_target(p, data, spent, here)
     if p.END_POSE is not None:  # a fault on the way there is a warning: the data are in

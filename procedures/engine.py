@@ -42,7 +42,7 @@ from procedures.events import (COMPUTING_EVERY_S, Computing, Event, Progress, Pr
                                StateChanged, StepRetried, StepStarted, StepWarning)
 from procedures.states import RunState
 from procedures.steps import (TIMED_STEPS, Acquire, Checkpoint, Compute, Identify, Move, Outcome, Park, Procedure, Prompt, Scan, Settle, Step,
-                              step_seconds)
+                              Where, step_seconds)
 
 #: Table axis turned by each Scan axis.
 SCAN_AXIS = {"psi": "z", "theta": "y", "phi": "x"}
@@ -105,21 +105,34 @@ class RunResult:
     plan_seconds: float = 0.0
 
 
-def table_time_note(result: RunResult, adaptive: bool) -> str | None:
-    """What a completed run's table time says of its station's time scale, or None: a simulator taken at
-    another time scale than it runs at stamps every sample's ``t`` off by that factor (a 50x simulator's
-    run took "4.2 s" of a 113-s plan; one at 20 taken at 1 recorded 20-Hz samples 2 ms apart, without a
-    word). An adaptive run's extension only adds time, so only a short table time is said of it."""
-    if result.state is not RunState.completed or result.plan_seconds <= 0:
+#: A run's table time this many times its plan's nominal or more, at a time scale above 1, is said to be
+#: the host's latency (every host millisecond counts time-scale milliseconds of table time).
+LATENCY_RATIO = 1.25
+
+
+def table_time_note(result: RunResult, adaptive: bool, time_scale: float = 1.0) -> tuple[str, bool] | None:
+    """What a completed run's table time says of its station's time scale, or None; with whether it is a
+    mismatch (the caller adds how to give the right scale). A simulator taken at another time scale than it
+    runs at stamps every sample's ``t`` off by that factor (a 50x simulator's run took "4.2 s" of a 113-s
+    plan; one at 20 taken at 1 recorded 20-Hz samples 2 ms apart, without a word). Below that, a table time
+    stretched at a high time scale is the host's latency, said with its remedy (at time scale 200 a
+    108-s plan took 181 s, with no word). An adaptive run's extension only adds time, so only a short
+    table time is said of it. A run that never moved the table (every unit refused) says nothing."""
+    if result.state is not RunState.completed or result.plan_seconds <= 0 or result.samples == 0:
         return None
     ratio = result.table_seconds / result.plan_seconds
     # a loaded machine stretches a fast simulator's table time (2-4.5 times at time scale 100 on a load of 10),
-    # never shrinks it: a long table time is said only well beyond that
-    if 0.5 < ratio and (adaptive or ratio < 5.0):
-        return None
-    return (f"the table time is {ratio:.3g} times the plan's nominal ({result.table_seconds:.1f} s for "
-            f"{result.plan_seconds:.1f} s): if the station is a simulator running at another time scale than the "
-            "station's, every sample's t is off by that factor")
+    # never shrinks it: a mismatch is said of a long table time only well beyond that
+    if ratio <= 0.5 or (not adaptive and ratio >= 5.0):
+        return (f"the table time is {ratio:.3g} times the plan's nominal ({result.table_seconds:.1f} s for "
+                f"{result.plan_seconds:.1f} s): if the station is a simulator running at another time scale than the "
+                "station's, every sample's t is off by that factor"), True
+    if not adaptive and time_scale > 1.0 and ratio >= LATENCY_RATIO:
+        return (f"the table time is {ratio:.3g} times the plan's nominal ({result.table_seconds:.1f} s for "
+                f"{result.plan_seconds:.1f} s): at time scale {time_scale:g} every millisecond the host takes between "
+                f"steps counts {time_scale:g} ms of table time; the data are sound, but for table times that mean "
+                "a station's, run the simulator at time scale 20 or less"), False
+    return None
 
 
 #: Wall seconds between the table's status polls while a run stands paused.
@@ -394,6 +407,8 @@ class Engine:
     async def _do(self, step: Step) -> Any:
         if isinstance(step, Compute):  # the table holds where it is
             return self._computing(step)
+        if isinstance(step, Where):
+            return tuple(await self.station.table.positions())
         if isinstance(step, Move):
             try:
                 self._held = await self._retry(lambda: self.station.table.move_to(

@@ -74,6 +74,12 @@ class Identify:
 
 
 @dataclass(frozen=True)
+class Where:
+    """Ask where the table stands now. Reply: its encoder angles ``(psi, theta, phi)`` in deg, or None
+    from an engine that cannot say (a step replayed from an interrupted run)."""
+
+
+@dataclass(frozen=True)
 class Checkpoint:
     """A safe place to pause or abort (the table holds still here)."""
 
@@ -91,7 +97,7 @@ class Compute:
     percent: float | None = None  # how far, as the engine last reported it
 
 
-Step = Union[Move, Settle, Acquire, Scan, Prompt, Identify, Checkpoint, Compute]
+Step = Union[Move, Settle, Acquire, Scan, Prompt, Identify, Where, Checkpoint, Compute]
 #: Steps that take table time (progress counts them).
 TIMED_STEPS = (Move, Settle, Acquire, Scan)
 Reply = Union[dict[int, Recording], dict[int, tuple[str, str, str]], str, None]
@@ -223,5 +229,7 @@ def simulate_run(gen: ProcedureGen, unit: Unit, world: World, rng: Any, pause_s:
             return {0: rec}
         elif isinstance(step, Scan):
             raise NotImplementedError("simulate_run does not simulate scans (physics.simulate.simulate_timeline does)")
+        elif isinstance(step, Where):
+            return (here.psi, here.theta, here.phi)
         return _empty_reply(step)
     return drive(gen, respond), moves

@@ -746,9 +746,11 @@ async def _calibrate_station(modbus: str, compasses: list[str], out: Path, time_
                   + f"{result.samples} samples kept")
     for note in name_notes:
         _note(note)
-    said = table_time_note(result, bool(params.get("adaptive")))
+    said = table_time_note(result, bool(params.get("adaptive")), time_scale)
     if said:
-        _note(f"{said}: give --control (it tells the scale) or --time-scale (now --time-scale {time_scale:g})")
+        text, mismatch = said
+        _note(f"{text}: give --control (it tells the scale) or --time-scale (now --time-scale {time_scale:g})"
+              if mismatch else text)
     for slot in sorted(serials):
         if slot in sink.parts:
             console.print(f"slot {slot} ({escape(str(serials[slot]))}): recording {escape(str(sink.path(slot)))}")

@@ -143,11 +143,16 @@ def limit_result(value: Any, lim: Limit) -> str | None:
 
 def judge(fig: dict[str, float | None], limits: list[Limit]) -> tuple[str, list[str]]:
     """PASS, MARGINAL or FAIL from a calibration's :func:`figures`, with the reasons (every limit
-    exceeded, with the figure and the limit)."""
+    exceeded, with the figure and the limit; and every limit its figure is missing for, which the verdict
+    does not cover: a twelve-position calibration's certificate said "every figure within its marginal
+    limit" beside a tilted limit "not judged")."""
     verdict, reasons = "PASS", []
     for lim in limits:
         value, result = fig.get(lim.name), limit_result(fig.get(lim.name), lim)
-        if result == "FAIL":
+        if result is None:
+            reasons.append(f"{lim.name} not judged: this calibration gives no figure for it (the verdict covers the "
+                           "other limits)")
+        elif result == "FAIL":
             verdict = "FAIL"
             reasons.append(f"{lim.name} {value:.4g} {lim.unit} above the fail limit {lim.fail:g}")
         elif result == "MARGINAL":

@@ -343,7 +343,7 @@ def describe_step(d: dict[str, Any]) -> str:
         how = f": {step.get('stage') or ''} {pct:.0f} %" if isinstance(pct, (int, float)) else ""
         return f"computing the {step.get('label') or ''}{how}"
     return {"prompt": "waiting for the operator", "checkpoint": "checkpoint",
-            "identify": "identifying the units"}.get(str(kind), str(kind or ""))
+            "identify": "identifying the units", "where": "reading where the table stands"}.get(str(kind), str(kind or ""))
 
 
 def step_view(session: Session, run_id: int) -> tuple[str, str | None]:

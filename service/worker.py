@@ -471,10 +471,11 @@ async def _drive(ctx: WorkerContext, run_id: int, control: RunControl, snapshot:
         if "units" not in fin.summary and check.identities:  # ended without results after naming its units: whom
             fin.summary["identities"] = _identities_json(check.identities)
         fin.summary = {**fin.summary, "samples": result.samples}
-        said = table_time_note(result, bool(getattr(params, "adaptive", False)))
+        said = table_time_note(result, bool(getattr(params, "adaptive", False)), float(snapshot["time_scale"]))
         if said and "units" in fin.summary:
-            fin.summary["notes"] = [*fin.summary.get("notes", []), f"{said}: set the station's time_scale (PUT /stations/"
-                                                                    f"{snapshot['name']}) to the simulator's"]
+            text, mismatch = said
+            fin.summary["notes"] = [*fin.summary.get("notes", []), f"{text}: set the station's time_scale (PUT /stations/"
+                                                                    f"{snapshot['name']}) to the simulator's" if mismatch else text]
         return fin, result.table_seconds
 
 

@@ -625,3 +625,24 @@ def test_the_recording_sink_appends_each_acquisition_and_the_file_reads_back_as_
     sink.add(0, part(4, 3))
     back = parse_recording(sink.path(0).read_text())
     assert len(back) == 126 and np.array_equal(back.mag, sink.recording(0).mag) and list(back.step[-3:]) == ["pose4"] * 3
+
+
+def test_the_table_time_note_says_a_mismatch_the_host_s_latency_or_nothing() -> None:
+    """A table time far from the plan's is a simulator at another time scale (mismatch: the caller says how
+    to give it); stretched by a quarter or more at a high time scale, the host's latency (an outside prober:
+    181 s for a 108-s plan at time scale 200, no word); a run that never moved the table (every unit
+    refused) said it was "0 times the plan's nominal", which it is not to be told."""
+    from procedures.engine import RunResult, table_time_note
+    from procedures.states import RunState
+
+    def run(table_s: float, samples: int = 1000) -> RunResult:
+        return RunResult(RunState.completed, None, None, samples, table_s, 108.0)
+
+    assert table_time_note(run(4.2), False, 20.0)[1] is True
+    assert table_time_note(run(600.0), False, 1.0)[1] is True
+    text, mismatch = table_time_note(run(181.0), False, 200.0)
+    assert not mismatch and "at time scale 200" in text and "time scale 20 or less" in text
+    assert table_time_note(run(181.0), False, 1.0) is None  # at time scale 1 the host adds nothing like it
+    assert table_time_note(run(181.0), True, 200.0) is None  # an adaptive run's extension adds time
+    assert table_time_note(run(112.0), False, 200.0) is None
+    assert table_time_note(run(0.0, samples=0), False, 20.0) is None

@@ -205,6 +205,34 @@ def test_a_batch_units_budget_holds_its_move_back_to_the_load_pose() -> None:
         proc.validate({"serial": "SN-1", "adaptive": True, "budget_s": plan_s - 1.0})
 
 
+def test_the_budget_counts_the_plan_from_where_the_table_stands() -> None:
+    """A run after another starts where that one left the table (psi 315): its first move back took 11 s that
+    the budget, counting the plan from home, left out (an outside prober's 150-s budget ran to 168 s of
+    table time). The procedure asks where the table stands (a Where step) and counts from there."""
+    from procedures.steps import Where
+
+    def started_at(gen, at):  # noqa: ANN001, ANN202 - answers Where itself, as an engine would
+        reply = None
+        while True:
+            try:
+                step = gen.send(reply)
+            except StopIteration as stop:
+                return stop.value
+            reply = at if isinstance(step, Where) else (yield step)
+
+    proc = PROCEDURES["calibrate"]
+    unit, world = _units(1, 7)[0]
+    unit.mag.k[:] = 1100.0  # weak: the extension spends the whole budget
+    motion = Motion(Station.speed_dps, Station.accel_dps2, Station.settle_s, float(Station.sample_rate_hz))
+    at = (315.0, 60.0, 0.0)
+    steps: list = []
+    params = proc.validate({"adaptive": True, "budget_s": 150.0})
+    out, _ = simulate_run(_recorded(started_at(proc.run(params), at), steps), unit, world, np.random.default_rng(2))
+    pr = out.results[0]["calibration"].quality["precision"]
+    engine_s = sum(step_seconds([s for s in steps if isinstance(s, TIMED_STEPS)], motion, at))
+    assert pr["added_poses"] > 0 and pr["table_s"] == pytest.approx(engine_s, abs=1e-6) and engine_s <= 150.0 + 1e-6, (engine_s, pr)
+
+
 def test_a_unit_the_budget_left_short_is_told_the_budget_it_needs() -> None:
     """A unit (2200 LSB per field) that a 112-s budget leaves above the targets: the result says how much
     more table time the extension predicts it needs (choosing poses as it would, on the information they

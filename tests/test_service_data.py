@@ -221,3 +221,19 @@ def test_an_import_is_exported_as_it_came_extra_columns_and_every_digit(api):
     assert np.array_equal(a.t, b.t) and np.array_equal(a.mag, b.mag) and np.array_equal(a.psi_t, b.psi_t)
     assert np.array_equal(a.temp_c, b.temp_c)
     assert b.extra == {"lux": [str(i * 7) for i in range(30)], "note": [f"n{i}" for i in range(30)]}
+
+
+def test_a_limit_without_its_figure_is_said_beside_the_verdict() -> None:
+    """A calibration that gives no figure for a limit (the twelve-position method's tilted heading) was
+    certified PASS with "every figure within its marginal limit" beside that limit "not judged": the
+    reasons say which limit the verdict does not cover, and the verdict stands on the others."""
+    from service.db import Limit
+    from service.store import judge
+
+    limits = [Limit(name="heading_error_level_deg", marginal=0.02, fail=0.05, unit="deg"),
+              Limit(name="heading_error_tilted_deg", marginal=0.05, fail=0.1, unit="deg")]
+    verdict, reasons = judge({"heading_error_level_deg": 0.01, "heading_error_tilted_deg": None}, limits)
+    assert verdict == "PASS" and reasons == ["heading_error_tilted_deg not judged: this calibration gives no figure for it "
+                                             "(the verdict covers the other limits)"]
+    assert judge({"heading_error_level_deg": 0.03, "heading_error_tilted_deg": 0.01}, limits) == (
+        "MARGINAL", ["heading_error_level_deg 0.03 deg above the marginal limit 0.02"])

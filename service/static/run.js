@@ -85,6 +85,7 @@
       case "prompt": return "waiting for the operator";
       case "checkpoint": return "checkpoint";
       case "identify": return "identifying the units";
+      case "where": return "reading where the table stands";
       default: return s.kind || "";
     }
   }

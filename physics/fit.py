@@ -156,6 +156,12 @@ def fit(rec: Recording, method: str = "joint", bootstrap: int = 20, rng: np.rand
         where = f" (data rows {index_list(skipped_at)}, 0-based)" if skipped_at else ""
         cal.notes.append(f"{skipped} malformed row(s) of the file were skipped before the fit (--skip-bad-rows){where}; "
                          f"{len(rec)} were read")
+    if rec.acc is not None:
+        empty = np.flatnonzero(~np.all(np.isfinite(rec.acc), axis=1))
+        if 0 < len(empty) < len(rec):  # (all empty: a recording without an accelerometer, which its notes say)
+            cal.notes.append(f"{len(empty)} row(s) have no accelerometer reading (empty cells: data rows "
+                             f"{index_list(sorted(file_row(rec, int(i)) for i in empty))}, 0-based): the accelerometer "
+                             "is calibrated from the others, the magnetometer from every row")
     if np.isfinite(cal.inclination_deg) and abs(cal.inclination_deg) > NEAR_POLE_DEG:
         horizontal = np.cos(np.radians(cal.inclination_deg))
         cal.notes.append(f"the field is {90 - abs(cal.inclination_deg):.1f} deg from vertical: its horizontal part, which "
@@ -346,6 +352,10 @@ def _robust_sigma(x: np.ndarray, floor: np.ndarray) -> np.ndarray:
 SAMPLE_HOLD_MAX = 10
 
 
+#: The reason of a row that repeats the row before exactly, its time stamp too.
+WRITTEN_TWICE = "repeats the row before exactly (same time stamp and readings): a sample written twice"
+
+
 def screen_rows(rec: Recording) -> dict[int, str]:
     """Model-free screen of the magnetometer and accelerometer rows: {sample index: reason} of the
     ones to drop (a row goes as a whole: its attitude and its field were read together).
@@ -373,6 +383,14 @@ def screen_rows(rec: Recording) -> dict[int, str]:
                                "(a field beyond the sensor's range: a strong magnet near the unit?)")
     if len(rec) == 0:
         return out
+    # a row that repeats the one before exactly, time stamp and readings: a logger that wrote a sample twice
+    # (a file of every row twice was fitted with its noise taken for 30 % less, and no word of it)
+    same = np.r_[False, (np.diff(rec.t) == 0) & np.all(np.diff(rec.mag, axis=0) == 0, axis=1)]
+    if rec.acc is not None:
+        acc = np.nan_to_num(rec.acc, nan=np.inf)
+        same[1:] &= np.all(acc[1:] == acc[:-1], axis=1)
+    for i in np.flatnonzero(same):
+        out.setdefault(int(i), WRITTEN_TWICE)
     group = pose_groups(rec)
     _screen_frozen(rec, group, out)
     _screen_stuck(rec, group, out)
@@ -487,7 +505,8 @@ def _screen_stuck(rec: Recording, group: np.ndarray, out: dict[int, str]) -> Non
     dead = np.r_[False, np.all(rec.mag[1:] == rec.mag[:-1], axis=1)]
     for name, x in cols:
         same = np.r_[False, x[1:] == x[:-1]] & (~dead if name[0] == "m" else True)
-        runs = [r for r in consecutive_runs(same) if len(r) >= STUCK_RUN - 1]
+        # rows another screen took (a frozen sensor's, all six axes repeating) do not make a run of one axis
+        runs = [r for r in consecutive_runs(same) if sum(int(i) not in out for i in r) >= STUCK_RUN - 1]
         if not runs:
             continue
         in_run = np.zeros(len(x), bool)
@@ -808,12 +827,14 @@ def _too_few(rec: Recording, rejected: dict[int, str], e: Exception) -> Exceptio
 
 
 def reason_kind(reason: str) -> str:
-    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, frozen, stuck
-    axis, bad table angles, off its pose, off the model."""
+    """The kind of a dropped row's reason, as the notes count them: all zeros, saturated, written twice,
+    frozen, stuck axis, bad table angles, off its pose, off the model."""
     if reason.startswith("all three"):
         return "all zeros"
     if reason.startswith("repeats the previous row"):
         return "frozen"
+    if reason == WRITTEN_TWICE:
+        return "written twice"
     if reason.endswith("a stuck axis"):
         return "stuck axis"
     if reason.startswith("saturated"):

@@ -367,7 +367,8 @@ def maxmin(rec: Recording, acc: Accel) -> Calibration:
             f"maxmin: every sensor axis must point along and against the field (within {MAXMIN_TOL_DEG:.0f} deg) "
             "at some pose, or its bias and scale (max + min) / 2, (max - min) / 2 are wrong. "
             f"Estimated field azimuth D ~ {d} deg (steps of a few degrees near the dip let the axis reach "
-            "the field).\n  " + "\n  ".join(lines))
+            "the field). Run the calibration with method maxmin (it finds D on a level turn and sweeps there)."
+            "\n  " + "\n  ".join(lines))
     notes = [
         "maxmin: bias and scale from the per-pose max/min of each axis; M_o = I, so misalignment and "
         "non-orthogonality stay in the heading; the table angles are used only to check the span.",

@@ -508,3 +508,18 @@ def test_an_accelerometer_the_attitudes_cannot_determine_is_not_calibrated() -> 
     assert any(n.startswith("accelerometer not calibrated") and "M[xm,yb]" in n for n in cal.notes), cal.notes
     truth = truth_summary(cal, UNIT, WORLD)
     assert truth["level_max"] < 0.1 and truth["tilted_max"] < 0.5, truth
+
+
+def test_rows_written_twice_are_dropped_and_empty_accelerometer_cells_are_said() -> None:
+    """Every row of a file written twice (same time stamp, same readings) was fitted as twice the samples,
+    the noise and the uncertainties too small, with no word; the copies are dropped as the analysis drops
+    them. Rows with empty accelerometer cells are fitted as before, and now said."""
+    rec = _recording()
+    twice = rec.select(np.repeat(np.arange(len(rec)), 2))
+    cal = fit(twice, "joint", bootstrap=0)
+    assert {r["index"] for r in cal.quality["rejected_rows"]} == set(range(1, len(twice), 2))
+    assert any(f"{len(rec)} written twice" in n for n in cal.notes), cal.notes
+    rec = _recording()
+    rec.acc[[5, 50, 500]] = np.nan
+    cal = fit(rec, "joint", bootstrap=0)
+    assert any(n.startswith("3 row(s) have no accelerometer reading") and "5, 50, 500" in n for n in cal.notes), cal.notes

@@ -202,7 +202,11 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
     frozen = {i for i, why in screened.items() if reason_kind(why) == "frozen"}
     # and an axis stuck on one reading while the others go on (physics.fit._screen_stuck): not the field either
     stuck = {i for i, why in screened.items() if reason_kind(why) == "stuck axis"}
-    off = np.array(sorted(set(screened) - zero - clipped - frozen - stuck), dtype=int)
+    # a row that repeats the one before exactly (time stamp and readings): a logger that wrote a sample twice.
+    # Kept, every row written twice was "unexplained structure in time" (Ljung-Box p 2e-284), a field "varying
+    # too slowly for a hold to resolve"
+    repeated = {i: why for i, why in screened.items() if reason_kind(why) == "written twice"}
+    off = np.array(sorted(set(screened) - zero - clipped - frozen - stuck - set(repeated)), dtype=int)
     short: set[int] = set()
     # a pose is the table's hold; angles from an attitude reference repeat while the body moves on
     # (a stale reference), which says nothing of the magnetometer's rows
@@ -222,15 +226,6 @@ def _without_bad_samples(rec: Recording) -> tuple[Recording, tuple[str, list[dic
         if edge.any() and len(np.unique(group[edge])) <= EDGE_GARBAGE_SHARE * holds:
             lone |= _ends_at_its_edge(rec, edge, group, bad_rows)
         short = {int(i) for i in off if lone[i]}
-    # a row that repeats the one before exactly (time stamp and readings): a logger that wrote a sample twice.
-    # Kept, every row written twice was "unexplained structure in time" (Ljung-Box p 2e-284), a field "varying
-    # too slowly for a hold to resolve"
-    same = np.r_[False, (np.diff(rec.t) == 0) & np.all(np.diff(rec.mag, axis=0) == 0, axis=1)]
-    if rec.acc is not None:
-        acc = np.nan_to_num(rec.acc, nan=np.inf)
-        same[1:] &= np.all(acc[1:] == acc[:-1], axis=1)
-    repeated = {int(i): "repeats the row before exactly (same time stamp and readings): a sample written twice"
-                for i in np.flatnonzero(same)}
     bad = {**{i: screened[i] for i in sorted(zero | short | clipped | frozen | stuck)}, **repeated}
     bad = dict(sorted(bad.items()))
     if not bad:

@@ -1171,3 +1171,12 @@ def test_a_complements_map_gives_any_linear_image_of_its_basis() -> None:
     assert np.array_equal(B, _complement(X, Q)) and B.shape[1] == 3
     L = rng.normal(size=(30, 400))
     assert np.allclose(image(L @ X, L @ Q), L @ B, rtol=1e-9, atol=1e-9)
+
+
+def test_a_drift_in_time_says_whether_a_temperature_was_logged() -> None:
+    """An offset drifting in time won over the logged temperature (a bias lagging a warm-up from 23 to 31
+    deg C): its explanation said "warm-up without a logged temperature" of a recording that logged one."""
+    blk = dv.Block("sensor", "offset", "time")
+    assert "without a logged temperature" in dv._cause(blk)
+    said = dv._cause(blk, logged_temp=True)
+    assert "not in step with the logged temperature" in said and "without a logged" not in said

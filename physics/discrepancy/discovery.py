@@ -1353,9 +1353,10 @@ INTERMITTENT = ("with the same size each time: something switched on and off (a 
                 "or put back more than once")
 
 
-def _cause(block: Block, step: bool = False) -> str:
+def _cause(block: Block, step: bool = False, logged_temp: bool = False) -> str:
     """The likeliest physical cause of a block, in a technician's words. ``step``: a window that reaches the
-    run's start or end, which says one change at one time (its explanation then says "at that time")."""
+    run's start or end, which says one change at one time (its explanation then says "at that time").
+    ``logged_temp``: the recording's temp_c changes (a drift in time then won over following it)."""
     f, form, dep = block.frame, block.form, block.dependence
     if dep == "segments":
         when = "at that time" if step else "for that time"
@@ -1380,6 +1381,9 @@ def _cause(block: Block, step: bool = False) -> str:
             return "the unit's axes turn slowly against the platform: the mount creeping (adhesive, clamp, thermal settling)"
         if f == "lab":
             return "the lab field drifts (a nearby instrument, vehicles, the daily variation)"
+        if logged_temp:  # the logged temperature was tried as well and followed less closely
+            return ("the unit's response drifts slowly, not in step with the logged temperature (a temperature inside "
+                    "the unit that lags the one logged, the supply, ageing)")
         return "the unit's response drifts slowly (warm-up without a logged temperature, supply, ageing)"
     if dep == "rate":
         return "eddy currents in conducting parts, or a motor's field that grows with speed"
@@ -1508,7 +1512,9 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
     step = step_time(segs, ctx.t) if f.complement else None
     when = window_text(segs, step)
     dep = "" if blk.windowed else f", {AGAINST_TEXT.get(blk.dependence, blk.dependence)}"
-    cause = (INTERMITTENT if len(segs) > 1 else _cause(blk, step is not None))
+    temp = ctx.rec.temp_c
+    logged = temp is not None and bool(np.all(np.isfinite(temp))) and float(np.ptp(temp)) >= 0.2  # as testable
+    cause = (INTERMITTENT if len(segs) > 1 else _cause(blk, step is not None, logged))
     if f.complement and len(f.complement) != len(segs):
         # the nominal model takes in what is constant through the run, so the times between are as well the
         # same departure of the opposite sign: said where that is another story (present at the start, taken

@@ -539,7 +539,9 @@ def run_page(request: Request, run_id: Id) -> Response:
                         evaluations.append({"slot": slot, "serial": entry.get("serial", ""), **said,
                                             "warning": entry.get("warning")})
                         continue
+                    # a unit not certified goes by the serial it reported (its samples do), the typed one beside it
                     errors.append({"slot": slot, "serial": entry.get("serial", ""),
+                                   "identified": entry.get("identified_serial") or "",
                                    "error": entry.get("error") or "no calibration from this slot"})
         # what each unit reported, by slot, shown next to the serial typed; a run that ended without results (aborted
         # at its serial prompt) keeps its units' identities alone, and its page showed none

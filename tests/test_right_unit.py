@@ -144,6 +144,8 @@ def test_refuse_policy_fails_the_slot_with_the_reason(api: Api):
         assert api.get("/stations/lab-1", role="viewer").json()["state"] == "idle"
         page = api.get(f"/ui/runs/{rid}", role="viewer").text
         assert "refused" in page and UNIT in page
+        # the slot goes by the unit it held, the serial typed beside it (it was headed "SN-WRONG")
+        assert f"Slot 0: unit {UNIT} <small>(typed SN-WRONG)</small>" in page, page
 
 
 def test_trust_typed_is_recorded_on_the_page_and_the_certificate(api: Api):

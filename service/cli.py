@@ -579,7 +579,7 @@ def print_analysis(result: dict[str, object]) -> None:
     t.add_column("")
     for name in ("m_x", "m_y", "m_z"):  # the noise is per axis; without angles the residual is |m|'s (first column)
         t.add_column(name, justify="right")
-    rows = [("noise floor (1 sigma)", r.get("noise_floor_lsb"), 3), ("noise lag-1 autocorrelation", r.get("noise_ar1"), 3),
+    rows = [("noise floor (1 sigma)", r.get("noise_floor_lsb"), 3), ("noise slow part: AR(1) phi", r.get("noise_ar1"), 3),
             ("rms before (in-sample)", r.get("residual_rms_before_lsb"), 4),
             ("rms after (in-sample)", r.get("residual_rms_after_lsb"), 4),
             ("rms before (held out)", held.get("rms_before_lsb"), 4),

@@ -403,7 +403,7 @@ def analysis_html(result: Mapping[str, Any], series: Mapping[str, Any] | None, t
     fit_cells = (lambda v: [f"{x} ({n})" if n else "" for x, n in zip(per_axis(v), names)]) if attitude_free else per_axis
     summary = [
         ("noise floor (LSB, 1σ per sample)", per_axis(result.get("noise_floor_lsb"), 3)),
-        ("noise lag-1 autocorrelation", per_axis(result.get("noise_ar1"), 3)),
+        ("noise slow part: AR(1) phi", per_axis(result.get("noise_ar1"), 3)),
         ("residual rms before (LSB, in-sample)", fit_cells(result.get("residual_rms_before_lsb"))),
         ("residual rms after (LSB, in-sample)", fit_cells(result.get("residual_rms_after_lsb"))),
         ("held-out rms before (LSB)", fit_cells(held.get("rms_before_lsb"))),

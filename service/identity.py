@@ -306,9 +306,7 @@ class UnitCheck:
         if answer == "typed":
             return Identity(slot, typed, None, "not identified", typed,
                             f"{facts}; certified as {typed} on the operator's answer", "typed", policy)
-        why = "skipped by the operator" if answer == "skip" else f"answer {answer!r} not understood"
-        return Identity(slot, typed, None, "not identified", typed, f"{facts}; {why}: not certified", "skip", policy,
-                        certify=False)
+        return self._skipped(slot, typed, None, "not identified", facts, answer)
 
     def _differs(self, slot: int, typed: str, identified: str) -> Generator[Prompt, Reply, Identity]:
         both = f"the serial number typed is {typed} but the unit reports {identified}"
@@ -340,8 +338,12 @@ class UnitCheck:
         if answer == "identified":
             return Identity(slot, typed, identified, "differs", identified,
                             f"{both}; certified as {identified} on the operator's answer", "identified", policy)
+        return self._skipped(slot, typed, identified, "differs", both, answer)
+
+    def _skipped(self, slot: int, typed: str, identified: str | None, status: str, facts: str, answer: str) -> Identity:
+        """The slot left uncalibrated on the operator's 'skip' (or an answer not understood)."""
         why = "skipped by the operator" if answer == "skip" else f"answer {answer!r} not understood"
-        return Identity(slot, typed, identified, "differs", typed, f"{both}; {why}: not certified", "skip", policy,
+        return Identity(slot, typed, identified, status, typed, f"{facts}; {why}: not certified", "skip", self.policy,
                         certify=False)
 
 

@@ -169,14 +169,20 @@ def test_the_adaptive_budget_counts_table_time_as_the_engine_does() -> None:
         assert engine_s + adaptive_reserve(p) == pytest.approx(p.budget_s, abs=1e-6), (settle, engine_s)
 
 
-def _recorded(gen, steps: list):  # noqa: ANN001, ANN202
-    """``gen`` passed through, each step it yields kept in ``steps``."""
+def _recorded(gen, steps: list, where: tuple[float, float, float] | None = None):  # noqa: ANN001, ANN202
+    """``gen`` passed through, each step it yields kept in ``steps``; with ``where``, its Where steps answered
+    with that, as an engine whose table stands there would."""
+    from procedures.steps import Where
+
     reply = None
     while True:
         try:
             step = gen.send(reply)
         except StopIteration as stop:
             return stop.value
+        if where is not None and isinstance(step, Where):
+            reply = where
+            continue
         steps.append(step)
         reply = yield step
 
@@ -209,17 +215,6 @@ def test_the_budget_counts_the_plan_from_where_the_table_stands() -> None:
     """A run after another starts where that one left the table (psi 315): its first move back took 11 s that
     the budget, counting the plan from home, left out (an outside prober's 150-s budget ran to 168 s of
     table time). The procedure asks where the table stands (a Where step) and counts from there."""
-    from procedures.steps import Where
-
-    def started_at(gen, at):  # noqa: ANN001, ANN202 - answers Where itself, as an engine would
-        reply = None
-        while True:
-            try:
-                step = gen.send(reply)
-            except StopIteration as stop:
-                return stop.value
-            reply = at if isinstance(step, Where) else (yield step)
-
     proc = PROCEDURES["calibrate"]
     unit, world = _units(1, 7)[0]
     unit.mag.k[:] = 1100.0  # weak: the extension spends the whole budget
@@ -227,7 +222,7 @@ def test_the_budget_counts_the_plan_from_where_the_table_stands() -> None:
     at = (315.0, 60.0, 0.0)
     steps: list = []
     params = proc.validate({"adaptive": True, "budget_s": 150.0})
-    out, _ = simulate_run(_recorded(started_at(proc.run(params), at), steps), unit, world, np.random.default_rng(2))
+    out, _ = simulate_run(_recorded(proc.run(params), steps, at), unit, world, np.random.default_rng(2))
     pr = out.results[0]["calibration"].quality["precision"]
     engine_s = sum(step_seconds([s for s in steps if isinstance(s, TIMED_STEPS)], motion, at))
     assert pr["added_poses"] > 0 and pr["table_s"] == pytest.approx(engine_s, abs=1e-6) and engine_s <= 150.0 + 1e-6, (engine_s, pr)

@@ -13,7 +13,7 @@ from collections import Counter
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from drivers.modbus import BusURL
 from drivers.station import hardware_key
@@ -268,15 +268,18 @@ class StationConfigIn(In):
 
     @field_validator("modbus")
     @classmethod
-    def _url(cls, v: str) -> str:
-        BusURL.parse(v)  # ValueError names the problem
+    def _url(cls, v: str | None) -> str | None:
+        if v is not None:  # (None: a PATCH that leaves it as it is)
+            BusURL.parse(v)  # ValueError names the problem
         return v
 
     @field_validator("compasses")
     @classmethod
-    def _urls(cls, v: list[str]) -> list[str]:
+    def _urls(cls, v: list[str] | None) -> list[str] | None:
         import serial  # pyserial: the URL forms the compass driver opens (serial.serial_for_url)
 
+        if v is None:
+            return v
         if any(not u.strip() for u in v):
             raise ValueError("empty compass URL")
         for i, u in enumerate(v):  # (before: an unknown protocol was taken, and the first run put the station in fault)
@@ -288,6 +291,21 @@ class StationConfigIn(In):
         if twice:  # two slots cannot read one compass (however each URL spells it)
             raise ValueError(f"compass URL given for two slots: {', '.join(twice)}")
         return v
+
+
+class StationPatchIn(StationConfigIn):
+    """A change of some of a station's settings (PATCH): what is given changes, the rest is kept; at least one."""
+
+    modbus: str | None = Field(None, min_length=1, max_length=256, description="e.g. tcp://10.0.0.5:502; omitted: kept")
+    compasses: list[Annotated[str, AfterValidator(no_nul), Field(max_length=256)]] | None = Field(
+        None, min_length=1, max_length=MAX_SLOTS, description="the serial URL of slot 0, slot 1, ...; omitted: kept")
+    time_scale: Finite | None = Field(None, gt=0, le=MAX_TIME_SCALE, description="omitted: kept")
+
+    @model_validator(mode="after")
+    def _something(self) -> "StationPatchIn":
+        if not self.model_fields_set - {"name"}:
+            raise ValueError("nothing to change: give one or more of modbus, compasses, time_scale, serial_policy")
+        return self
 
 
 class StationIn(StationConfigIn):

@@ -731,6 +731,27 @@ def test_a_station_change_keeps_what_it_does_not_name(api: Api):
     assert r.status_code == 200 and r.json()["time_scale"] == 1, r.text
 
 
+def test_a_station_s_serial_policy_changes_alone_with_patch(api: Api):
+    """PUT wants a station's URLs as well (an outside prober: to change only its serial policy); PATCH changes
+    what it is given and keeps the rest, with the same checks, and names what is wrong."""
+    body = {"name": "lab-9", "modbus": "tcp://127.0.0.1:1591", "compasses": ["socket://127.0.0.1:4091"], "time_scale": 20}
+    assert api.post("/stations", json=body).status_code == 201
+    r = api.patch("/stations/lab-9", json={"serial_policy": "refuse"})
+    assert r.status_code == 200, r.text
+    got = r.json()
+    assert (got["serial_policy"], got["modbus"], got["compasses"], got["time_scale"]) == (
+        "refuse", body["modbus"], body["compasses"], 20), got
+    assert api.patch("/stations/lab-9", json={"time_scale": 1}).json()["serial_policy"] == "refuse"
+    r = api.patch("/stations/lab-9", json={})
+    assert r.status_code == 422 and "nothing to change" in r.text, r.text
+    r = api.patch("/stations/lab-9", json={"serial_policy": "maybe"})
+    assert r.status_code == 422 and "serial_policy" in r.text, r.text
+    r = api.patch("/stations/lab-9", json={"modbus": "ftp://x"})
+    assert r.status_code == 422 and "modbus" in r.text, r.text
+    assert api.patch("/stations/nowhere", json={"serial_policy": "refuse"}).status_code == 404
+    assert api.patch("/stations/lab-9", json={"serial_policy": "refuse"}, role="operator").status_code == 403
+
+
 def test_a_station_at_another_time_scale_than_its_simulator_is_said(api: Api):
     """A station registered at time scale 1 on a simulator running at 20 completed its runs with samples
     stamped 20 times too close together and no word (the command line said it; the service did not).

@@ -22,7 +22,7 @@ from service.db import Run, Station
 from service.deps import sessions
 from service.identity import DEFAULT_POLICY
 from service.runtime import CONFIRM_S, Conflict, NotFound, Unavailable, invalid, run_json, station_json, wait_for
-from service.schemas import (ERRORS, StationConfigIn, StationDetail, StationIn, StationName, StationOut,
+from service.schemas import (ERRORS, StationConfigIn, StationDetail, StationIn, StationName, StationOut, StationPatchIn,
                              StationResetOut, StationResetRefusedOut)
 from service.worker import station_queue
 
@@ -98,6 +98,32 @@ async def put_station(name: StationName, body: StationConfigIn, request: Request
                 row.serial_policy = full.serial_policy
         audit(s, caller, "station.put", name, {**full.model_dump(), "time_scale": row.time_scale,
                                                "serial_policy": row.serial_policy})
+        s.commit()
+        return station_json(row)
+
+
+@router.patch("/stations/{name}", response_model=StationOut, responses=ERRORS)
+async def patch_station(name: StationName, body: StationPatchIn, request: Request,
+                        caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
+    """Change some of a station's settings (admin), e.g. ``{"serial_policy": "refuse"}``: what is given changes,
+    the rest is kept (PUT wants the URLs as well). 404 for no such station, 409 while a run uses it."""
+    if body.name is not None and body.name != name:
+        raise invalid("body.name", f"{body.name!r} is not the station of the path, {name!r} (a station keeps its name)")
+    with sessions(request)() as s:
+        row = s.scalar(select(Station).where(Station.name == name))
+        if row is None:
+            raise HTTPException(404, f"no station {name!r} (create it with POST /stations or PUT /stations/{name})")
+        if row.run_id is not None:
+            raise HTTPException(409, f"station {name!r} is {row.state} (run {row.run_id}); change it when idle")
+        modbus = body.modbus if body.modbus is not None else row.modbus
+        compasses = list(body.compasses) if body.compasses is not None else list(row.compasses or [])
+        _hardware_free(s, name, modbus, compasses)
+        row.modbus, row.compasses = modbus, compasses
+        if body.time_scale is not None:
+            row.time_scale = body.time_scale
+        if body.serial_policy is not None:
+            row.serial_policy = body.serial_policy
+        audit(s, caller, "station.patch", name, body.model_dump(exclude_unset=True))
         s.commit()
         return station_json(row)
 

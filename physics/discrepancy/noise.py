@@ -190,6 +190,8 @@ def estimate_noise(r: np.ndarray, ctx: "Context") -> NoiseModel:
 REML_CHUNK = 60
 #: Shortest chunk worth it (shorter holds: the differences' fit).
 REML_MIN_CHUNK = 8
+#: The share of the samples in holds that the chunks must cover (the longest such chunk length is taken).
+REML_COVER = 0.5
 #: The grid: phi = 1 - exp(-u) with u evenly spaced (dense near 1, where the slow noise hangs on phi's
 #: second decimal), and the AR part's share of the variance.
 _U = np.linspace(0.0, -np.log(1.0 - 0.985), 36)
@@ -242,22 +244,23 @@ def _reml_grid(L: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _chunks(r: np.ndarray, hold: np.ndarray) -> np.ndarray | None:
-    """The holds' samples as chunks (H, L, ...) of one length: L is the tenth percentile of the lengths of
-    the holds of :data:`REML_MIN_CHUNK` samples or more (at most :data:`REML_CHUNK`), each hold giving as
-    many whole chunks as it holds.
+    """The holds' samples as chunks (H, L, ...) of one length, each hold giving as many whole chunks as it
+    holds: L is the longest (at most :data:`REML_CHUNK`, at least :data:`REML_MIN_CHUNK`) whose chunks
+    cover :data:`REML_COVER` of the samples in holds of REML_MIN_CHUNK or more.
 
-    Shorter holds are left out of the choice of L, not allowed to set it: a recording sampled on the move
-    has a few samples at a hold's angles before each move starts (its settling), a hold of its own, and
-    with those setting L the chunks were too short for the likelihood, the differences' fit took over and
-    missed a slow part (phi 0.8 on 3 LSB read as 2.1 LSB of white noise: 4 false alarms in 11 nulls)."""
+    Short holds do not set L. A recording sampled on the move has a few samples at a hold's angles before
+    or after each move (its settling, under a step label of its own), a hold of its own; a dropped sample
+    splits a hold in two. With the tenth percentile of the hold lengths as L, such pieces made the chunks 4
+    to 10 samples long, which tell a slow part of the noise from the chunk's free mean poorly: phi 0.8 on 3
+    LSB was read as 2.1 LSB of white noise (4 false alarms in 11 of an outside tester's nulls), or phi
+    went to its bound and the floor to 1.5 times the residual's own rms."""
     starts = np.flatnonzero(np.r_[True, hold[1:] != hold[:-1]])
     lengths = np.diff(np.r_[starts, len(hold)])
-    long = lengths[lengths >= REML_MIN_CHUNK]
-    if not long.size:
+    usable = lengths[lengths >= REML_MIN_CHUNK]
+    if not usable.size:
         return None
-    L = int(min(REML_CHUNK, np.floor(np.quantile(long, 0.1))))
-    if L < REML_MIN_CHUNK:
-        return None
+    L = next((n for n in range(REML_CHUNK, REML_MIN_CHUNK - 1, -1)
+              if np.sum(usable // n * n) >= REML_COVER * usable.sum()), REML_MIN_CHUNK)
     idx = [s + k * L + np.arange(L) for s, n in zip(starts, lengths) for k in range(n // L)]
     if len(idx) * (L - 1) < 200:
         return None

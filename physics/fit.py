@@ -941,6 +941,12 @@ def check_angles(rec: Recording) -> None:
                              f"spans only {span:.3f}: table angles must be in degrees, these look like radians")
 
 
+def _never_changing(names: Sequence[str], x: np.ndarray) -> list[str]:
+    """The columns of ``x`` whose readings (empty cells aside) never change, named with their one value."""
+    cols = [col[np.isfinite(col)] for col in x.T]
+    return [f"{name} (always {col[0]:g})" for name, col in zip(names, cols) if len(col) > 1 and np.ptp(col) == 0]
+
+
 def check_magnetometer(rec: Recording) -> None:
     """Refuse a magnetometer axis whose reading never changes: no method can calibrate it (its
     sensitivity would be 0 and every heading 0/0); and an accelerometer axis that never changes while
@@ -948,7 +954,7 @@ def check_magnetometer(rec: Recording) -> None:
     if len(rec) < 2:  # (one row "never changes" either: say what is wrong with the file)
         raise RecordingError(f"the recording has {len(rec)} data row(s): a calibration needs readings at many "
                              "attitudes (the calibrate plan records 18 poses of 60 samples)")
-    dead = [f"{name} (always {col[0]:g})" for name, col in zip(("mx", "my", "mz"), rec.mag.T) if len(col) and np.ptp(col) == 0]
+    dead = _never_changing(("mx", "my", "mz"), rec.mag)
     if dead:
         raise RecordingError(f"column{'s' if len(dead) > 1 else ''} {', '.join(dead)}: the reading never changes over "
                              "the recording: a dead or disconnected magnetometer axis?")
@@ -956,8 +962,7 @@ def check_magnetometer(rec: Recording) -> None:
         return  # (a level turn leaves an accelerometer axis nearly still: nothing to judge it by)
     # an accelerometer axis that never changes while the table tilts was calibrated as a sensitivity of
     # 6.5e-14 counts per g, every tilted heading 180 deg off, and no word of it
-    fin = [col[np.isfinite(col)] for col in rec.acc.T]
-    dead = [f"{name} (always {col[0]:g})" for name, col in zip(("ax", "ay", "az"), fin) if len(col) > 1 and np.ptp(col) == 0]
+    dead = _never_changing(("ax", "ay", "az"), rec.acc)
     if dead:
         raise RecordingError(f"column{'s' if len(dead) > 1 else ''} {', '.join(dead)}: the reading never changes while "
                              "the table tilts: a dead or disconnected accelerometer axis? (to calibrate the magnetometer "

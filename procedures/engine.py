@@ -123,15 +123,14 @@ def table_time_note(result: RunResult, adaptive: bool, time_scale: float = 1.0) 
     ratio = result.table_seconds / result.plan_seconds
     # a loaded machine stretches a fast simulator's table time (2-4.5 times at time scale 100 on a load of 10),
     # never shrinks it: a mismatch is said of a long table time only well beyond that
+    said = f"the table time is {ratio:.3g} times the plan's nominal ({result.table_seconds:.1f} s for {result.plan_seconds:.1f} s)"
     if ratio <= 0.5 or (not adaptive and ratio >= 5.0):
-        return (f"the table time is {ratio:.3g} times the plan's nominal ({result.table_seconds:.1f} s for "
-                f"{result.plan_seconds:.1f} s): if the station is a simulator running at another time scale than the "
-                "station's, every sample's t is off by that factor"), True
+        return (f"{said}: if the station is a simulator running at another time scale than the station's, every "
+                "sample's t is off by that factor"), True
     if not adaptive and time_scale > 1.0 and ratio >= LATENCY_RATIO:
-        return (f"the table time is {ratio:.3g} times the plan's nominal ({result.table_seconds:.1f} s for "
-                f"{result.plan_seconds:.1f} s): at time scale {time_scale:g} every millisecond the host takes between "
-                f"steps counts {time_scale:g} ms of table time; the data are sound, but for table times that mean "
-                "a station's, run the simulator at time scale 20 or less"), False
+        return (f"{said}: at time scale {time_scale:g} every millisecond the host takes between steps counts "
+                f"{time_scale:g} ms of table time; the data are sound, but for table times that mean a station's, run "
+                "the simulator at time scale 20 or less"), False
     return None
 
 

@@ -277,7 +277,11 @@ class UnitCheck:
     def _ask(self, slot: int, typed: str, identified: str | None, status: str, facts: str,
              not_typed: str | None) -> Generator[Prompt, Reply, str]:
         """Ask the operator about the slot's serial (kept as "asked" meanwhile: a run aborted, or lost, at the
-        prompt still says which unit was on the table); the answer, normalised."""
+        prompt still says which unit was on the table); the answer, normalised. The prompt says why 'typed'
+        would not certify the unit: the typed serial certified earlier in the run or its batch, else
+        ``not_typed``."""
+        taken = self.certified.get(typed)
+        not_typed = f"{typed} is already certified for {taken}" if taken else not_typed
         self.identities[slot] = Identity(slot, typed, identified, status, typed, f"{facts}; the operator was asked",
                                          "asked", self.policy, certify=False)
         if self.on_settled is not None:
@@ -300,9 +304,7 @@ class UnitCheck:
                             f"{facts}; refused (serial policy refuse): mount unit {typed} and check that it answers "
                             "the ID command, or start the run with this unit's own serial number", "refused", policy,
                             certify=False)
-        taken = self.certified.get(typed)
-        answer = yield from self._ask(slot, typed, None, "not identified", facts,
-                                      f"{typed} is already certified for {taken}" if taken else None)
+        answer = yield from self._ask(slot, typed, None, "not identified", facts, None)
         if answer == "typed":
             return Identity(slot, typed, None, "not identified", typed,
                             f"{facts}; certified as {typed} on the operator's answer", "typed", policy)
@@ -323,12 +325,9 @@ class UnitCheck:
             return Identity(slot, typed, identified, "differs", typed,
                             f"{both}; refused (serial policy refuse): mount unit {typed}, or start the run with "
                             f"serial {identified}", "refused", policy, certify=False)
-        taken = self.certified.get(typed)
-        if taken:  # certified earlier in the run or its batch: a 'typed' answer is found a duplicate (`_decide`)
-            not_typed = None
-        answer = yield from self._ask(slot, typed, identified, "differs", both,
-                                      f"{typed} is already certified for {taken}" if taken else not_typed)
-        if answer == "typed" and not_typed:
+        answer = yield from self._ask(slot, typed, identified, "differs", both, not_typed)
+        # (a serial certified earlier in the run or its batch: a 'typed' answer is found a duplicate, `_decide`)
+        if answer == "typed" and not_typed and typed not in self.certified:
             return Identity(slot, typed, identified, "differs", typed,
                             f"{both}; the operator answered 'typed', but {not_typed}: not certified", "typed", policy,
                             certify=False)

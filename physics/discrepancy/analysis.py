@@ -342,8 +342,8 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         nonlocal nom, eff, r0, J0, A0, Q0, zr, z, raw_of, candidates, found, terms, selected
         selected = [s for s in selected if s in terms]
         coef, _, offsets, ident = _fit_identified(A0, terms, found, zr)
-        contrib = sum(np.einsum("nip,p->ni", raw_of[s] if s not in ident else raw_of[s] @ ident[s],
-                                coef[offsets[i + 1]:offsets[i + 2]]) for i, s in enumerate(terms))
+        contrib = sum(np.einsum("nip,p->ni", X, coef[offsets[i + 1]:offsets[i + 2]])
+                      for i, X in enumerate(_fitted_columns(raw_of, terms, ident)))
         nom = fit_nominal(ctx, y_raw - contrib)
         # a fitted time lag's column is rebuilt as the exact shift by it (its derivative alone is first order)
         lag = float(coef[offsets[list(terms).index(TIME_LAG) + 1]]) if TIME_LAG in terms else 0.0
@@ -389,7 +389,7 @@ def _analyze_table(rec: Recording, calibration: Calibration | None, alpha: float
         del terms[worst]
         relinearise()  # with no term left: the nominal model alone, as before
     coef, cov, offsets, ident = _fit_identified(A0, terms, found, zr)
-    raw_cols = [J0] + [raw_of[s] if s not in ident else raw_of[s] @ ident[s] for s in terms]
+    raw_cols = [J0] + _fitted_columns(raw_of, terms, ident)
     Xraw = np.concatenate(raw_cols, axis=2)
     fitted = np.einsum("nip,p->ni", Xraw, coef)
     r_after = r0 - fitted
@@ -792,6 +792,12 @@ def _fit_identified(A0: np.ndarray, terms: dict[str, np.ndarray], found: list[Fo
     ident = {name: T for name, T in ident.items() if T.shape[1] < T.shape[0]}
     coef, cov, offsets = _fit_terms(A0, [Xw if name not in ident else Xw @ ident[name] for name, Xw in terms.items()], zr)
     return coef, cov, offsets, ident
+
+
+def _fitted_columns(raw_of: dict[str, np.ndarray], terms: dict[str, np.ndarray], ident: dict[str, np.ndarray]
+                    ) -> list[np.ndarray]:
+    """Each term's raw columns (N, 3, p) as :func:`_fit_identified` fitted them (a reduced block's: ``X @ T``)."""
+    return [raw_of[s] if s not in ident else raw_of[s] @ ident[s] for s in terms]
 
 
 def _fit_terms(A0: np.ndarray, parts: list[np.ndarray], zr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

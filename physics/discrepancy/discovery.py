@@ -183,6 +183,11 @@ def base_columns(ctx: Context, nom: Nominal, frame: str, form: str) -> tuple[np.
     return sign * np.einsum("ij,njk,nkp->nip", nom.M, Q, dF), labels
 
 
+def temperature_changes(temp: np.ndarray | None) -> bool:
+    """Whether a recording's temp_c changes enough during the run (0.2 deg C) for blocks against it."""
+    return temp is not None and bool(np.all(np.isfinite(temp))) and float(np.ptp(temp)) >= 0.2
+
+
 def dependence_functions(ctx: Context, dependence: str, temp: np.ndarray | None) -> tuple[np.ndarray, list[str]] | str:
     """Scalar functions (N, q) a block's parameters follow, with labels; or why this recording cannot test it."""
     if dependence == "time":
@@ -192,7 +197,7 @@ def dependence_functions(ctx: Context, dependence: str, temp: np.ndarray | None)
         x = 2.0 * (ctx.t - ctx.t[0]) / max(np.ptp(ctx.t), 1e-9) - 1.0
         return x[:, None], ["P1(t)"]
     if dependence == "temp_c":
-        if temp is None or not np.all(np.isfinite(temp)) or np.ptp(temp) < 0.2:
+        if not temperature_changes(temp):
             return "needs temp_c that changes during the run"
         x = 2.0 * (temp - temp.min()) / np.ptp(temp) - 1.0
         return x[:, None], ["P1(T)"]
@@ -1512,9 +1517,7 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
     step = step_time(segs, ctx.t) if f.complement else None
     when = window_text(segs, step)
     dep = "" if blk.windowed else f", {AGAINST_TEXT.get(blk.dependence, blk.dependence)}"
-    temp = ctx.rec.temp_c
-    logged = temp is not None and bool(np.all(np.isfinite(temp))) and float(np.ptp(temp)) >= 0.2  # as testable
-    cause = (INTERMITTENT if len(segs) > 1 else _cause(blk, step is not None, logged))
+    cause = (INTERMITTENT if len(segs) > 1 else _cause(blk, step is not None, temperature_changes(ctx.rec.temp_c)))
     if f.complement and len(f.complement) != len(segs):
         # the nominal model takes in what is constant through the run, so the times between are as well the
         # same departure of the opposite sign: said where that is another story (present at the start, taken
@@ -1525,10 +1528,10 @@ def discovered_finding(f: Found, c: np.ndarray, cv: np.ndarray, contrib: np.ndar
     explanation = f"{FORM_TEXT[blk.form]} of {size} {FRAME_TEXT[blk.frame]}{dep}{when}: {cause}. " + FOUND_BY_SEARCH
     if absorbed:
         params["absorbed_combinations"] = absorbed
-        explanation += (f" {absorbed} of its {len(c)} coefficient combinations {'is' if absorbed == 1 else 'are'} taken "
-                        "in by the nominal model "
-                        "(the recording cannot tell them from the unit's own calibration): the values given are "
-                        "the rest, none along those.")
+        verb = "is" if absorbed == 1 else "are"
+        explanation += (f" {absorbed} of its {len(c)} coefficient combinations {verb} taken in by the nominal model (the "
+                        "recording cannot tell them from the unit's own calibration): the values given are the rest, "
+                        "none along those.")
     if not plausible:
         explanation += " " + IMPLAUSIBLE
     experiment = confirming_experiment(blk, segs, step)

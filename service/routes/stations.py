@@ -70,14 +70,25 @@ async def create_station(body: StationIn, request: Request, caller: Caller = Dep
         return station_json(row)
 
 
+def _same_name(body: StationConfigIn, name: str) -> None:
+    """422 when the body names another station than the path (a station keeps its name)."""
+    if body.name is not None and body.name != name:
+        raise invalid("body.name", f"{body.name!r} is not the station of the path, {name!r} (a station keeps its name)")
+
+
+def _idle(row: Station) -> None:
+    """409 while a run uses the station: its settings change only when it is idle."""
+    if row.run_id is not None:
+        raise HTTPException(409, f"station {row.name!r} is {row.state} (run {row.run_id}); change it when idle")
+
+
 @router.put("/stations/{name}", response_model=StationOut, responses=ERRORS)
 async def put_station(name: StationName, body: StationConfigIn, request: Request,
                       caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
     """Create a station or change its URLs or serial policy (admin), e.g. after moving a table to another
     gateway. 409 while a run uses it; runs already made keep the configuration they ran with."""
     # the same checks as POST: the name in the path has StationIn.name's type (a bad one: 422 path.name)
-    if body.name is not None and body.name != name:
-        raise invalid("body.name", f"{body.name!r} is not the station of the path, {name!r} (a station keeps its name)")
+    _same_name(body, name)
     full = StationIn.model_construct(**{**body.model_dump(), "name": name})
     with sessions(request)() as s:
         _hardware_free(s, name, full.modbus, list(full.compasses))
@@ -87,8 +98,7 @@ async def put_station(name: StationName, body: StationConfigIn, request: Request
                           state="idle", serial_policy=full.serial_policy or DEFAULT_POLICY)
             s.add(row)
         else:
-            if row.run_id is not None:
-                raise HTTPException(409, f"station {name!r} is {row.state} (run {row.run_id}); change it when idle")
+            _idle(row)
             row.modbus, row.compasses = full.modbus, list(full.compasses)
             # omitted: kept (a URL change reset a simulator's time scale 20 to 1, and its next run's samples
             # were stamped 20 times too close together, without a word; nor may it reset the policy)
@@ -107,14 +117,12 @@ async def patch_station(name: StationName, body: StationPatchIn, request: Reques
                         caller: Caller = Depends(require("admin"))) -> dict[str, Any]:
     """Change some of a station's settings (admin), e.g. ``{"serial_policy": "refuse"}``: what is given changes,
     the rest is kept (PUT wants the URLs as well). 404 for no such station, 409 while a run uses it."""
-    if body.name is not None and body.name != name:
-        raise invalid("body.name", f"{body.name!r} is not the station of the path, {name!r} (a station keeps its name)")
+    _same_name(body, name)
     with sessions(request)() as s:
         row = s.scalar(select(Station).where(Station.name == name))
         if row is None:
             raise HTTPException(404, f"no station {name!r} (create it with POST /stations or PUT /stations/{name})")
-        if row.run_id is not None:
-            raise HTTPException(409, f"station {name!r} is {row.state} (run {row.run_id}); change it when idle")
+        _idle(row)
         modbus = body.modbus if body.modbus is not None else row.modbus
         compasses = list(body.compasses) if body.compasses is not None else list(row.compasses or [])
         _hardware_free(s, name, modbus, compasses)
